@@ -1,0 +1,43 @@
+# torchskin: `make demo` runs the main job, `make test` runs lint and the test suite.
+# Both create .venv first. TORCH selects the torch build: the default is the CPU wheel on this machine's
+# disk; on a GPU machine use e.g. `make setup TORCH=torch`.
+PYTHON ?= python3
+TORCH ?= torch==2.13.0
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT ?= out
+
+.PHONY: setup demo test lint bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+		echo "installing libusb-1.0-0 (needed by open3d)"; \
+		(apt-get install -y libusb-1.0-0 >/dev/null 2>&1 || (apt-get update >/dev/null && apt-get install -y libusb-1.0-0 >/dev/null)) \
+		|| echo "warning: could not install libusb-1.0-0; open3d will not import"; \
+	fi
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH)"
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: setup
+	mkdir -p $(OUT)
+	$(VENV)/bin/torchskin spectra --all-presets --plot $(OUT)/presets.png
+	@echo "wrote $(OUT)/presets.png"
+
+lint: setup
+	$(VENV)/bin/ruff check torchskin tests scripts
+
+test: lint
+	@$(PY) -m pytest -q; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; exit 1; fi; exit $$rc
+
+bench: setup
+	$(VENV)/bin/torchskin bench
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache

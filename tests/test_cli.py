@@ -1,0 +1,86 @@
+"""The `torchskin` command line: JSON contract, plots, errors."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from torchskin import tissue
+from torchskin.cli import main
+from torchskin.detect import DEFAULT_BOX
+
+
+def run_json(capsys, *args):
+    assert main(list(args)) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_spectra_json_contract(capsys):
+    out = run_json(capsys, "spectra", "--preset", "I-II", "--preset", "V-VI", "--bands", "544,633,1080,1580",
+                   "--json")
+    skins = out["skins"]
+    assert [s["name"] for s in skins] == ["I-II", "V-VI"]
+    for s in skins:
+        assert set(s) >= {"name", "params", "wavelengths_nm", "reflectance", "ndgri", "ndsi"}
+        assert s["wavelengths_nm"] == [544.0, 633.0, 1080.0, 1580.0]
+        g, r, n, w = s["reflectance"]
+        assert abs(s["ndgri"] - (g - r) / (g + r)) < 1e-9 and abs(s["ndsi"] - (n - w) / (n + w)) < 1e-9
+        assert DEFAULT_BOX.b1 <= s["ndgri"] <= DEFAULT_BOX.b2
+    assert skins[0]["params"]["melanosome"] == pytest.approx(0.035)
+
+
+def test_spectra_indices_always_at_default_bands(capsys):
+    a = run_json(capsys, "spectra", "--preset", "III", "--wavelengths", "400:700:50", "--json")["skins"][0]
+    b = run_json(capsys, "spectra", "--preset", "III", "--bands", "544,633,1080,1580", "--json")["skins"][0]
+    assert len(a["wavelengths_nm"]) == 7 and a["ndgri"] == pytest.approx(b["ndgri"]) and a["ndsi"] == b["ndsi"]
+
+
+def test_spectra_sample_param_and_incidence(capsys):
+    out = run_json(capsys, "spectra", "--sample", "20", "--seed", "3", "--param", "oxygenation=0.9",
+                   "--bands", "633", "--json")
+    assert len(out["skins"]) == 20
+    assert all(s["params"]["oxygenation"] == pytest.approx(0.9) for s in out["skins"])
+    n0 = run_json(capsys, "spectra", "--preset", "I", "--bands", "1080", "--json")["skins"][0]
+    n80 = run_json(capsys, "spectra", "--preset", "I", "--bands", "1080", "--incidence-deg", "80",
+                   "--json")["skins"][0]
+    assert n80["reflectance"][0] > n0["reflectance"][0]  # more surface reflection at grazing incidence
+
+
+def test_spectra_sample_matches_library_sampling(capsys):
+    out = run_json(capsys, "spectra", "--sample", "5", "--seed", "0", "--bands", "544", "--json")
+    skins, _ = tissue.sample(5, 0)
+    assert [s["params"]["melanosome"] for s in out["skins"]] == pytest.approx(skins.melanosome.tolist())
+
+
+def test_spectra_plot_writes_png(tmp_path, capsys):
+    png = tmp_path / "p.png"
+    assert main(["spectra", "--all-presets", "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["p.png"]  # no temporary left behind
+
+
+@pytest.mark.parametrize("args,msg", [
+    (["--param", "oxygenation=1.5"], "oxygenation must lie in [0, 1]"),
+    (["--param", "melanin=0.1"], "unknown parameter 'melanin'"),
+    (["--wavelengths", "300:800:10"], "wavelengths must lie in [400, 1700] nm"),
+    (["--wavelengths", "400-800"], "START:STOP:STEP"),
+    (["--preset", "VII"], "unknown preset"),
+    (["--incidence-deg", "95"], "--incidence-deg must lie in [0, 90)"),
+])
+def test_spectra_bad_input(capsys, args, msg):
+    assert main(["spectra", *args]) == 2
+    assert msg in capsys.readouterr().err
+
+
+def test_plot_into_missing_folder_fails_cleanly(tmp_path, capsys):
+    assert main(["spectra", "--preset", "I", "--plot", str(tmp_path / "nope" / "p.png")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_console_script_runs_bench_json():
+    r = subprocess.run([sys.executable, "-m", "torchskin.cli", "bench", "--only", "km", "--json"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    km = json.loads(r.stdout)["km"]
+    assert km["samples_x_bands_per_s"] > 0 and km["device"] == "cpu" and km["dtype"] == "float32"

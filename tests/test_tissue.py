@@ -1,0 +1,183 @@
+"""The nine-layer skin model: calibration against the rules box, spectral features, batching, devices,
+autograd and input validation."""
+
+import math
+
+import pytest
+import torch
+from conftest import dtype_for
+
+from torchskin import tissue as T
+from torchskin.bands import DEFAULT_BANDS
+from torchskin.detect import DEFAULT_BOX, indices, rules_detector
+
+DT = torch.float64
+BANDS = torch.tensor([b.center_nm for b in DEFAULT_BANDS], dtype=DT)
+
+
+def test_box_calibration_percentiles_match_thesis_box():
+    """Over `torchskin spectra --sample 2000 --seed 0` the 0.5/99.5 % index percentiles sit on the box."""
+    skins, _ = T.sample(2000, 0, dtype=DT)
+    g, s = indices(T.reflectance(skins, BANDS))
+    q = torch.tensor([0.005, 0.995], dtype=DT)
+    qg, qs = torch.quantile(g, q), torch.quantile(s, q)
+    box = DEFAULT_BOX
+    assert abs(qg[0] - box.b1) <= 0.05 and abs(qg[1] - box.b2) <= 0.05, qg
+    assert abs(qs[0] - box.c1) <= 0.05 and abs(qs[1] - box.c2) <= 0.05, qs
+
+
+def test_every_preset_inside_the_box():
+    g, s = indices(T.reflectance(T.preset(list(T.PRESETS), dtype=DT), BANDS))
+    assert bool(rules_detector(g, s).all()), (g, s)
+
+
+def test_type_i_ii_shows_oxyhemoglobin_w_and_water_dip():
+    wl = T.wavelength_grid(500, 1700, 1, dtype=DT)
+    R = T.reflectance(T.preset("I-II", dtype=DT), wl)
+    sel = (wl >= 530) & (wl <= 590)
+    r = R[sel]
+    minima = ((r[1:-1] < r[:-2]) & (r[1:-1] < r[2:])).nonzero().flatten()
+    assert minima.numel() == 2, wl[sel][1:-1][minima]
+    # the water band: a local minimum near 1450 nm far below the 1300 nm plateau
+    band = (wl >= 1400) & (wl <= 1500)
+    wmin = wl[band][torch.argmin(R[band])]
+    assert 1430 <= float(wmin) <= 1475
+    assert float(R[band].min()) < 0.3 * float(R[wl == 1300])
+
+
+def test_dark_skin_darker_than_fair_skin_in_visible():
+    wl = T.wavelength_grid(450, 700, 2, dtype=DT)
+    R = T.reflectance(T.preset(["I-II", "V-VI"], dtype=DT), wl)
+    assert bool((R[1] < R[0]).all())
+
+
+def test_melanin_darkens_monotonically_and_blood_deepens_the_green_dip():
+    wl = torch.tensor([544.0, 633.0, 800.0], dtype=DT)
+    v = torch.linspace(0.01, 0.4, 8, dtype=DT)
+    R = T.reflectance(T.SkinParams.create(melanosome=v, dtype=DT), wl)
+    assert bool((R[1:] < R[:-1]).all())
+    Rb = T.reflectance(T.SkinParams.create(blood=torch.tensor([0.3, 1.5], dtype=DT), dtype=DT), wl)
+    assert Rb[1, 0] < Rb[0, 0]  # more blood: less green
+    g, _ = indices(T.reflectance(T.SkinParams.create(blood=torch.tensor([0.3, 1.5], dtype=DT)), BANDS))
+    assert g[1] < g[0]
+
+
+def test_oxygenation_moves_absorption_between_633_and_577():
+    wl = torch.tensor([577.0, 633.0], dtype=DT)
+    R = T.reflectance(T.SkinParams.create(oxygenation=torch.tensor([0.1, 0.95], dtype=DT), dtype=DT), wl)
+    assert R[1, 1] > R[0, 1]  # deoxy-Hb absorbs at 633 nm
+    assert R[1, 0] < R[0, 0]  # oxy-Hb absorbs more at 577 nm
+
+
+def test_substrate_extension_beyond_table_is_immaterial():
+    """The substrate is held constant beyond 1602 nm; there water makes the dermis nearly opaque, so a 30 %
+    error in the substrate changes the total reflectance by < 2e-3."""
+    wl = torch.tensor([1620.0, 1660.0, 1700.0], dtype=DT)
+    lo = T.reflectance(T.SkinParams.create(subcutaneous_scale=0.5, dtype=DT), wl)
+    hi = T.reflectance(T.SkinParams.create(subcutaneous_scale=0.65, dtype=DT), wl)
+    assert 0 < float((hi - lo).min()) and float((hi - lo).max()) < 2e-3
+
+
+def test_broadcasting_skins_by_wavelengths():
+    mel = torch.tensor([0.02, 0.2, 0.4], dtype=DT)[:, None]
+    oxy = torch.tensor([0.3, 0.6, 0.9, 0.5], dtype=DT)[None, :]
+    p = T.SkinParams.create(melanosome=mel, oxygenation=oxy, dtype=DT)
+    wl = T.wavelength_grid(400, 1700, 100, dtype=DT)
+    R = T.reflectance(p, wl)
+    assert R.shape == (3, 4, wl.numel())
+    one = T.reflectance(T.SkinParams.create(melanosome=0.2, oxygenation=0.9, dtype=DT), wl)
+    torch.testing.assert_close(R[1, 2], one, atol=1e-14, rtol=0)
+
+
+def test_float32_matches_float64():
+    skins, _ = T.sample(500, 7, dtype=DT)
+    wl = T.wavelength_grid(400, 1700, 5, dtype=DT)
+    r64 = T.reflectance(skins, wl)
+    r32 = T.reflectance(skins.to(dtype=torch.float32), wl.float())
+    assert r32.dtype == torch.float32
+    assert float((r32.double() - r64).abs().max()) < 1e-4
+
+
+def test_device_and_dtype_follow_inputs(device):
+    dt = dtype_for(device)
+    skins, _ = T.sample(16, 1, dtype=dt, device=device)
+    wl = T.wavelength_grid(400, 1700, 50, dtype=dt, device=device)
+    R = T.reflectance(skins, wl)
+    assert R.device.type == device.type and R.dtype == dt
+    ref = T.reflectance(skins.to("cpu", DT), wl.cpu().double())
+    assert float((R.cpu().double() - ref).abs().max()) < (1e-4 if dt == torch.float32 else 1e-12)
+
+
+def test_gradcheck_wrt_skin_parameters():
+    base = T.preset("I-II", dtype=DT)
+    wl = torch.tensor([450.0, 544.0, 633.0, 1080.0, 1450.0, 1580.0], dtype=DT)
+    names = list(T.PARAM_NAMES)
+    x0 = torch.stack([getattr(base, k) for k in names]).clone().requires_grad_(True)
+
+    def f(x):
+        return T.reflectance(T.SkinParams(*x.unbind(0)), wl)
+
+    assert torch.autograd.gradcheck(f, (x0,), eps=1e-6, atol=1e-6)
+
+
+def test_gradient_wrt_layer_constants_is_finite():
+    a = torch.tensor(111.0, dtype=DT, requires_grad=True)
+    L = T.SkinLayers(scatter_a500=tuple(T.DEFAULT_LAYERS.scatter_a500[:7]) + (a,) + (10.0,))
+    R = T.reflectance(T.preset("I", dtype=DT, layers=L), BANDS).sum()
+    R.backward()
+    assert torch.isfinite(a.grad) and float(a.grad) > 0  # more reticular scattering: brighter skin
+
+
+def test_polynomial_r0_option_converges_to_exact():
+    """The thesis's per-band polynomial in R0 (Fig 18) approximates the closed form; the default degree 4
+    is within 1e-3 at every incidence and each extra degree at least halves the error."""
+    skins = T.preset(["I-II", "V-VI"], dtype=DT)
+    th = torch.linspace(0, 1.5, 31, dtype=DT)[:, None, None]
+    exact = T.diffuse_reflectance(skins, BANDS, theta_i=th)
+    err = [float((T.diffuse_reflectance(skins, BANDS, theta_i=th, angular="polynomial", degree=d) - exact)
+                 .abs().max()) for d in (2, 3, 4, 5, 6)]
+    assert err[2] < 1e-3
+    assert all(b < a / 2 for a, b in zip(err, err[1:])), err
+
+
+def test_diffuse_component_falls_with_incidence_and_vanishes_at_grazing():
+    skins = T.preset("I-II", dtype=DT)
+    th = torch.tensor([0.0, 0.5, 1.0, 1.4, math.pi / 2], dtype=DT)[:, None]
+    rd = T.diffuse_reflectance(skins, BANDS, theta_i=th)
+    assert bool((rd[1:] <= rd[:-1] + 1e-15).all())
+    assert float(rd[-1].abs().max()) < 1e-12  # R0 = 1 at grazing: nothing enters
+
+
+@pytest.mark.parametrize("name,value,msg", [
+    ("melanosome", -0.1, "melanosome must lie in [0, 1]"),
+    ("oxygenation", 1.2, "oxygenation must lie in [0, 1]"),
+    ("blood", float("nan"), "blood must lie in [0, 3]"),
+    ("reticular_depth", 2.0, "reticular_depth must lie in [0, 1] cm"),
+])
+def test_bad_parameters_raise(name, value, msg):
+    with pytest.raises(ValueError, match=msg.replace("[", r"\[").replace("]", r"\]")):
+        T.SkinParams.create(**{name: value})
+
+
+def test_bad_wavelengths_and_shapes_raise():
+    p = T.preset("I", dtype=DT)
+    with pytest.raises(ValueError, match=r"wavelengths must lie in \[400, 1700\] nm"):
+        T.reflectance(p, torch.tensor([350.0, 500.0], dtype=DT))
+    with pytest.raises(ValueError, match="1-D"):
+        T.reflectance(p, torch.ones(2, 2, dtype=DT) * 500)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        T.SkinParams.create(melanosome=torch.full((3,), 0.1), blood=torch.ones(4))
+    with pytest.raises(ValueError, match="unknown skin parameter"):
+        T.SkinParams.create(melanin=0.1)
+    with pytest.raises(ValueError, match="unknown preset"):
+        T.preset("VII")
+
+
+def test_sampling_is_reproducible_and_within_type_ranges():
+    a, ta = T.sample(300, 11, dtype=DT)
+    b, tb = T.sample(300, 11, dtype=DT)
+    assert ta == tb and torch.equal(a.melanosome, b.melanosome)
+    for k, typ in enumerate(ta):
+        lo, hi = T.FITZPATRICK_RANGES[typ]["melanosome"]
+        assert lo <= float(a.melanosome[k]) <= hi
+    assert set(ta) == set(T.FITZPATRICK_TYPES)

@@ -1,0 +1,130 @@
+"""Skin indices, the rules detector (eq 2.5.10) and the Bhattacharyya coefficient (eq 4.2.1).
+
+Index signs (DESIGN.md): NDSI = (ρ1080 - ρ1580)/(ρ1080 + ρ1580); NDGRI = (ρ544 - ρ633)/(ρ544 + ρ633), green
+minus red (the thesis prints eq 2.5.9 the other way round, but its negative bounds need green minus red).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+
+import torch
+
+from ._checks import as_tensor
+from .bands import DEFAULT_BANDS, Band, as_bands
+
+
+def normalized_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(a - b) / (a + b); NaN where a + b == 0."""
+    return (a - b) / (a + b)
+
+
+def ndgri(green, red) -> torch.Tensor:
+    """Normalized Difference Green-Red Index, (ρ544 - ρ633)/(ρ544 + ρ633)."""
+    green = as_tensor(green)
+    return normalized_difference(green, as_tensor(red, like=green))
+
+
+def ndsi(nir, swir) -> torch.Tensor:
+    """Normalized Difference Skin Index, eq 2.5.8: (ρ1080 - ρ1580)/(ρ1080 + ρ1580)."""
+    nir = as_tensor(nir)
+    return normalized_difference(nir, as_tensor(swir, like=nir))
+
+
+def _band_index(bands: Sequence[Band], center: float, tol: float = 30.0) -> int:
+    d = [abs(b.center_nm - center) for b in bands]
+    i = min(range(len(d)), key=d.__getitem__)
+    if d[i] > tol:
+        raise ValueError(
+            f"no band within {tol:g} nm of {center:g} nm among {[b.center_nm for b in bands]}: "
+            "the indices need bands near 544, 633, 1080 and 1580 nm"
+        )
+    return i
+
+
+def indices(reflectance: torch.Tensor, bands: Sequence[Band] | None = None, band_dim: int = -1):
+    """``(ndgri, ndsi)`` of a reflectance tensor whose ``band_dim`` axis holds ``bands`` (default: the four
+    thesis bands in order 544, 633, 1080, 1580 nm)."""
+    bands = as_bands(bands) if bands is not None else DEFAULT_BANDS
+    reflectance = as_tensor(reflectance)
+    if reflectance.shape[band_dim] != len(bands):
+        raise ValueError(
+            f"reflectance has {reflectance.shape[band_dim]} bands on axis {band_dim}, expected {len(bands)}"
+        )
+    pick = [_band_index(bands, c) for c in (544.0, 633.0, 1080.0, 1580.0)]
+    g, r, n, s = (reflectance.select(band_dim, i) for i in pick)
+    return ndgri(g, r), ndsi(n, s)
+
+
+@dataclass(frozen=True)
+class RulesBox:
+    """The rules detector's box: b1 <= NDGRI <= b2 and c1 <= NDSI <= c2 (eq 2.5.10)."""
+
+    b1: float = -0.54079
+    b2: float = -0.061525
+    c1: float = 0.65703
+    c2: float = 0.76779
+
+    def __post_init__(self):
+        if not (self.b1 <= self.b2 and self.c1 <= self.c2):
+            raise ValueError(f"need b1 <= b2 and c1 <= c2, got {self}")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+#: the thesis's diffuse-model box
+DEFAULT_BOX = RulesBox()
+
+
+def rules_detector(ndgri_, ndsi_, box: RulesBox | torch.Tensor = DEFAULT_BOX) -> torch.Tensor:
+    """Boolean skin mask, eq 2.5.10. ``box`` is a ``RulesBox`` or a tensor ``(..., 4)`` of (b1, b2, c1, c2)
+    broadcasting with the indices (a per-pixel or per-configuration box). NaN indices are not skin."""
+    g = as_tensor(ndgri_)
+    s = as_tensor(ndsi_, like=g)
+    if isinstance(box, RulesBox):
+        return (g >= box.b1) & (g <= box.b2) & (s >= box.c1) & (s <= box.c2)
+    box = as_tensor(box, like=g)
+    if box.shape[-1] != 4:
+        raise ValueError(f"box tensor must end in 4 values (b1, b2, c1, c2), got shape {tuple(box.shape)}")
+    b1, b2, c1, c2 = box.unbind(-1)
+    return (g >= b1) & (g <= b2) & (s >= c1) & (s <= c2)
+
+
+def histogram2d(x: torch.Tensor, y: torch.Tensor, bins: int = 64, range_x=(-1.0, 1.0), range_y=(-1.0, 1.0)):
+    """Counts ``(bins, bins)`` of points (x, y) on a regular grid (device-agnostic: bucketize + bincount).
+
+    Points outside the ranges or NaN are dropped.
+    """
+    x, y = as_tensor(x).reshape(-1), as_tensor(y).reshape(-1)
+    if x.shape != y.shape:
+        raise ValueError(f"x and y must have the same number of points, got {x.numel()} and {y.numel()}")
+    if bins < 1:
+        raise ValueError(f"bins must be >= 1, got {bins}")
+    fx = (x - range_x[0]) / (range_x[1] - range_x[0]) * bins
+    fy = (y - range_y[0]) / (range_y[1] - range_y[0]) * bins
+    ok = (fx >= 0) & (fx <= bins) & (fy >= 0) & (fy <= bins)  # NaN compares False
+    ix = fx.clamp(0, bins - 1).floor().long()
+    iy = fy.clamp(0, bins - 1).floor().long()
+    flat = torch.where(ok, ix * bins + iy, torch.zeros_like(ix))
+    counts = torch.bincount(flat, weights=ok.to(x.dtype), minlength=bins * bins)
+    return counts.reshape(bins, bins)
+
+
+def bhattacharyya(h1: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
+    """Bhattacharyya coefficient, eq 4.2.1: Σ √(p q) of two histograms, each normalised to sum 1.
+
+    Histograms of any shape (1-D, 2-D NDSI x NDGRI, ...), summed over all bins. 1 for identical
+    distributions, 0 for disjoint ones.
+    """
+    h1 = as_tensor(h1)
+    h2 = as_tensor(h2, like=h1)
+    if h1.shape != h2.shape:
+        raise ValueError(f"histograms must have the same shape, got {tuple(h1.shape)} and {tuple(h2.shape)}")
+    if bool((h1 < 0).any()) or bool((h2 < 0).any()):
+        raise ValueError("histogram counts must be >= 0")
+    s1, s2 = h1.sum(), h2.sum()
+    if float(s1) == 0 or float(s2) == 0:
+        raise ValueError("histograms must not be empty")
+    return torch.sqrt((h1 / s1) * (h2 / s2)).sum()

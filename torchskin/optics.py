@@ -1,0 +1,213 @@
+"""Surface optics: Fresnel (eqs 2.2.4-2.2.6), Schlick (2.2.7), the Gaussian microfacet lobe (2.3.4-2.3.6),
+the combined skin BRDF (3.1.1), observed reflectance (3.1.4) and DHR (2.3.2).
+
+Angles are radians. ``theta_i``/``theta_r`` are measured from the (local) surface normal; ``delta_phi`` is the
+relative azimuth with Δφ = π the forward (specular) plane, so the mirror direction is θr = θi, Δφ = π.
+All functions broadcast their inputs and return on their device and dtype.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from ._checks import as_tensor, broadcast_shapes, check_range
+from .bands import Band, as_bands
+
+_EPS_COS = 1e-12
+
+
+# ------------------------------------------------------------------------------------------------ Fresnel
+def fresnel_normal(n1, n2) -> torch.Tensor:
+    """Normal-incidence reflectance ((n2 - n1) / (n2 + n1))^2, eq 2.2.4."""
+    n1, n2 = torch.broadcast_tensors(as_tensor(n1), as_tensor(n2))
+    return ((n2 - n1) / (n2 + n1)) ** 2
+
+
+def _cos_t(theta_i, n1, n2):
+    cos_i = torch.cos(theta_i)
+    sin_t2 = (n1 / n2) ** 2 * (1 - cos_i**2)
+    tir = sin_t2 >= 1
+    cos_t = torch.sqrt(torch.clamp(1 - sin_t2, min=0.0))
+    return cos_i, cos_t, tir
+
+
+def fresnel_s(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+    """s-polarised reflectance, eq 2.2.5 (1 under total internal reflection)."""
+    theta_i = as_tensor(theta_i)
+    n1, n2 = as_tensor(n1, like=theta_i), as_tensor(n2, like=theta_i)
+    cos_i, cos_t, tir = _cos_t(theta_i, n1, n2)
+    r = ((n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)) ** 2
+    return torch.where(tir, torch.ones_like(r), r)
+
+
+def fresnel_p(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+    """p-polarised reflectance, eq 2.2.6 (1 under total internal reflection)."""
+    theta_i = as_tensor(theta_i)
+    n1, n2 = as_tensor(n1, like=theta_i), as_tensor(n2, like=theta_i)
+    cos_i, cos_t, tir = _cos_t(theta_i, n1, n2)
+    r = ((n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i)) ** 2
+    return torch.where(tir, torch.ones_like(r), r)
+
+
+def fresnel_unpolarized(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+    """Unpolarised reflectance: the mean of eqs 2.2.5 and 2.2.6."""
+    return 0.5 * (fresnel_s(theta_i, n1, n2) + fresnel_p(theta_i, n1, n2))
+
+
+def schlick(rho0, theta) -> torch.Tensor:
+    """Schlick's approximation, eq 2.2.7: ρ0 + (1 - ρ0)(1 - cos θ)^5."""
+    theta = as_tensor(theta)
+    rho0 = as_tensor(rho0, like=theta)
+    return rho0 + (1 - rho0) * (1 - torch.cos(theta)).pow(5)
+
+
+def rho0_to_n(rho0, n1: float = 1.0) -> torch.Tensor:
+    """Refractive index from normal reflectance (eq 2.2.4 inverted): n = n1 (1 + √ρ0) / (1 - √ρ0)."""
+    rho0 = as_tensor(rho0)
+    check_range("rho0", rho0, 0.0, 0.999999)
+    s = torch.sqrt(rho0)
+    return n1 * (1 + s) / (1 - s)
+
+
+def n_to_rho0(n, n1: float = 1.0) -> torch.Tensor:
+    """Normal reflectance of the interface n1 -> n (eq 2.2.4)."""
+    return fresnel_normal(n1, n)
+
+
+# ----------------------------------------------------------------------------------------- microfacet lobe
+def microfacet_angles(theta_i, theta_r, delta_phi) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(β, θ)`` of eqs 2.3.5-2.3.6: the incidence angle on the facet and the facet tilt from the normal."""
+    theta_i, theta_r, delta_phi = torch.broadcast_tensors(
+        as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
+    )
+    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
+    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    # clamp away from ±1: acos has an infinite derivative there
+    beta = 0.5 * torch.acos(cos2b.clamp(-1 + 1e-12, 1 - 1e-12))
+    cos_t = (ci + cr) / (2 * torch.cos(beta)).clamp_min(_EPS_COS)
+    theta = torch.acos(cos_t.clamp(-1 + 1e-12, 1 - 1e-12))
+    return beta, theta
+
+
+def _smith_g1(tan_v, m2):
+    """Smith masking for a Beckmann distribution with slope variance m^2 (exact erf form)."""
+    a = 1.0 / (torch.sqrt(m2) * tan_v.clamp_min(1e-12))
+    lam = 0.5 * (torch.erf(a) - 1) + torch.exp(-a * a) / (2 * a * math.sqrt(math.pi))
+    return 1.0 / (1.0 + lam)
+
+
+def microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+    """Gaussian microfacet specular lobe, eq 2.3.4 (sr^-1).
+
+    Cook-Torrance with a Beckmann distribution of slope variance m² = 2σ² and Schlick Fresnel at the facet
+    incidence β; no shadowing by default (the thesis's form). ``shadowing=True`` multiplies by the separable
+    Smith masking-shadowing G = G1(θi) G1(θr), which keeps the lobe energy-bounded at grazing angles.
+    Returns 0 for directions below the horizon.
+    """
+    theta_i, theta_r, delta_phi = as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
+    sigma2 = as_tensor(sigma2, like=theta_i)
+    rho0 = as_tensor(rho0, like=theta_i)
+    beta, theta = microfacet_angles(theta_i, theta_r, delta_phi)
+    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
+    ct = torch.cos(theta)
+    tan2 = (1 - ct * ct) / (ct * ct).clamp_min(_EPS_COS)
+    f = schlick(rho0, beta) * torch.exp(-tan2 / (2 * sigma2))
+    f = f / (8 * math.pi * sigma2 * ct.pow(4).clamp_min(_EPS_COS) * (ci * cr).clamp_min(_EPS_COS))
+    if shadowing:
+        m2 = 2 * sigma2
+        g = _smith_g1(torch.tan(theta_i).abs(), m2) * _smith_g1(torch.tan(theta_r).abs(), m2)
+        f = f * g
+    visible = (ci > 0) & (cr > 0)
+    return torch.where(visible, f, torch.zeros_like(f))
+
+
+# ------------------------------------------------------------------------------ per-band specular defaults
+@dataclass(frozen=True)
+class SpecularParams:
+    """Per-band microfacet parameters: slope variance σ² and Schlick normal reflectance ρ0.
+
+    Defaults: the thesis's fits (section 3.3.3): CASI scatterometer at 544 and 633 nm, image fits at 1080 and
+    1580 nm. Between the fitted wavelengths the parameters are interpolated linearly, outside held constant.
+    """
+
+    wavelengths_nm: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
+    sigma2: tuple[float, ...] = (0.0313, 0.0292, 0.0214, 0.0146)
+    rho0: tuple[float, ...] = (0.030, 0.038, 0.045, 0.042)
+
+    def at(self, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(σ², ρ0)`` at ``wavelengths`` (nm), on their device and dtype."""
+        from .data import interp
+
+        wl = as_tensor(wavelengths)
+        xp = torch.tensor(self.wavelengths_nm, dtype=wl.dtype, device=wl.device)
+        fp = torch.tensor([self.sigma2, self.rho0], dtype=wl.dtype, device=wl.device)
+        out = interp(wl.clamp(xp[0], xp[-1]), xp, fp)
+        return out[0], out[1]
+
+    def for_bands(self, bands: Sequence[Band] | None = None, dtype=None, device=None):
+        bands = as_bands(bands)
+        wl = torch.tensor([b.center_nm for b in bands], dtype=dtype or torch.get_default_dtype(), device=device)
+        return self.at(wl)
+
+
+THESIS_SPECULAR = SpecularParams()
+
+
+def combined_brdf(theta_i, theta_r, delta_phi, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+    """Combined skin BRDF, eq 3.1.1: f_s + (1 - ρ_Schlick(ρ0, β)) ρ_d / π (sr^-1).
+
+    ``rho_d`` is the diffuse (subsurface) reflectance, e.g. ``SkinModel.diffuse`` evaluated at the local
+    incidence; all inputs broadcast, the band axis last.
+    """
+    theta_i, theta_r, delta_phi = as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
+    rho_d = as_tensor(rho_d, like=theta_i)
+    beta, _ = microfacet_angles(theta_i, theta_r, delta_phi)
+    fs = microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, shadowing=shadowing)
+    fd = (1 - schlick(as_tensor(rho0, like=theta_i), beta)) * rho_d / math.pi
+    visible = (torch.cos(theta_i) > 0) & (torch.cos(theta_r) > 0)
+    return fs + torch.where(visible, fd, torch.zeros_like(fd))
+
+
+def observed_reflectance(brdf, theta_r, solid_angle) -> torch.Tensor:
+    """Reflectance seen by a detector of solid angle Ω = A_optic / R², eq 3.1.4: f · Ω · cos θr."""
+    brdf = as_tensor(brdf)
+    return brdf * as_tensor(solid_angle, like=brdf) * torch.cos(as_tensor(theta_r, like=brdf))
+
+
+def gauss_legendre(n: int, a: float, b: float, dtype=torch.float64, device=None):
+    """Nodes and weights of n-point Gauss-Legendre quadrature on [a, b] (Golub-Welsch, in torch)."""
+    k = torch.arange(1, n, dtype=torch.float64)
+    off = k / torch.sqrt(4 * k * k - 1)
+    jac = torch.diag(off, 1) + torch.diag(off, -1)
+    x, v = torch.linalg.eigh(jac)
+    w = 2 * v[0] ** 2
+    x = 0.5 * (b - a) * x + 0.5 * (b + a)
+    w = 0.5 * (b - a) * w
+    return x.to(dtype=dtype, device=device), w.to(dtype=dtype, device=device)
+
+
+def dhr(brdf_fn, theta_i, n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
+    """Directional-hemispherical reflectance, eq 2.3.2, by quadrature.
+
+    ``brdf_fn(theta_i, theta_r, delta_phi)`` receives tensors broadcasting to ``S + (n_theta, n_phi)``, where
+    S is ``theta_i``'s shape, and returns the BRDF there (parameters inside it must broadcast the same way,
+    e.g. per-band values shaped ``(B, 1, 1)`` with ``theta_i`` of shape ``(B,)``). Returns shape S.
+    Gauss-Legendre in θr, the periodic trapezoid rule in Δφ.
+    """
+    theta_i = as_tensor(theta_i)
+    tr, wt = gauss_legendre(n_theta, 0.0, math.pi / 2, dtype=theta_i.dtype, device=theta_i.device)
+    phi = torch.arange(n_phi, dtype=theta_i.dtype, device=theta_i.device) * (2 * math.pi / n_phi)
+    f = brdf_fn(theta_i[..., None, None], tr[:, None], phi[None, :])
+    w = (wt * torch.cos(tr) * torch.sin(tr))[:, None] * (2 * math.pi / n_phi)
+    return (f * w).sum(dim=(-2, -1))
+
+
+def check_angles(**angles) -> None:
+    """Validate incidence/reflection angles (radians) lie in [0, π/2]."""
+    for k, v in angles.items():
+        check_range(k, as_tensor(v), 0.0, math.pi / 2, "rad")
+    broadcast_shapes(**{k: as_tensor(v) for k, v in angles.items()})

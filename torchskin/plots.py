@@ -1,0 +1,76 @@
+"""Figures: skin spectra like the thesis's Fig 17 with the NDSI x NDGRI rules box beside them."""
+
+from __future__ import annotations
+
+import os
+
+import torch
+
+from .bands import DEFAULT_BANDS
+from .detect import DEFAULT_BOX, RulesBox
+from .io import atomic_path
+
+
+def plot_spectra(
+    path: str | os.PathLike,
+    wavelengths: torch.Tensor,
+    reflectance: torch.Tensor,
+    names: list[str],
+    ndgri: torch.Tensor,
+    ndsi: torch.Tensor,
+    box: RulesBox = DEFAULT_BOX,
+    title: str = "Diffuse skin reflectance (normal incidence)",
+    shade: torch.Tensor | None = None,
+) -> None:
+    """Write a PNG: reflectance spectra (left) and the skins in the rules-detector plane (right).
+
+    ``shade`` (one value per skin in [0, 1], e.g. melanosome fraction / 0.45) colours the curves.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    wl = wavelengths.detach().cpu().numpy()
+    R = reflectance.detach().cpu().reshape(-1, wl.size).numpy()
+    g = ndgri.detach().cpu().reshape(-1).numpy()
+    s = ndsi.detach().cpu().reshape(-1).numpy()
+    many = R.shape[0] > 12
+    n = R.shape[0]
+    c = (shade.detach().cpu().reshape(-1).clamp(0, 1).numpy() if shade is not None
+         else [k / max(n - 1, 1) for k in range(n)])
+    colors = [plt.get_cmap("copper_r")(0.1 + 0.85 * float(x)) for x in c]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1.6, 1]})
+    for k in range(n):
+        kw = {"lw": 0.6, "alpha": 0.35} if many else {"lw": 1.6, "label": names[k]}
+        ax.plot(wl, R[k], color=colors[k], **kw)
+    for b in DEFAULT_BANDS:
+        ax.axvline(b.center_nm, color="0.6", ls=":", lw=1)
+        ax.text(b.center_nm, 0.98, f"{b.center_nm:g}", transform=ax.get_xaxis_transform(), ha="center",
+                va="top", fontsize=8, color="0.4")
+    ax.set_xlabel("wavelength (nm)")
+    ax.set_ylabel("reflectance")
+    ax.set_xlim(wl.min(), wl.max())
+    ax.set_ylim(0, max(0.8, float(R.max()) * 1.05))
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    if not many:
+        ax.legend(fontsize=8, ncol=2)
+    bx.add_patch(plt.Rectangle((box.b1, box.c1), box.b2 - box.b1, box.c2 - box.c1, fill=False, ec="k", lw=1.5,
+                               label="rules box (eq 2.5.10)"))
+    bx.scatter(g, s, s=8 if many else 30, c=colors, zorder=3, edgecolors="k" if not many else "none",
+               linewidths=0.4)
+    if not many:
+        for k, n in enumerate(names):
+            bx.annotate(n, (g[k], s[k]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    bx.set_xlabel("NDGRI = (ρ544 - ρ633)/(ρ544 + ρ633)")
+    bx.set_ylabel("NDSI = (ρ1080 - ρ1580)/(ρ1080 + ρ1580)")
+    bx.set_xlim(min(-0.7, g.min() - 0.05), max(0.1, g.max() + 0.05))
+    bx.set_ylim(min(0.55, s.min() - 0.03), max(0.85, s.max() + 0.03))
+    bx.grid(alpha=0.3)
+    bx.legend(fontsize=8, loc="lower left")
+    bx.set_title("Rules-detector plane")
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)

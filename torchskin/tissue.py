@@ -1,0 +1,591 @@
+"""Nine-layer Kubelka-Munk skin model (thesis eqs 2.4.1-2.4.13), batched over skins and wavelengths.
+
+Layers, top to bottom: stratum corneum, lucidum, granulosum, spinosum, basale (epidermis); papillary dermis,
+upper blood net dermis, reticular dermis, deep blood net dermis (dermis); over a subcutaneous substrate.
+
+Per layer n (cm^-1):
+- absorption from the chromophore mixing equations 2.4.3-2.4.5,
+    epidermis  a_n = v_n a_mel + c_n a_col + w_n a_wat + a_car,epi
+    dermis     a_n = c_n a_col + (w_n + f_bw b_n) a_wat + b_n (γ a_ohb + (1-γ) a_dhb + a_car,bl + a_bil)
+  with melanosomes (v_n) in the spinosum and basale only, blood b_n = blood_level * nominal fraction;
+- reduced scattering from a power law (eq 2.4.1), s_n = a_n (λ / 500 nm)^-b_n, the reticular dermis scaled by
+  its collagen fraction;
+- the Kubelka-Munk coefficients from eqs 2.4.6-2.4.7;
+- the single-layer Kubelka solution with the *correct* denominators (DESIGN.md: the printed eqs 2.4.8-2.4.9
+  swap sinh and cosh): r = sinh(bSd) / (a sinh(bSd) + b cosh(bSd)), τ = b / (a sinh(bSd) + b cosh(bSd)),
+  a = (S+K)/S, b = √(a²-1), evaluated in an overflow-free exponential form;
+- layer adding (eqs 2.4.12-2.4.13). For a stack whose reflectance differs from above and below the
+  denominator needs the reflectance *from below* of the upper stack; ``add_layers`` carries both, which makes
+  adding associative. The whole stack under the surface collapses to one R_sub per skin and wavelength, so
+  the front surface (R0 = Schlick(ρ0, θi)) enters in closed form:
+      R_total(R0) = R0 + (1-R0)² R_sub / (1 - R0 R_sub),   ρ_d(R0) = R_total(R0) - R0.
+
+Conventions: wavelengths in nm (last axis), thickness in cm, coefficients in cm^-1. Inputs broadcast: skin
+parameters of shape P give outputs ``P + (n_wavelengths,)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import torch
+
+from . import data
+from ._checks import as_tensor, broadcast_shapes, check_range
+from .optics import schlick
+
+#: wavelengths covered by every table the model uses (nm)
+MODEL_RANGE_NM = (400.0, 1700.0)
+
+LAYER_NAMES = (
+    "stratum_corneum",
+    "stratum_lucidum",
+    "stratum_granulosum",
+    "stratum_spinosum",
+    "stratum_basale",
+    "papillary_dermis",
+    "upper_blood_net_dermis",
+    "reticular_dermis",
+    "deep_blood_net_dermis",
+)
+RETICULAR = 7  # index of the reticular dermis (its thickness and collagen fraction are free parameters)
+
+
+@dataclass(frozen=True)
+class SkinLayers:
+    """Constant layer parameters of the model (calibrated defaults; see ``docs`` in the module docstring).
+
+    Tuples hold one value per layer in ``LAYER_NAMES`` order. The reticular dermis's thickness and collagen
+    fraction come from ``SkinParams`` (``reticular_depth``, ``collagen``); its entries here are unused.
+    Values may be floats or tensors (tensors keep autograd, e.g. for calibration).
+    """
+
+    thickness_cm: tuple = (0.00046, 0.00024, 0.00046, 0.00358, 0.00134, 0.015, 0.008, 0.0, 0.01)
+    water: tuple = (0.15, 0.20, 0.30, 0.70, 0.70, 0.571, 0.671, 0.671, 0.671)
+    collagen: tuple = (0.60, 0.50, 0.40, 0.20, 0.20, 0.30, 0.30, 0.0, 0.30)
+    blood: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0402, 0.0200, 0.0050, 0.0200)
+    melanosome_share: tuple = (0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+    scatter_a500: tuple = (15.2, 15.2, 15.2, 5.00, 5.00, 10.0, 10.0, 111.0, 10.0)
+    scatter_b: tuple = (3.49, 3.49, 3.49, 1.28, 1.28, 3.50, 3.50, 2.65, 3.50)
+    blood_water_fraction: float = 0.9  # eq 2.4.5's 0.9 b_n
+    carotene_epidermis_molar: float = 1.0e-6
+    carotene_blood_molar: float = 1.5e-6
+    bilirubin_blood_molar: float = 8.5e-6
+
+    def __post_init__(self):
+        for f in ("thickness_cm", "water", "collagen", "blood", "melanosome_share", "scatter_a500", "scatter_b"):
+            if len(getattr(self, f)) != 9:
+                raise ValueError(f"SkinLayers.{f} must have 9 entries (one per layer), got {len(getattr(self, f))}")
+
+
+DEFAULT_LAYERS = SkinLayers()
+
+#: allowed range of each free parameter (validation); units: fractions, blood level is a multiplier of the
+#: nominal layer blood fractions, reticular depth in cm.
+PARAM_BOUNDS: dict[str, tuple[float, float]] = {
+    "melanosome": (0.0, 1.0),
+    "blood": (0.0, 3.0),
+    "oxygenation": (0.0, 1.0),
+    "reticular_depth": (0.0, 1.0),
+    "collagen": (0.0, 1.0),
+    "subcutaneous_scale": (0.0, 1.0),
+}
+PARAM_UNITS = {"reticular_depth": "cm"}
+PARAM_NAMES = tuple(PARAM_BOUNDS)
+
+#: defaults for parameters a preset or the user leaves unset
+PARAM_DEFAULTS = {
+    "melanosome": 0.035,
+    "blood": 1.0,
+    "oxygenation": 0.5,
+    "reticular_depth": 0.15,
+    "collagen": 0.7,
+    "subcutaneous_scale": 0.5,
+}
+
+
+@dataclass
+class SkinParams:
+    """A batch of skins: one tensor per free parameter (all broadcast together) plus the layer constants.
+
+    - ``melanosome``: melanosome volume fraction v of the spinosum and basale (0..1)
+    - ``blood``: blood level, multiplier of the nominal dermal blood fractions (0..3)
+    - ``oxygenation``: blood oxygen saturation γ (0..1)
+    - ``reticular_depth``: reticular dermis thickness, cm
+    - ``collagen``: collagen fraction of the reticular dermis (scales its scattering and absorption)
+    - ``subcutaneous_scale``: scale of the subcutaneous substrate reflectance (0..1)
+    """
+
+    melanosome: torch.Tensor
+    blood: torch.Tensor
+    oxygenation: torch.Tensor
+    reticular_depth: torch.Tensor
+    collagen: torch.Tensor
+    subcutaneous_scale: torch.Tensor
+    layers: SkinLayers = field(default=DEFAULT_LAYERS)
+
+    @classmethod
+    def create(cls, dtype=None, device=None, layers: SkinLayers = DEFAULT_LAYERS, validate: bool = True, **values):
+        """Build from scalars/sequences/tensors; missing parameters take ``PARAM_DEFAULTS``."""
+        unknown = set(values) - set(PARAM_NAMES)
+        if unknown:
+            raise ValueError(f"unknown skin parameter(s) {sorted(unknown)}; known: {', '.join(PARAM_NAMES)}")
+        ref = next((v for v in values.values() if isinstance(v, torch.Tensor)), None)
+        dtype = dtype or (ref.dtype if ref is not None and ref.is_floating_point() else torch.get_default_dtype())
+        device = device or (ref.device if ref is not None else None)
+        t = {k: as_tensor(values.get(k, PARAM_DEFAULTS[k]), dtype=dtype, device=device) for k in PARAM_NAMES}
+        p = cls(**t, layers=layers)
+        if validate:
+            p.validate()
+        return p
+
+    @property
+    def shape(self) -> torch.Size:
+        return broadcast_shapes(**self.tensors())
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.melanosome.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.melanosome.device
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {k: getattr(self, k) for k in PARAM_NAMES}
+
+    def validate(self) -> SkinParams:
+        """Raise ``ValueError`` naming the parameter and its range if a value is out of range or shapes clash."""
+        for k, (lo, hi) in PARAM_BOUNDS.items():
+            check_range(k, getattr(self, k), lo, hi, PARAM_UNITS.get(k, ""))
+        self.shape  # noqa: B018  (raises on shapes that do not broadcast)
+        return self
+
+    def to(self, device=None, dtype=None) -> SkinParams:
+        return dataclasses.replace(self, **{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()})
+
+    def expand(self) -> SkinParams:
+        """All parameters broadcast to the common batch shape (contiguous)."""
+        shp = self.shape
+        return dataclasses.replace(self, **{k: v.expand(shp).contiguous() for k, v in self.tensors().items()})
+
+    def replace(self, **values) -> SkinParams:
+        return dataclasses.replace(self, **{k: as_tensor(v, like=self.melanosome) for k, v in values.items()})
+
+    def as_dict(self) -> dict[str, list | float]:
+        """Plain-Python values (for JSON)."""
+        return {k: v.detach().cpu().tolist() for k, v in self.expand().tensors().items()}
+
+    def __getitem__(self, idx) -> SkinParams:
+        e = self.expand()
+        return dataclasses.replace(e, **{k: v[idx] for k, v in e.tensors().items()})
+
+    @staticmethod
+    def cat(items: Sequence[SkinParams]) -> SkinParams:
+        """Concatenate 1-D batches (0-D ones count as one skin)."""
+        if not items:
+            raise ValueError("cat needs at least one SkinParams")
+        flat = [p.expand() for p in items]
+        vals = {k: torch.cat([getattr(p, k).reshape(-1) for p in flat]) for k in PARAM_NAMES}
+        return dataclasses.replace(flat[0], **vals)
+
+
+# ------------------------------------------------------------------------------------- Fitzpatrick presets
+#: per-type parameter ranges used for random sampling (uniform within each range). Melanosome fractions
+#: follow Jacques's epidermal melanosome volume fractions (light 1.3-6.3 %, moderate 11-16 %, dark 18-43 %);
+#: the other ranges were calibrated with the layer constants so that the diffuse model over types I-VI
+#: reproduces the rules-detector box (see ``scripts/calibrate_box.py`` and the README).
+FITZPATRICK_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "I": {"melanosome": (0.010, 0.030), "blood": (0.05, 1.8), "oxygenation": (0.30, 0.95)},
+    "II": {"melanosome": (0.030, 0.060), "blood": (0.1, 1.8), "oxygenation": (0.30, 0.95)},
+    "III": {"melanosome": (0.060, 0.110), "blood": (0.2, 1.8), "oxygenation": (0.25, 0.90)},
+    "IV": {"melanosome": (0.110, 0.180), "blood": (0.4, 1.8), "oxygenation": (0.20, 0.90)},
+    "V": {"melanosome": (0.180, 0.300), "blood": (0.5, 1.8), "oxygenation": (0.15, 0.85)},
+    "VI": {"melanosome": (0.300, 0.430), "blood": (0.6, 1.8), "oxygenation": (0.15, 0.80)},
+}
+#: ranges shared by all types
+COMMON_RANGES: dict[str, tuple[float, float]] = {
+    "reticular_depth": (0.10, 0.25),
+    "collagen": (0.55, 0.85),
+    "subcutaneous_scale": (0.40, 0.80),
+}
+FITZPATRICK_TYPES = tuple(FITZPATRICK_RANGES)
+
+#: named presets: the centre of each type's ranges, plus the thesis's Table 2 fits (reticular depth and
+#: collagen fraction are not in Table 2 and take the defaults)
+PRESETS: dict[str, dict[str, float]] = {
+    **{
+        t: {k: 0.5 * (lo + hi) for k, (lo, hi) in {**r, **COMMON_RANGES}.items()}
+        for t, r in FITZPATRICK_RANGES.items()
+    },
+    "I-II": {"melanosome": 0.035, "blood": 0.9, "oxygenation": 0.50, "subcutaneous_scale": 0.46},
+    "V-VI": {"melanosome": 0.40, "blood": 1.1, "oxygenation": 0.18, "subcutaneous_scale": 0.72},
+}
+
+
+def preset(name: str | Sequence[str], dtype=None, device=None, layers: SkinLayers = DEFAULT_LAYERS) -> SkinParams:
+    """Skin parameters of one preset (0-D batch) or several (1-D batch), e.g. ``preset(["I-II", "V-VI"])``."""
+    names = [name] if isinstance(name, str) else list(name)
+    for n in names:
+        if n not in PRESETS:
+            raise ValueError(f"unknown preset {n!r}; choose from {', '.join(PRESETS)}")
+    vals = {k: [PRESETS[n].get(k, PARAM_DEFAULTS[k]) for n in names] for k in PARAM_NAMES}
+    if isinstance(name, str):
+        vals = {k: v[0] for k, v in vals.items()}
+    return SkinParams.create(dtype=dtype, device=device, layers=layers, **vals)
+
+
+def sample(
+    n: int,
+    generator: torch.Generator | int | None = None,
+    types: Iterable[str] = FITZPATRICK_TYPES,
+    dtype=None,
+    device=None,
+    layers: SkinLayers = DEFAULT_LAYERS,
+) -> tuple[SkinParams, list[str]]:
+    """Draw ``n`` skins: a type uniformly from ``types``, then each parameter uniformly within its range.
+
+    Returns ``(params, type_names)``. Sampling happens on the CPU with ``generator`` (or a seed), so the
+    same seed gives the same skins on every device.
+    """
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    types = list(types)
+    for t in types:
+        if t not in FITZPATRICK_RANGES:
+            raise ValueError(f"unknown Fitzpatrick type {t!r}; choose from {', '.join(FITZPATRICK_TYPES)}")
+    if not isinstance(generator, torch.Generator):
+        g = torch.Generator()
+        g.manual_seed(0 if generator is None else int(generator))
+        generator = g
+    dtype = dtype or torch.get_default_dtype()
+    which = torch.randint(len(types), (n,), generator=generator)
+    vals = {}
+    for k in PARAM_NAMES:
+        lo = torch.tensor([{**FITZPATRICK_RANGES[t], **COMMON_RANGES}[k][0] for t in types], dtype=torch.float64)
+        hi = torch.tensor([{**FITZPATRICK_RANGES[t], **COMMON_RANGES}[k][1] for t in types], dtype=torch.float64)
+        u = torch.rand(n, generator=generator, dtype=torch.float64)
+        vals[k] = (lo[which] + u * (hi[which] - lo[which])).to(dtype=dtype, device=device)
+    return SkinParams.create(layers=layers, **vals), [types[i] for i in which.tolist()]
+
+
+# ------------------------------------------------------------------------------------------ KM primitives
+def km_coefficients(mu_a: torch.Tensor, mu_s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kubelka-Munk ``(K, S)`` from absorption and reduced scattering coefficients, eqs 2.4.6-2.4.7."""
+    q = mu_a / (mu_s + mu_a)  # 1 - single-scattering albedo
+    return mu_a / (0.5 + 0.25 * q), mu_s / (4.0 / 3.0 + (38.0 / 45.0) * q)
+
+
+def km_layer(K: torch.Tensor, S: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reflectance and transmittance ``(r, τ)`` of one Kubelka-Munk layer of thickness ``d``.
+
+    Kubelka's solution r = sinh(bSd)/(a sinh(bSd) + b cosh(bSd)), τ = b/(a sinh(bSd) + b cosh(bSd)) with
+    a = 1 + K/S, b = √(a²-1), rewritten with x = bSd = d√(K(K+2S)), u = e^-x, h = (1-u²)/x:
+        r = S d h / ((S+K) d h + 1 + u²),   τ = 2u / ((S+K) d h + 1 + u²),
+    which has no overflow for thick layers and the right limits for K → 0 (r = Sd/(1+Sd)) and S → 0
+    (τ = e^-Kd).
+    """
+    x = d * torch.sqrt((K * (K + 2 * S)).clamp_min(1e-30))
+    u = torch.exp(-x)
+    small = x < 1e-4
+    xs = torch.where(small, torch.ones_like(x), x)
+    h = torch.where(small, 2 - 2 * x, -torch.expm1(-2 * xs) / xs)
+    dh = d * h
+    den = (S + K) * dh + 1 + u * u
+    return S * dh / den, 2 * u / den
+
+
+def add_layers(top, bottom):
+    """Stack ``top`` over ``bottom``; each is ``(R, R_below, T)`` (reflectance from above, from below,
+    transmittance). Returns the same triple for the combined stack (eqs 2.4.12-2.4.13, generalised)."""
+    R1, R1b, T1 = top
+    R2, R2b, T2 = bottom
+    den = 1 - R1b * R2
+    return R1 + T1 * T1 * R2 / den, R2b + T2 * T2 * R1b / den, T1 * T2 / den
+
+
+def add_over_base(r: torch.Tensor, t: torch.Tensor, R_base: torch.Tensor, r_below: torch.Tensor | None = None):
+    """Reflectance of a layer (``r`` from above, ``r_below`` from below, default ``r``) over a base ``R_base``."""
+    rb = r if r_below is None else r_below
+    return r + t * t * R_base / (1 - rb * R_base)
+
+
+def surface_total(R0: torch.Tensor, R_sub: torch.Tensor) -> torch.Tensor:
+    """Total reflectance with a front surface of reflectance R0 over the subsurface stack (closed form)."""
+    return R0 + (1 - R0) ** 2 * R_sub / (1 - R0 * R_sub)
+
+
+# ------------------------------------------------------------------------------------ spectral ingredients
+@dataclass
+class _Spectra:
+    """Wavelength-only ingredients of the model on one grid (shape (W,))."""
+
+    mel: torch.Tensor
+    wat: torch.Tensor
+    col: torch.Tensor
+    car_epi: torch.Tensor
+    blood_deoxy: torch.Tensor  # per unit blood fraction: water share + deoxy-Hb + carotene + bilirubin
+    blood_delta: torch.Tensor  # oxy - deoxy
+    scatter: list  # per layer reduced scattering, cm^-1
+    substrate: torch.Tensor  # R_inf of the hypodermis
+
+
+def _layer_value(layers: SkinLayers, name: str, i: int, like: torch.Tensor) -> torch.Tensor:
+    return as_tensor(getattr(layers, name)[i], like=like)
+
+
+def check_wavelengths(wavelengths) -> torch.Tensor:
+    wl = as_tensor(wavelengths)
+    if wl.ndim != 1:
+        raise ValueError(f"wavelengths must be a 1-D tensor of nm, got shape {tuple(wl.shape)}")
+    check_range("wavelengths", wl, *MODEL_RANGE_NM, "nm")
+    return wl
+
+
+def _spectra(layers: SkinLayers, wl: torch.Tensor) -> _Spectra:
+    mel = data.melanosome(wl)
+    wat = data.water(wl)
+    col = data.collagen(wl)
+    oxy, deoxy = data.hemoglobin(wl)
+    car_bl = data.beta_carotene(wl, layers.carotene_blood_molar)
+    bil = data.bilirubin(wl, layers.bilirubin_blood_molar)
+    blood_deoxy = as_tensor(layers.blood_water_fraction, like=wl) * wat + deoxy + car_bl + bil
+    scatter = [
+        _layer_value(layers, "scatter_a500", i, wl) * (wl / 500.0).pow(-_layer_value(layers, "scatter_b", i, wl))
+        for i in range(9)
+    ]
+    mu_a_h, mu_s_h = data.salomatina("hypodermis", wl.clamp(max=1602.09))
+    Kh, Sh = km_coefficients(mu_a_h, mu_s_h)
+    ks = Kh / Sh
+    substrate = 1 + ks - torch.sqrt(ks * ks + 2 * ks)
+    return _Spectra(mel, wat, col, data.beta_carotene(wl, layers.carotene_epidermis_molar), blood_deoxy,
+                    oxy - deoxy, scatter, substrate)
+
+
+# ---------------------------------------------------------------------------------------------- the model
+def _layer_optics(params: SkinParams, sp: _Spectra, wl: torch.Tensor, i: int):
+    """``(mu_a, mu_s', d)`` of layer ``i`` (eqs 2.4.1, 2.4.3-2.4.5); each broadcasts to ``P + (W,)``."""
+    L = params.layers
+
+    def lv(name):
+        return _layer_value(L, name, i, wl)
+
+    mu_s = sp.scatter[i]
+    d = lv("thickness_cm")
+    cn = lv("collagen")
+    if i < 5:  # epidermis, eqs 2.4.3-2.4.4 (melanosomes only where melanosome_share > 0)
+        mu_a = cn * sp.col + lv("water") * sp.wat + sp.car_epi
+        if i in (3, 4):
+            mu_a = (params.melanosome.unsqueeze(-1) * lv("melanosome_share")) * sp.mel + mu_a
+        return mu_a, mu_s, d
+    if i == RETICULAR:  # scattering scaled by the collagen fraction; free thickness
+        cn = params.collagen.unsqueeze(-1)
+        mu_s = cn * mu_s
+        d = params.reticular_depth.unsqueeze(-1)
+    # dermis, eq 2.4.5: blood absorption per unit fraction (P, W) = water share + Hb(γ) + carotene + bilirubin
+    hb = sp.blood_deoxy + params.oxygenation.unsqueeze(-1) * sp.blood_delta
+    mu_a = cn * sp.col + lv("water") * sp.wat + (params.blood.unsqueeze(-1) * lv("blood")) * hb
+    return mu_a, mu_s, d
+
+
+def _km(params, sp, wl, i):
+    mu_a, mu_s, d = _layer_optics(params, sp, wl, i)
+    return km_layer(*km_coefficients(mu_a, mu_s), d)
+
+
+def _prepare(params: SkinParams, wavelengths):
+    wl = check_wavelengths(as_tensor(wavelengths, dtype=params.dtype, device=params.device))
+    return wl, _spectra(params.layers, wl)
+
+
+def km_over(mu_a: torch.Tensor, mu_s: torch.Tensor, d, R: torch.Tensor) -> torch.Tensor:
+    """Reflectance of one layer (``mu_a``, ``mu_s'`` in cm^-1, thickness ``d`` cm) over a base of reflectance
+    ``R``: ``km_coefficients`` + ``km_layer`` + ``add_over_base`` fused into one expression with few
+    temporaries (the model's hot loop). With N = S d h and D = (S+K) d h + 1 + u² (see ``km_layer``),
+    r = N/D and τ = 2u/D, so  R' = r + τ² R / (1 - r R) = (N (D - N R) + 4 u² R) / (D (D - N R)).
+    """
+    t = mu_a + mu_s
+    K = mu_a * t / (0.5 * mu_s + 0.75 * mu_a)  # eq 2.4.6: a / (1/2 + q/4), q = a / (a + s)
+    S = mu_s * t / ((4.0 / 3.0) * mu_s + (4.0 / 3.0 + 38.0 / 45.0) * mu_a)  # eq 2.4.7
+    x = (d * torch.sqrt(K * (K + 2 * S))).clamp_min(1e-20)
+    u2 = torch.exp(-2 * x)
+    dh = (-d) * torch.expm1(-2 * x) / x
+    N = S * dh
+    D = torch.addcmul(1 + u2, S + K, dh)
+    E = D - N * R
+    return torch.addcmul(N * E, u2, R, value=4.0) / (D * E)
+
+
+@dataclass
+class _Hot:
+    """Wavelength-only tensors of the hot loop, shape (W,) (or scalars)."""
+
+    substrate: torch.Tensor
+    hb0: torch.Tensor
+    hbd: torch.Tensor
+    dermal: list  # (index, base mu_a, mu_s, d, nominal blood) for layers 9, 7, 6 (non-reticular dermis)
+    reticular: tuple  # (water part of mu_a, collagen absorption, mu_s per unit collagen, nominal blood)
+    melanin: list  # (base mu_a, melanosome absorption * share, mu_s, d) for the basale, spinosum
+    top: tuple  # (R, R_below, T) of the three top layers combined
+
+
+def _hot_tensors(layers: SkinLayers, wl: torch.Tensor, sp: _Spectra) -> _Hot:
+    def lv(name, i):
+        return _layer_value(layers, name, i, wl)
+
+    dermal = []
+    for i in (8, 6, 5):
+        base = lv("collagen", i) * sp.col + lv("water", i) * sp.wat
+        dermal.append((base, sp.scatter[i], lv("thickness_cm", i), lv("blood", i)))
+    ret = (lv("water", RETICULAR) * sp.wat, sp.col, sp.scatter[RETICULAR], lv("blood", RETICULAR))
+    melanin = []
+    for i in (4, 3):
+        base = lv("collagen", i) * sp.col + lv("water", i) * sp.wat + sp.car_epi
+        melanin.append((base, lv("melanosome_share", i) * sp.mel, sp.scatter[i], lv("thickness_cm", i)))
+    top = None
+    for i in range(3):
+        mu_a = lv("collagen", i) * sp.col + lv("water", i) * sp.wat + sp.car_epi
+        r, t = km_layer(*km_coefficients(mu_a, sp.scatter[i]), lv("thickness_cm", i))
+        top = (r, r, t) if top is None else add_layers(top, (r, r, t))
+    return _Hot(sp.substrate, sp.blood_deoxy, sp.blood_delta, dermal, ret, melanin, top)
+
+
+def _stack(v, B, gam, dret, col, scale, h: _Hot) -> torch.Tensor:
+    """R_sub for skin parameters of shape (P, 1) (or broadcastable) and the hot tensors: bottom-up adding."""
+    hb = torch.addcmul(h.hb0, gam, h.hbd)  # blood absorption per unit volume fraction (P, W)
+    R = scale * h.substrate
+    base, mu_s, d, b = h.dermal[0]  # deep blood net
+    R = km_over(torch.addcmul(base, B * b, hb), mu_s, d, R)
+    wat, acol, s_unit, b = h.reticular
+    R = km_over(torch.addcmul(torch.addcmul(wat, col, acol), B * b, hb), col * s_unit, dret, R)
+    for base, mu_s, d, b in h.dermal[1:]:  # upper blood net, papillary
+        R = km_over(torch.addcmul(base, B * b, hb), mu_s, d, R)
+    for base, mel, mu_s, d in h.melanin:  # basale, spinosum
+        R = km_over(torch.addcmul(base, v, mel), mu_s, d, R)
+    R_top, R_top_below, T_top = h.top
+    return add_over_base(R_top, T_top, R, R_top_below)
+
+
+_COMPILED = {}
+#: elements (skins x wavelengths) per block on the CPU: the hot loop's temporaries then stay in cache
+CPU_BLOCK = 1 << 18
+
+
+def subsurface_reflectance(params: SkinParams, wavelengths, *, compile: bool = False) -> torch.Tensor:
+    """Diffuse reflectance R_sub of the nine layers over the substrate, without the front surface.
+
+    ``params`` of batch shape P and ``wavelengths`` (W,) in nm give ``P + (W,)``. Differentiable in every
+    tensor of ``params`` (and of its ``layers`` when those are tensors). Evaluated bottom-up, so only
+    reflectances are carried; the three top layers do not depend on the skin parameters and are combined
+    once per wavelength. On the CPU large batches are processed in cache-sized blocks of skins.
+    ``compile=True`` runs the hot loop through ``torch.compile`` (one fused kernel; the first call per
+    shape and dtype compiles, which takes tens of seconds; worth it for millions of evaluations).
+    """
+    wl, sp = _prepare(params, wavelengths)
+    h = _hot_tensors(params.layers, wl, sp)
+    fn = _stack
+    if compile:
+        fn = _COMPILED.get("stack")
+        if fn is None:
+            fn = _COMPILED["stack"] = torch.compile(_stack, dynamic=False)
+    shape = params.shape
+    cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
+    n = cols[0].shape[0]
+    W = max(wl.numel(), 1)
+    block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // W)
+    if n <= block:
+        out = fn(*cols, h)
+    else:
+        out = torch.cat([fn(*(c[i : i + block] for c in cols), h) for i in range(0, n, block)])
+    return out.reshape(shape + wl.shape)
+
+
+def layer_stack(params: SkinParams, wavelengths) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per-layer ``(r, τ)`` of the nine layers (top to bottom) then ``(R_substrate, 0)``, each ``P + (W,)``:
+    for inspection and for checking ``subsurface_reflectance`` against an explicit recursion."""
+    wl, sp = _prepare(params, wavelengths)
+    shp = params.shape + wl.shape
+    out = [tuple(x.expand(shp) for x in _km(params, sp, wl, i)) for i in range(9)]
+    sub = (params.subcutaneous_scale.unsqueeze(-1) * sp.substrate).expand(shp)
+    out.append((sub, torch.zeros_like(sub)))
+    return out
+
+
+# ------------------------------------------------------------------------------------- angular dependence
+def total_reflectance(params: SkinParams, wavelengths, r0=0.04, *, compile: bool = False) -> torch.Tensor:
+    """Total diffuse-model reflectance R0 + (1-R0)² R_sub / (1 - R0 R_sub); ``r0`` broadcasts with the output."""
+    R_sub = subsurface_reflectance(params, wavelengths, compile=compile)
+    return surface_total(as_tensor(r0, like=R_sub), R_sub)
+
+
+def diffuse_from_subsurface(R_sub: torch.Tensor, r0) -> torch.Tensor:
+    """Subsurface (diffuse) component ρ_d(R0) = (1-R0)² R_sub / (1 - R0 R_sub) (section 3.2.3, exact)."""
+    r0 = as_tensor(r0, like=R_sub)
+    return (1 - r0) ** 2 * R_sub / (1 - r0 * R_sub)
+
+
+def fit_r0_polynomial(R_sub: torch.Tensor, degree: int = 4, n: int = 64) -> torch.Tensor:
+    """The thesis's option (section 3.2.3, Fig 18): least-squares polynomial of ρ_d in R0 over [0.04, 1].
+
+    Returns coefficients ``(..., degree+1)`` (highest power first) for every skin and wavelength.
+    """
+    r0 = torch.linspace(0.04, 1.0, n, dtype=R_sub.dtype, device=R_sub.device)
+    y = diffuse_from_subsurface(R_sub.unsqueeze(-1), r0)  # (..., W, n)
+    V = torch.stack([r0**k for k in range(degree, -1, -1)], dim=-1)  # (n, deg+1)
+    sol = torch.linalg.lstsq(V.expand(y.shape[:-1] + V.shape), y.unsqueeze(-1)).solution
+    return sol.squeeze(-1)
+
+
+def polyval(coeffs: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Evaluate polynomials with coefficients ``(..., deg+1)`` (highest first) at ``x`` (broadcasting)."""
+    out = torch.zeros_like(coeffs[..., 0] * x)
+    for k in range(coeffs.shape[-1]):
+        out = out * x + coeffs[..., k]
+    return out
+
+
+def diffuse_reflectance(
+    params: SkinParams,
+    wavelengths,
+    theta_i=0.0,
+    rho0=0.04,
+    angular: str = "exact",
+    degree: int = 4,
+) -> torch.Tensor:
+    """ρ_d(θi): the subsurface component seen through a front surface of reflectance R0 = Schlick(ρ0, θi).
+
+    ``angular="exact"`` (default) uses the closed form in R0; ``"polynomial"`` the thesis's per-band fit of
+    ρ_d against R0 (Fig 18). ``theta_i`` (rad) and ``rho0`` broadcast with ``P + (W,)``.
+    """
+    R_sub = subsurface_reflectance(params, wavelengths)
+    r0 = schlick(as_tensor(rho0, like=R_sub), as_tensor(theta_i, like=R_sub))
+    if angular == "exact":
+        return diffuse_from_subsurface(R_sub, r0)
+    if angular == "polynomial":
+        return polyval(fit_r0_polynomial(R_sub, degree), r0)
+    raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+
+
+def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular: str = "exact") -> torch.Tensor:
+    """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i`` (rad).
+
+    At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that set the rules-detector box.
+    """
+    R_sub = subsurface_reflectance(params, wavelengths)
+    r0 = schlick(as_tensor(rho0, like=R_sub), as_tensor(theta_i, like=R_sub))
+    if angular == "exact":
+        return surface_total(r0, R_sub)
+    if angular == "polynomial":
+        return r0 + polyval(fit_r0_polynomial(R_sub), r0)
+    raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+
+
+def wavelength_grid(start: float = 400.0, stop: float = 1700.0, step: float = 5.0, dtype=None, device=None):
+    """An inclusive wavelength grid in nm."""
+    if step <= 0 or stop < start:
+        raise ValueError(f"need start <= stop and step > 0, got {start}:{stop}:{step}")
+    n = int(math.floor((stop - start) / step + 1e-9)) + 1
+    return start + step * torch.arange(n, dtype=dtype or torch.get_default_dtype(), device=device)
