@@ -410,13 +410,13 @@ def km_over(mu_a: torch.Tensor, mu_s: torch.Tensor, d, R: torch.Tensor) -> torch
     t = mu_a + mu_s
     K = mu_a * t / (0.5 * mu_s + 0.75 * mu_a)  # eq 2.4.6: a / (1/2 + q/4), q = a / (a + s)
     S = mu_s * t / ((4.0 / 3.0) * mu_s + (4.0 / 3.0 + 38.0 / 45.0) * mu_a)  # eq 2.4.7
-    x = (d * torch.sqrt(K * (K + 2 * S))).clamp_min(1e-20)
-    u2 = torch.exp(-2 * x)
-    dh = (-d) * torch.expm1(-2 * x) / x
+    y = (torch.sqrt(K * (K + 2 * S)) * (-2 * d)).clamp_max(-1e-20)  # y = -2x
+    em = torch.expm1(y)  # u² - 1
+    dh = em / y * (2 * d)  # d h = d (1 - u²) / x
     N = S * dh
-    D = torch.addcmul(1 + u2, S + K, dh)
+    D = torch.addcmul(em + 2, S + K, dh)  # (S+K) d h + 1 + u²
     E = D - N * R
-    return torch.addcmul(N * E, u2, R, value=4.0) / (D * E)
+    return torch.addcmul(N * E, em + 1, R, value=4.0) / (D * E)
 
 
 @dataclass
@@ -453,8 +453,9 @@ def _hot_tensors(layers: SkinLayers, wl: torch.Tensor, sp: _Spectra) -> _Hot:
     return _Hot(sp.substrate, sp.blood_deoxy, sp.blood_delta, dermal, ret, melanin, top)
 
 
-def _stack(v, B, gam, dret, col, scale, h: _Hot) -> torch.Tensor:
-    """R_sub for skin parameters of shape (P, 1) (or broadcastable) and the hot tensors: bottom-up adding."""
+def _stack(v, B, gam, dret, col, scale, h: _Hot, r0: torch.Tensor | None = None) -> torch.Tensor:
+    """R_sub for skin parameters of shape (P, 1) and the hot tensors: bottom-up adding; with ``r0`` (shape
+    () or (W,)) the front surface is added too, giving the total reflectance."""
     hb = torch.addcmul(h.hb0, gam, h.hbd)  # blood absorption per unit volume fraction (P, W)
     R = scale * h.substrate
     base, mu_s, d, b = h.dermal[0]  # deep blood net
@@ -466,12 +467,39 @@ def _stack(v, B, gam, dret, col, scale, h: _Hot) -> torch.Tensor:
     for base, mel, mu_s, d in h.melanin:  # basale, spinosum
         R = km_over(torch.addcmul(base, v, mel), mu_s, d, R)
     R_top, R_top_below, T_top = h.top
-    return add_over_base(R_top, T_top, R, R_top_below)
+    R = add_over_base(R_top, T_top, R, R_top_below)
+    return R if r0 is None else surface_total(r0, R)
 
 
 _COMPILED = {}
 #: elements (skins x wavelengths) per block on the CPU: the hot loop's temporaries then stay in cache
-CPU_BLOCK = 1 << 18
+CPU_BLOCK = 1 << 17
+
+
+def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -> torch.Tensor:
+    """R_sub (``r0`` None) or the total reflectance with a front surface of reflectance ``r0``."""
+    wl, sp = _prepare(params, wavelengths)
+    h = _hot_tensors(params.layers, wl, sp)
+    shape = params.shape
+    late_r0 = None
+    if r0 is not None:
+        r0 = as_tensor(r0, like=wl)
+        if r0.dim() > 1 or (r0.dim() == 1 and r0.shape[0] not in (1, wl.numel())):
+            late_r0, r0 = r0, None  # batch-dependent surface: applied after the blocked stack
+    fn = _stack
+    if compile:
+        fn = _COMPILED.get("stack")
+        if fn is None:
+            fn = _COMPILED["stack"] = torch.compile(_stack, dynamic=False)
+    cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
+    n = cols[0].shape[0]
+    block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // max(wl.numel(), 1))
+    if n <= block:
+        out = fn(*cols, h, r0)
+    else:
+        out = torch.cat([fn(*(c[i : i + block] for c in cols), h, r0) for i in range(0, n, block)])
+    out = out.reshape(shape + wl.shape)
+    return out if late_r0 is None else surface_total(late_r0, out)
 
 
 def subsurface_reflectance(params: SkinParams, wavelengths, *, compile: bool = False) -> torch.Tensor:
@@ -484,23 +512,7 @@ def subsurface_reflectance(params: SkinParams, wavelengths, *, compile: bool = F
     ``compile=True`` runs the hot loop through ``torch.compile`` (one fused kernel; the first call per
     shape and dtype compiles, which takes tens of seconds; worth it for millions of evaluations).
     """
-    wl, sp = _prepare(params, wavelengths)
-    h = _hot_tensors(params.layers, wl, sp)
-    fn = _stack
-    if compile:
-        fn = _COMPILED.get("stack")
-        if fn is None:
-            fn = _COMPILED["stack"] = torch.compile(_stack, dynamic=False)
-    shape = params.shape
-    cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
-    n = cols[0].shape[0]
-    W = max(wl.numel(), 1)
-    block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // W)
-    if n <= block:
-        out = fn(*cols, h)
-    else:
-        out = torch.cat([fn(*(c[i : i + block] for c in cols), h) for i in range(0, n, block)])
-    return out.reshape(shape + wl.shape)
+    return _evaluate(params, wavelengths, None, compile)
 
 
 def layer_stack(params: SkinParams, wavelengths) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -517,8 +529,7 @@ def layer_stack(params: SkinParams, wavelengths) -> list[tuple[torch.Tensor, tor
 # ------------------------------------------------------------------------------------- angular dependence
 def total_reflectance(params: SkinParams, wavelengths, r0=0.04, *, compile: bool = False) -> torch.Tensor:
     """Total diffuse-model reflectance R0 + (1-R0)² R_sub / (1 - R0 R_sub); ``r0`` broadcasts with the output."""
-    R_sub = subsurface_reflectance(params, wavelengths, compile=compile)
-    return surface_total(as_tensor(r0, like=R_sub), R_sub)
+    return _evaluate(params, wavelengths, r0, compile)
 
 
 def diffuse_from_subsurface(R_sub: torch.Tensor, r0) -> torch.Tensor:
@@ -569,18 +580,20 @@ def diffuse_reflectance(
     raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
 
 
-def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular: str = "exact") -> torch.Tensor:
+def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular: str = "exact", *,
+                compile: bool = False) -> torch.Tensor:
     """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i`` (rad).
 
     At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that set the rules-detector box.
     """
-    R_sub = subsurface_reflectance(params, wavelengths)
-    r0 = schlick(as_tensor(rho0, like=R_sub), as_tensor(theta_i, like=R_sub))
+    if angular not in ("exact", "polynomial"):
+        raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+    wl = as_tensor(wavelengths, dtype=params.dtype, device=params.device)
+    r0 = schlick(as_tensor(rho0, like=wl), as_tensor(theta_i, like=wl))
     if angular == "exact":
-        return surface_total(r0, R_sub)
-    if angular == "polynomial":
-        return r0 + polyval(fit_r0_polynomial(R_sub), r0)
-    raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+        return _evaluate(params, wl, r0, compile)
+    R_sub = subsurface_reflectance(params, wl, compile=compile)
+    return r0 + polyval(fit_r0_polynomial(R_sub), r0)
 
 
 def wavelength_grid(start: float = 400.0, stop: float = 1700.0, step: float = 5.0, dtype=None, device=None):
