@@ -27,7 +27,6 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	mkdir -p $(OUT)
 	$(VENV)/bin/torchskin spectra --all-presets --plot $(OUT)/presets.png
-	@echo "wrote $(OUT)/presets.png"
 
 lint: setup
 	$(VENV)/bin/ruff check torchskin tests scripts

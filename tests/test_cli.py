@@ -58,6 +58,7 @@ def test_spectra_plot_writes_png(tmp_path, capsys):
     assert main(["spectra", "--all-presets", "--plot", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [p.name for p in tmp_path.iterdir()] == ["p.png"]  # no temporary left behind
+    assert png.stat().st_mode & 0o044  # readable by others, like any file the user writes (umask 022)
 
 
 @pytest.mark.parametrize("args,msg", [

@@ -181,3 +181,12 @@ def test_sampling_is_reproducible_and_within_type_ranges():
         lo, hi = T.FITZPATRICK_RANGES[typ]["melanosome"]
         assert lo <= float(a.melanosome[k]) <= hi
     assert set(ta) == set(T.FITZPATRICK_TYPES)
+
+
+def test_compiled_path_equals_eager():
+    """``compile=True`` (torch.compile of the hot loop) gives the eager result."""
+    skins, _ = T.sample(64, 9, dtype=torch.float32)
+    wl = T.wavelength_grid(400, 1700, 20, dtype=torch.float32)
+    eager = T.total_reflectance(skins, wl)
+    comp = T.total_reflectance(skins, wl, compile=True)
+    assert float((comp - eager).abs().max()) < 1e-5
