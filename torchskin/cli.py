@@ -128,6 +128,67 @@ def cmd_spectra(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------- render
+def _scene_from_args(args):
+    from .scene import Camera, Sun, default_scene
+
+    cam = Camera(width=args.width, height=args.height, zenith_deg=args.camera_zenith,
+                 azimuth_deg=args.camera_azimuth, range_m=args.range, fov_deg=args.fov)
+    sun = Sun(zenith_deg=args.source_zenith, azimuth_deg=args.source_azimuth, sky_fraction=args.sky)
+    subject = "file" if args.mesh else "anny"
+    sc = default_scene(subject=subject, mesh_path=args.mesh, skin=args.skin, camera=cam, sun=sun,
+                       panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground)
+    if args.bands:
+        sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
+    return sc
+
+
+def _check_angle(name, v, lo, hi):
+    if not (lo <= v <= hi):
+        raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}] degrees, got {v:g}")
+
+
+def cmd_render(args) -> int:
+    from .render import Sensor, render, write_outputs
+
+    _check_angle("--source-zenith", args.source_zenith, 0, 90)
+    _check_angle("--camera-zenith", args.camera_zenith, 0, 180)
+    sc = _scene_from_args(args)
+    sensor = Sensor(noise=not args.no_noise, seed=args.seed)
+    res = render(sc, device=args.device, sensor=sensor)
+    info = write_outputs(res, sc, args.out)
+    if args.json:
+        print(json.dumps({"timing_s": res.timing, "skin_pixels": info["skin_pixels"],
+                          "detected_fraction": info["detected_fraction"], "panels": res.panels,
+                          "sunlit_skin_pixels": info["sunlit_skin_pixels"],
+                          "detected_fraction_sunlit": info["detected_fraction_sunlit"]}))
+    else:
+        print(f"skin pixels {info['skin_pixels']} (sunlit {info['sunlit_skin_pixels']}), inside the rules box "
+              f"{info['detected_fraction']:.3f} (sunlit {info['detected_fraction_sunlit']:.3f}); "
+              f"{res.timing['total_s']:.2f} s; wrote {args.out}")
+    return 0
+
+
+def cmd_experiment(args) -> int:
+    from . import experiment
+    from .render import Sensor
+
+    if args.width < 16 or args.height < 16:
+        raise ValueError("--width and --height must be at least 16 pixels")
+    res = experiment.run(args.out, width=args.width, height=args.height, sensor=Sensor(noise=not args.no_noise),
+                         device=args.device)
+    if args.json:
+        print(json.dumps({k: res[k] for k in ("angles_deg", "detected_fraction_combined",
+                                              "detected_fraction_diffuse", "bhattacharyya",
+                                              "appendix_c_middle_reflectance")}))
+    else:
+        for k, a in enumerate(res["angles_deg"]):
+            print(f"source {a:4.0f}°: sunlit skin inside the box: diffuse-only {res['detected_fraction_diffuse'][k]:.3f},"
+                  f" combined {res['detected_fraction_combined'][k]:.3f}; Bhattacharyya {res['bhattacharyya'][k]:.3f}")
+        print(f"Appendix C middle panel: {res['appendix_c_middle_reflectance']:.4f} (true 0.40); wrote {args.out}")
+    return 0
+
+
 # -------------------------------------------------------------------------------------------------- bench
 def cmd_bench(args) -> int:
     from . import bench
@@ -165,6 +226,42 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", action="store_true", help="print one JSON object")
     sp.add_argument("--plot", metavar="PNG", help="write spectra 400-1700 nm and the rules plane to PNG")
     sp.set_defaults(func=cmd_spectra)
+
+    rp = sub.add_parser("render", help="render a calibrated multispectral frame of a subject with panels",
+                        description="Ray-cast a subject between two reference panels under a sun, through the "
+                                    "sensor chain, calibrate with ELM and run the rules detector.")
+    rp.add_argument("--out", required=True, help="output folder")
+    src = rp.add_mutually_exclusive_group()
+    src.add_argument("--mesh", metavar="PATH", help="OBJ/PLY subject (all skin)")
+    src.add_argument("--subject", choices=["anny"], default="anny", help="parametric anny body (default)")
+    rp.add_argument("--skin", default="I-II", help=f"skin preset ({', '.join(tissue.PRESETS)})")
+    rp.add_argument("--source-zenith", type=float, default=45.0, help="sun zenith, degrees (default 45)")
+    rp.add_argument("--source-azimuth", type=float, default=20.0, help="sun azimuth from +x, degrees (default 20)")
+    rp.add_argument("--sky", type=float, default=0.1, help="sky irradiance / sun irradiance (default 0.1)")
+    rp.add_argument("--camera-zenith", type=float, default=90.0, help="camera zenith, degrees (default 90)")
+    rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
+    rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")
+    rp.add_argument("--fov", type=float, default=14.0, help="horizontal field of view, degrees (default 14)")
+    rp.add_argument("--width", type=int, default=512)
+    rp.add_argument("--height", type=int, default=512)
+    rp.add_argument("--bands", metavar="C[/FWHM],...", help="bands in nm (default 544,633,1080,1580)")
+    rp.add_argument("--panels", choices=["lambertian", "spectralon"], default="lambertian")
+    rp.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
+    rp.add_argument("--diffuse-only", action="store_true", help="skin as the diffuse model (no specular lobe)")
+    rp.add_argument("--no-ground", action="store_true", help="no ground plane")
+    rp.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, mps)")
+    rp.add_argument("--seed", type=int, default=0, help="noise seed")
+    rp.add_argument("--json", action="store_true")
+    rp.set_defaults(func=cmd_render)
+
+    ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, both models")
+    ep.add_argument("--out", required=True, help="output folder for figures and experiment.json")
+    ep.add_argument("--width", type=int, default=512)
+    ep.add_argument("--height", type=int, default=512)
+    ep.add_argument("--no-noise", action="store_true")
+    ep.add_argument("--device", default="cpu")
+    ep.add_argument("--json", action="store_true")
+    ep.set_defaults(func=cmd_experiment)
 
     bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bp.add_argument("--json", action="store_true")

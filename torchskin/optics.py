@@ -93,11 +93,28 @@ def microfacet_angles(theta_i, theta_r, delta_phi) -> tuple[torch.Tensor, torch.
     return beta, theta
 
 
-def _smith_g1(tan_v, m2):
-    """Smith masking for a Beckmann distribution with slope variance m^2 (exact erf form)."""
-    a = 1.0 / (torch.sqrt(m2) * tan_v.clamp_min(1e-12))
+def _smith_g1(cos_v, m2):
+    """Smith masking for a Beckmann distribution with slope variance m² (exact erf form), from cos θ."""
+    c = cos_v.clamp(1e-12, 1.0)
+    a = c / (torch.sqrt(m2) * torch.sqrt((1 - c * c).clamp_min(1e-24)))  # 1 / (m tan θ)
     lam = 0.5 * (torch.erf(a) - 1) + torch.exp(-a * a) / (2 * a * math.sqrt(math.pi))
     return 1.0 / (1.0 + lam)
+
+
+def microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+    """Eq 2.3.4 from cosines: cos θi, cos θr and cos 2β = ω_i · ω_r (the angle between the directions to
+    the source and to the viewer). The vector form used by the renderer; see ``microfacet_brdf``."""
+    cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
+    ct = ((cos_i + cos_r) / (2 * cos_b)).clamp(-1.0, 1.0)  # cos of the facet tilt θ, eq 2.3.6
+    ct2 = (ct * ct).clamp_min(_EPS_COS)
+    tan2 = (1 - ct2) / ct2
+    fresnel = rho0 + (1 - rho0) * (1 - cos_b).pow(5)  # Schlick at the facet incidence β
+    f = fresnel * torch.exp(-tan2 / (2 * sigma2)) / (
+        8 * math.pi * sigma2 * (ct2 * ct2) * (cos_i * cos_r).clamp_min(_EPS_COS))
+    if shadowing:
+        m2 = 2 * sigma2
+        f = f * _smith_g1(cos_i, m2) * _smith_g1(cos_r, m2)
+    return torch.where((cos_i > 0) & (cos_r > 0), f, torch.zeros_like(f))
 
 
 def microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
@@ -108,21 +125,12 @@ def microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, *, shadowing: boo
     Smith masking-shadowing G = G1(θi) G1(θr), which keeps the lobe energy-bounded at grazing angles.
     Returns 0 for directions below the horizon.
     """
-    theta_i, theta_r, delta_phi = as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
-    sigma2 = as_tensor(sigma2, like=theta_i)
-    rho0 = as_tensor(rho0, like=theta_i)
-    beta, theta = microfacet_angles(theta_i, theta_r, delta_phi)
+    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
+                                                          as_tensor(delta_phi))
     ci, cr = torch.cos(theta_i), torch.cos(theta_r)
-    ct = torch.cos(theta)
-    tan2 = (1 - ct * ct) / (ct * ct).clamp_min(_EPS_COS)
-    f = schlick(rho0, beta) * torch.exp(-tan2 / (2 * sigma2))
-    f = f / (8 * math.pi * sigma2 * ct.pow(4).clamp_min(_EPS_COS) * (ci * cr).clamp_min(_EPS_COS))
-    if shadowing:
-        m2 = 2 * sigma2
-        g = _smith_g1(torch.tan(theta_i).abs(), m2) * _smith_g1(torch.tan(theta_r).abs(), m2)
-        f = f * g
-    visible = (ci > 0) & (cr > 0)
-    return torch.where(visible, f, torch.zeros_like(f))
+    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)  # eq 2.3.5
+    return microfacet_brdf_cos(ci, cr, cos2b, as_tensor(sigma2, like=ci), as_tensor(rho0, like=ci),
+                               shadowing=shadowing)
 
 
 # ------------------------------------------------------------------------------ per-band specular defaults
@@ -157,19 +165,26 @@ class SpecularParams:
 THESIS_SPECULAR = SpecularParams()
 
 
+def combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+    """Eq 3.1.1 from cosines (see ``microfacet_brdf_cos``); the renderer's form of ``combined_brdf``."""
+    fs = microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, shadowing=shadowing)
+    cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
+    fd = (1 - (rho0 + (1 - rho0) * (1 - cos_b).pow(5))) * rho_d / math.pi
+    return fs + torch.where((cos_i > 0) & (cos_r > 0), fd, torch.zeros_like(fd))
+
+
 def combined_brdf(theta_i, theta_r, delta_phi, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
     """Combined skin BRDF, eq 3.1.1: f_s + (1 - ρ_Schlick(ρ0, β)) ρ_d / π (sr^-1).
 
-    ``rho_d`` is the diffuse (subsurface) reflectance, e.g. ``SkinModel.diffuse`` evaluated at the local
+    ``rho_d`` is the diffuse (subsurface) reflectance, e.g. ``tissue.diffuse_reflectance`` at the local
     incidence; all inputs broadcast, the band axis last.
     """
-    theta_i, theta_r, delta_phi = as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
-    rho_d = as_tensor(rho_d, like=theta_i)
-    beta, _ = microfacet_angles(theta_i, theta_r, delta_phi)
-    fs = microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, shadowing=shadowing)
-    fd = (1 - schlick(as_tensor(rho0, like=theta_i), beta)) * rho_d / math.pi
-    visible = (torch.cos(theta_i) > 0) & (torch.cos(theta_r) > 0)
-    return fs + torch.where(visible, fd, torch.zeros_like(fd))
+    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
+                                                          as_tensor(delta_phi))
+    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
+    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    return combined_brdf_cos(ci, cr, cos2b, as_tensor(rho_d, like=ci), as_tensor(sigma2, like=ci),
+                             as_tensor(rho0, like=ci), shadowing=shadowing)
 
 
 def observed_reflectance(brdf, theta_r, solid_angle) -> torch.Tensor:

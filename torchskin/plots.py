@@ -74,3 +74,69 @@ def plot_spectra(
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path) -> None:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    _plt().close(fig)
+
+
+def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: float = 1.0) -> None:
+    """False-colour reflectance image of one band (like the thesis's Figs 29 and 35)."""
+    plt = _plt()
+    img = image.detach().cpu().float().numpy()
+    h, w = img.shape
+    fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w + 0.4))
+    im = ax.imshow(img, cmap="jet", vmin=vmin, vmax=vmax, interpolation="nearest")
+    ax.set_title(title)
+    ax.axis("off")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="reflectance")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, title: str = "rules detector") -> None:
+    """Detector mask: detected skin (green), missed skin (red), false alarms (yellow)."""
+    import numpy as np
+
+    plt = _plt()
+    m = mask.detach().cpu().numpy().astype(bool)
+    rgb = np.zeros(m.shape + (3,))
+    if truth is None:
+        rgb[m] = (1, 1, 1)
+    else:
+        t = truth.detach().cpu().numpy().astype(bool)
+        rgb[m & t] = (0.1, 0.85, 0.2)
+        rgb[~m & t] = (0.9, 0.15, 0.1)
+        rgb[m & ~t] = (1.0, 0.9, 0.1)
+    h, w = m.shape
+    fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w))
+    ax.imshow(rgb, interpolation="nearest")
+    ax.set_title(title)
+    ax.axis("off")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def rules_scatter(ax, ndgri, ndsi, box: RulesBox = DEFAULT_BOX, label: str | None = None, color="C0") -> None:
+    """Skin pixels in the NDGRI x NDSI plane with the rules box (Fig 32/37 style)."""
+    plt = _plt()
+    g = ndgri.detach().cpu().reshape(-1).numpy()
+    s = ndsi.detach().cpu().reshape(-1).numpy()
+    ax.scatter(g, s, s=2, alpha=0.4, color=color, label=label, rasterized=True)
+    ax.add_patch(plt.Rectangle((box.b1, box.c1), box.b2 - box.b1, box.c2 - box.c1, fill=False, ec="k", lw=1.4))
+    ax.set_xlim(-1, 0.5)
+    ax.set_ylim(-0.2, 1.0)
+    ax.set_xlabel("NDGRI")
+    ax.set_ylabel("NDSI")
+    ax.grid(alpha=0.3)

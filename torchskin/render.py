@@ -1,0 +1,377 @@
+"""Render calibrated multispectral images: G-buffer -> local angles -> BRDF per band -> radiance -> sensor
+(eq 2.5.2) -> ELM from the reference panels -> reflectance cube -> NDGRI/NDSI -> rules mask -> detections.
+
+Shapes: S suns, C cameras, H x W pixels, B bands; images are ``(S, C, H, W, B)``. Everything after the
+G-buffer runs on the requested device and dtype, without Python loops over pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import tissue
+from .bands import Band, band_sampling
+from .calibrate import elm_apply, elm_coefficients
+from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
+from .optics import THESIS_SPECULAR, combined_brdf_cos
+from .raycast import GBuffer, Raycaster
+from .scene import Scene, TriMesh
+
+H_PLANCK = 6.62607015e-34
+C_LIGHT = 2.99792458e8
+
+
+def _per_band(name: str, value, n: int) -> list[float]:
+    vals = list(value) if isinstance(value, (list, tuple)) else [value] * n
+    if len(vals) != n:
+        raise ValueError(f"sensor {name} has {len(vals)} values for {n} bands")
+    return [float(v) for v in vals]
+
+
+@dataclass
+class Sensor:
+    """Radiometric chain of eq 2.5.2 and the atmosphere of eq 2.5.1, per band (lists or one value).
+
+    L_aperture = τ_atm L + L_path; photoelectrons = L_aperture Ω_pixel A_optic τ_filter Δλ (λ/hc) t_int η;
+    then shot noise (Gaussian approximation of Poisson, valid above ~100 e-), read noise, full-well
+    clipping and an ADC of ``adc_bits`` with gain full_well / 2^bits e-/DN. Ω_pixel = 1/f_px² comes from
+    the camera. Each stage can be switched off: ``atmosphere``, ``noise``, ``quantize``.
+    ``integration_time_s="auto"`` exposes each band (each camera of a multi-camera system) so that the
+    brightest pixel of the frame fills ``auto_fill`` of the full well (nothing saturates); a number fixes
+    it (seconds).
+    """
+
+    aperture_diameter_m: float = 0.05
+    integration_time_s: float | str = "auto"
+    auto_fill: float = 0.8
+    quantum_efficiency: float | list = field(default_factory=lambda: [0.55, 0.65, 0.75, 0.70])
+    filter_transmittance: float | list = 0.9
+    band_width_nm: float | list | None = None  # default: each band's FWHM, or 10 nm for monochromatic bands
+    atmosphere_transmittance: float | list = field(default_factory=lambda: [0.95, 0.96, 0.97, 0.93])
+    path_radiance: float | list = field(default_factory=lambda: [0.004, 0.003, 0.001, 0.0003])
+    read_noise_e: float = 50.0
+    full_well_e: float = 2.0e6
+    adc_bits: int = 14
+    noise: bool = True
+    atmosphere: bool = True
+    quantize: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        for k in ("aperture_diameter_m", "full_well_e"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"sensor {k} must be > 0, got {getattr(self, k)}")
+        if self.integration_time_s != "auto" and not float(self.integration_time_s) > 0:
+            raise ValueError(f"sensor integration_time_s must be 'auto' or > 0 s, got {self.integration_time_s}")
+        if not (0 < self.auto_fill <= 1):
+            raise ValueError(f"sensor auto_fill must lie in (0, 1], got {self.auto_fill}")
+        if not (1 <= int(self.adc_bits) <= 32):
+            raise ValueError(f"sensor adc_bits must lie in [1, 32], got {self.adc_bits}")
+
+    def tables(self, bands: tuple[Band, ...], dtype, device) -> dict[str, torch.Tensor]:
+        n = len(bands)
+        widths = self.band_width_nm
+        if widths is None:
+            widths = [b.fwhm_nm if b.fwhm_nm > 0 else 10.0 for b in bands]
+        t = {
+            "qe": _per_band("quantum_efficiency", self.quantum_efficiency, n),
+            "filter": _per_band("filter_transmittance", self.filter_transmittance, n),
+            "width": _per_band("band_width_nm", widths, n),
+            "tau": _per_band("atmosphere_transmittance", self.atmosphere_transmittance, n),
+            "path": _per_band("path_radiance", self.path_radiance, n),
+            "wavelength_m": [b.center_nm * 1e-9 for b in bands],
+        }
+        for k in ("qe", "filter", "tau"):
+            if not all(0 < v <= 1 for v in t[k]):
+                raise ValueError(f"sensor {k} values must lie in (0, 1], got {t[k]}")
+        return {k: torch.tensor(v, dtype=dtype, device=device) for k, v in t.items()}
+
+
+def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands, focal_px: float,
+                  generator: torch.Generator | None = None, reference: torch.Tensor | None = None) -> torch.Tensor:
+    """Digital numbers from at-surface radiance (W m^-2 sr^-1 nm^-1), ``(S, C, H, W, B)``. ``sensor=None``
+    returns the radiance unchanged (an ideal linear sensor). ``reference`` (S, C, B): the radiance that
+    automatic exposure maps to ``auto_fill`` of the full well (default: the frame's maximum)."""
+    if sensor is None:
+        return radiance
+    tb = sensor.tables(tuple(bands), radiance.dtype, radiance.device)
+    atm = (lambda x: tb["tau"] * x + tb["path"]) if sensor.atmosphere else (lambda x: x)
+    L = atm(radiance)
+    omega = 1.0 / focal_px**2
+    area = math.pi * (sensor.aperture_diameter_m / 2) ** 2
+    k = omega * area * tb["filter"] * tb["width"] * tb["wavelength_m"] * tb["qe"] / (H_PLANCK * C_LIGHT)
+    if sensor.integration_time_s == "auto":
+        if reference is None:
+            reference = radiance.amax(dim=(2, 3))
+        t_int = sensor.auto_fill * sensor.full_well_e / (k * atm(reference)).clamp_min(1e-30)  # (S, C, B)
+        k = k * t_int[:, :, None, None, :]
+    else:
+        k = k * float(sensor.integration_time_s)
+    e = L * k
+    if sensor.noise:
+        g = generator
+        e = e + torch.sqrt(e.clamp_min(0)) * torch.randn(e.shape, generator=g, dtype=e.dtype, device=e.device)
+        e = e + sensor.read_noise_e * torch.randn(e.shape, generator=g, dtype=e.dtype, device=e.device)
+    e = e.clamp(0.0, sensor.full_well_e)
+    levels = 2 ** int(sensor.adc_bits)
+    dn = e * (levels / sensor.full_well_e)
+    if sensor.quantize:
+        dn = torch.round(dn).clamp(0, levels - 1)
+    return dn
+
+
+# -------------------------------------------------------------------------------------- material tables
+@dataclass
+class MaterialTables:
+    """Per-material, per-band quantities gathered by material id: (M, B) each."""
+
+    lambert_f: torch.Tensor  # ρ/π for lambertian materials, 0 for skin
+    albedo: torch.Tensor  # hemispherical reflectance for the sky term (skin: the diffuse model's)
+    is_skin: torch.Tensor  # (M,) bool: combined skin BRDF
+    r_sub: torch.Tensor  # skin subsurface reflectance R_sub per band (band-averaged under the sun)
+    sigma2: torch.Tensor  # (B,)
+    rho0: torch.Tensor  # (B,)
+    irradiance: torch.Tensor  # (S, B) sun normal irradiance per band, W m^-2 nm^-1
+
+
+def material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialTables:
+    bands = scene.band_list
+    grid, W = band_sampling(bands, dtype=torch.float64)
+    E = torch.stack([s.irradiance(grid) for s in scene.suns])  # (S, G)
+    e_band = E @ W  # (S, B)
+    wE = W * E[0][:, None]  # weights under the first sun's spectrum
+    wE = wE / wE.sum(0)
+    M, B = len(names), len(bands)
+    lam = torch.zeros(M, B, dtype=torch.float64)
+    alb = torch.zeros(M, B, dtype=torch.float64)
+    rsub = torch.zeros(M, B, dtype=torch.float64)
+    skin = torch.zeros(M, dtype=torch.bool)
+    for k, name in enumerate(names):
+        m = scene.materials[name]
+        if m.kind == "skin":
+            p = m.skin_params(dtype=torch.float64)
+            rs = tissue.subsurface_reflectance(p, grid) @ wE
+            rtot = tissue.surface_total(torch.tensor(0.04, dtype=torch.float64), tissue.subsurface_reflectance(p, grid)) @ wE
+            alb[k] = rtot
+            if m.specular:
+                skin[k] = True
+                rsub[k] = rs
+            else:  # the diffuse-only model: a Lambertian surface with the normal-incidence skin reflectance
+                lam[k] = rtot / math.pi
+        else:
+            r = torch.tensor(m.band_reflectance(bands), dtype=torch.float64)
+            lam[k] = r / math.pi
+            alb[k] = r
+    sig, rho0 = THESIS_SPECULAR.at(torch.tensor([b.center_nm for b in bands], dtype=torch.float64))
+    def dev(x):
+        return x.to(device=device, dtype=dtype) if x.is_floating_point() else x.to(device)
+    return MaterialTables(dev(lam), dev(alb), dev(skin), dev(rsub), dev(sig), dev(rho0), dev(e_band))
+
+
+def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor) -> dict:
+    """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, plus the local cosines.
+
+    Sunlit: L = f(θi, θr, Δφ) E cos θi, with f the combined skin BRDF (eq 3.1.1, ρ_d from the exact closed
+    form in R0 = Schlick(ρ0, θi)) or ρ/π; plus a uniform sky: ρ_hemi/π · E_sky · (1 + n_z)/2.
+    """
+    n, v = gb.normal, gb.view  # (C, H, W, 3)
+    s = sun_dirs[:, None, None, None, :]  # (S, 1, 1, 1, 3)
+    cos_i = (n * s).sum(-1)  # (S, C, H, W)
+    cos_r = (n * v).sum(-1)  # (C, H, W)
+    cos_2b = (v * s).sum(-1)  # (S, C, H, W)
+    mat = gb.material.clamp_min(0)
+    lit = gb.hit & ~gb.shadow & (cos_i > 0)
+    ci = cos_i.clamp_min(0)[..., None]
+    cr = cos_r.expand_as(cos_i)[..., None]
+    f = tables.lambert_f[mat]  # (C, H, W, B)
+    if bool(tables.is_skin.any()):
+        skin = tables.is_skin[mat][..., None]  # (C, H, W, 1)
+        r_sub = tables.r_sub[mat]
+        r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)  # Schlick at the local incidence
+        rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
+        fs = combined_brdf_cos(ci, cr, cos_2b[..., None], rho_d, tables.sigma2, tables.rho0)
+        f = torch.where(skin, fs, f)
+    E = tables.irradiance[:, None, None, None, :]  # (S, 1, 1, 1, B)
+    L = f * E * ci * lit[..., None]
+    sky = sky_fraction[:, None, None, None, None] * E * (tables.albedo[mat] / math.pi) * (
+        0.5 * (1 + n[..., 2:3]))
+    L = torch.where(gb.hit[..., None], L + sky, torch.zeros_like(L))
+    return {"radiance": L, "cos_i": cos_i, "cos_r": cos_r, "lit": lit}
+
+
+# ----------------------------------------------------------------------------------------------------- ELM
+def erode(mask: torch.Tensor, pixels: int = 1) -> torch.Tensor:
+    """Binary erosion of (..., H, W) masks with a (2p+1)² square (on the mask's device)."""
+    if pixels <= 0:
+        return mask
+    shp = mask.shape
+    m = (~mask).reshape(-1, 1, *shp[-2:]).to(torch.float32)
+    grown = F.max_pool2d(m, 2 * pixels + 1, stride=1, padding=pixels)
+    return (grown < 0.5).reshape(shp) & mask
+
+
+def panel_masks(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> torch.Tensor:
+    """Interior pixels of each reference panel, (P, C, H, W); raises if a camera sees no panel interior."""
+    out = []
+    for name in panel_names:
+        interior = erode(gb.mesh == gb.mesh_names.index(name), erode_px)  # (C, H, W)
+        counts = interior.flatten(1).sum(1)
+        if bool((counts == 0).any()):
+            cams = (counts == 0).nonzero().flatten().tolist()
+            raise ValueError(f"camera(s) {cams} see no interior pixel of reference panel {name!r}: ELM impossible")
+        out.append(interior)
+    return torch.stack(out)
+
+
+def panel_values(x: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """Median of ``x`` (S, C, H, W, B) over each panel's interior pixels: (S, C, P, B)."""
+    nan = torch.full_like(x, float("nan"))
+    return torch.stack([torch.where(m[None, ..., None], x, nan).flatten(2, 3).nanmedian(dim=2).values
+                        for m in masks], dim=2)
+
+
+def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int = 4) -> list[dict]:
+    """Connected components of a 2-D mask (scikit-image): bounding box, area, centroid, and the fraction
+    of the component on the truth mask when given."""
+    from skimage.measure import label, regionprops
+
+    lab = label(mask, connectivity=2)
+    out = []
+    for r in regionprops(lab):
+        if r.area < min_area:
+            continue
+        d = {"bbox": [int(x) for x in r.bbox], "area": int(r.area),
+             "centroid": [float(r.centroid[0]), float(r.centroid[1])]}
+        if truth is not None:
+            d["on_subject"] = float(truth[lab == r.label].mean())
+        out.append(d)
+    return sorted(out, key=lambda d: -d["area"])
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+@dataclass
+class RenderResult:
+    radiance: torch.Tensor  # (S, C, H, W, B)
+    signal: torch.Tensor  # DN (or radiance without a sensor)
+    reflectance: torch.Tensor  # ELM-calibrated
+    ndgri: torch.Tensor  # (S, C, H, W)
+    ndsi: torch.Tensor
+    mask: torch.Tensor  # rules detector
+    skin: torch.Tensor  # (C, H, W) ground truth: skin pixels
+    lit: torch.Tensor  # (S, C, H, W) sunlit
+    panels: dict
+    gbuffer: GBuffer
+    timing: dict
+    bands: tuple
+
+
+def build_meshes(scene: Scene) -> tuple[list[TriMesh], list[str]]:
+    meshes = [m.build() for m in scene.meshes]
+    names = list(scene.materials)
+    return meshes, names
+
+
+def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | None = None,
+           box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None,
+           erode_px: int = 1) -> RenderResult:
+    """Render every sun x camera of ``scene`` and calibrate with ELM. ``sensor=None`` uses an ideal linear
+    sensor (ELM then recovers Lambertian reflectance exactly). Pass ``raycaster``/``gbuffer`` to reuse
+    geometry across calls."""
+    device = torch.device(device)
+    timing = {}
+    t0 = time.perf_counter()
+    if gbuffer is None:
+        if raycaster is None:
+            meshes, names = build_meshes(scene)
+            timing["build_s"] = time.perf_counter() - t0
+            raycaster = Raycaster(meshes, names)
+        t1 = time.perf_counter()
+        sun_dirs_np = np.stack([s.direction for s in scene.suns])
+        gbuffer = raycaster.gbuffer(scene.cameras, sun_dirs_np)
+        timing["raycast_s"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    gb = gbuffer.to(device=device, dtype=dtype)
+    tables = material_tables(scene, gb.material_names, dtype, device)
+    bands = scene.band_list
+    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device)
+    sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device)
+    sh = shade(gb, tables, sun_dirs, sky)
+    _sync(device)
+    timing["shade_s"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    gen = None
+    if sensor is not None and sensor.noise:
+        gen = torch.Generator(device=device)
+        gen.manual_seed(int(sensor.seed))
+    focal = scene.cameras[0].focal
+    masks = panel_masks(gb, list(scene.panels), erode_px)
+    signal = sensor_signal(sh["radiance"], sensor, bands, focal, gen)
+    refs = torch.tensor([scene.materials[scene.mesh(p).material].band_reflectance(bands) for p in scene.panels],
+                        dtype=dtype, device=device)  # (P, B)
+    pv = panel_values(signal, masks)  # (S, C, P, B)
+    a, b = elm_coefficients(pv[:, :, 0], pv[:, :, 1], refs[0], refs[1])  # (S, C, B)
+    refl = elm_apply(signal, a[:, :, None, None, :], b[:, :, None, None, :])
+    g, s = indices(refl, bands)
+    mask = rules_detector(g, s, box) & gb.hit
+    skin_mat = torch.tensor([scene.materials[n].kind == "skin" for n in gb.material_names], device=device)
+    skin = gb.hit & skin_mat[gb.material.clamp_min(0)]
+    _sync(device)
+    timing["sensor_elm_s"] = time.perf_counter() - t3
+    timing["total_s"] = time.perf_counter() - t0
+    panels = {p: {"reference": refs[k].tolist(), "signal": pv[:, :, k].tolist()} for k, p in enumerate(scene.panels)}
+    return RenderResult(sh["radiance"], signal, refl, g, s, mask, skin, sh["lit"], panels, gb, timing, bands)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
+    """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``."""
+    skin = result.skin[c]
+    lit = skin & result.lit[s, c]
+    det = result.mask[s, c]
+    n, nl = int(skin.sum()), int(lit.sum())
+    return {
+        "skin_pixels": n,
+        "sunlit_skin_pixels": nl,
+        "detected_fraction": float(det[skin].float().mean()) if n else 0.0,
+        "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
+        "false_alarm_pixels": int((det & ~skin).sum()),
+    }
+
+
+def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: int = 0) -> dict:
+    """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
+    detector mask PNG and ``render.json`` (scene, timing, panels, detections). Returns the summary."""
+    from pathlib import Path
+
+    from .io import atomic_path, write_text
+    from .plots import band_image, mask_image
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cube = result.reflectance[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
+    with atomic_path(out / "reflectance.npy", suffix=".npy") as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, cube)
+    for k, b in enumerate(result.bands):
+        band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
+                   f"{b.center_nm:g} nm reflectance (ELM)")
+    mask_image(out / "mask.png", result.mask[s, c], result.skin[c],
+               "rules detector: green hit, red missed skin, yellow false alarm")
+    info = summary(result, s, c)
+    dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
+    import json
+
+    doc = {"summary": info, "timing_s": result.timing, "panels": result.panels, "detections": dets,
+           "scene": scene.to_dict(), "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands]}
+    write_text(out / "render.json", json.dumps(doc, indent=1))
+    return info
