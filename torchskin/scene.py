@@ -307,6 +307,7 @@ class MeshSpec:
         p = self.params
         mats = [self.material]
         fm = None
+        normals = None  # analytic vertex normals of primitives (local frame), else area-weighted
         if self.kind == "anny":
             v, f, skin = anny_body(p.get("phenotype"), p.get("pose"))
             mats = [self.other_material, self.material]
@@ -318,8 +319,10 @@ class MeshSpec:
                                int(p.get("nv", 1)))
         elif self.kind == "cylinder":
             v, f = cylinder_mesh(float(p.get("radius", 0.1)), float(p.get("height", 1.0)), int(p.get("segments", 256)))
+            normals = np.c_[v[:, :2], np.zeros(len(v))]
         elif self.kind == "sphere":
             v, f = sphere_mesh(float(p.get("radius", 0.5)), int(p.get("subdivisions", 5)))
+            normals = v.copy()
         else:  # ground
             s = float(p.get("size", 50.0))
             v = np.array([[-s, -s, 0], [s, -s, 0], [s, s, 0], [-s, s, 0]], dtype=np.float64)
@@ -327,14 +330,22 @@ class MeshSpec:
         for k in ("width", "height", "radius", "size"):
             if k in p and not float(p[k]) > 0:
                 raise ValueError(f"mesh {self.name!r}: {k} must be > 0, got {p[k]}")
-        v = np.asarray(v, dtype=np.float64)
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
-        v = np.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]], 1) + np.asarray(self.position)
+
+        def turn(x):
+            return np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], 1)
+
+        v = turn(np.asarray(v, dtype=np.float64)) + np.asarray(self.position)
         f = np.asarray(f, dtype=np.int32)
         _check_mesh(self.name, v, f)
         fm = np.zeros(len(f), dtype=np.int32) if fm is None else fm
         v32 = v.astype(np.float32)
-        return TriMesh(self.name, v32, f, fm, mats, vertex_normals(v32, f))
+        if normals is not None:
+            normals = turn(normals)
+            normals = (normals / np.linalg.norm(normals, axis=1, keepdims=True)).astype(np.float32)
+        else:
+            normals = vertex_normals(v32, f)
+        return TriMesh(self.name, v32, f, fm, mats, normals)
 
 
 # ------------------------------------------------------------------------------------------ camera and sun

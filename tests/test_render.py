@@ -1,0 +1,275 @@
+"""Renderer: radiometry, ELM, shadows, local angles, glints, backends and input errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchskin import tissue
+from torchskin.render import Sensor, render
+from torchskin.scene import Camera, Material, MeshSpec, Scene, Sun, direction
+
+DEG = math.pi / 180
+
+
+def panel_scene(sun_az=0.0, sun_zen=90.0, cam_az=0.0, target_refl=(0.2, 0.37, 0.55, 0.8), extra=(), width=96,
+                height=48, sky=0.0):
+    mats = {"white": Material("lambertian", reflectance=0.97), "dark": Material("lambertian", reflectance=0.03),
+            "target": Material("lambertian", reflectance=list(target_refl)), "skin": Material("skin")}
+    meshes = [
+        MeshSpec("panel_white", "plane", "white", params={"width": 1.0, "height": 1.0}, position=[0.0, 1.1, 0.5]),
+        MeshSpec("target", "plane", "target", params={"width": 1.0, "height": 1.0}, position=[0.0, 0.0, 0.5]),
+        MeshSpec("panel_dark", "plane", "dark", params={"width": 1.0, "height": 1.0}, position=[0.0, -1.1, 0.5]),
+        *extra,
+    ]
+    cam = Camera(width=width, height=height, zenith_deg=90.0, azimuth_deg=cam_az, range_m=9.449,
+                 target=[0.0, 0.0, 1.0], fov_deg=21.0)
+    return Scene(mats, meshes, [cam], [Sun(zenith_deg=sun_zen, azimuth_deg=sun_az, sky_fraction=sky)])
+
+
+def mesh_pixels(res, name, c=0):
+    return res.gbuffer.mesh[c] == res.gbuffer.mesh_names.index(name)
+
+
+@pytest.mark.parametrize("sun_az,cam_az", [(0.0, 0.0), (40.0, 0.0), (80.0, 0.0), (-60.0, 30.0)])
+def test_elm_recovers_lambertian_reflectance(sun_az, cam_az):
+    sc = panel_scene(sun_az=sun_az, cam_az=cam_az)
+    truth = torch.tensor([0.2, 0.37, 0.55, 0.8])
+    ideal = render(sc, sensor=Sensor(noise=False, quantize=False))
+    px = mesh_pixels(ideal, "target")
+    assert int(px.sum()) > 100
+    assert float((ideal.reflectance[0, 0][px] - truth).abs().max()) < 1e-4
+    noisy = render(sc, sensor=Sensor(noise=True, seed=3))
+    est = noisy.reflectance[0, 0][px]
+    assert float((est.median(dim=0).values - truth).abs().max()) < 0.02
+    assert float(est.std(dim=0).max()) < 0.02
+
+
+def test_appendix_c_middle_panel():
+    from torchskin.experiment import appendix_c
+
+    assert abs(appendix_c(Sensor()) - 0.40) <= 0.02
+    assert abs(appendix_c(None) - 0.40) < 1e-5
+
+
+def test_lambertian_sphere_radiance_follows_cosine():
+    mats = {"white": Material("lambertian", reflectance=0.97), "dark": Material("lambertian", reflectance=0.03),
+            "grey": Material("lambertian", reflectance=0.5)}
+    centre = np.array([0.0, 0.0, 1.0])
+    meshes = [MeshSpec("ball", "sphere", "grey", params={"radius": 0.4, "subdivisions": 5}, position=list(centre)),
+              MeshSpec("panel_white", "plane", "white", params={"width": 0.3, "height": 0.3}, position=[0, 0.7, 0.4]),
+              MeshSpec("panel_dark", "plane", "dark", params={"width": 0.3, "height": 0.3}, position=[0, -0.7, 0.4])]
+    sun = Sun(zenith_deg=60.0, azimuth_deg=35.0)
+    sc = Scene(mats, meshes, [Camera(width=160, height=160, range_m=9.449, target=[0, 0, 1.0], fov_deg=12.0)], [sun])
+    res = render(sc, sensor=None, dtype=torch.float64)
+    gb = res.gbuffer
+    px = mesh_pixels(res, "ball")
+    n_true = gb.position[0][px] - torch.tensor(centre)
+    n_true = n_true / n_true.norm(dim=-1, keepdim=True)  # the sphere's own normal at the hit point
+    cos_true = n_true @ torch.tensor(sun.direction)
+    E = float(sun.irradiance(torch.tensor([633.0], dtype=torch.float64)))
+    L = res.radiance[0, 0][px][:, 1]
+    sel = cos_true > 0.05  # away from the terminator
+    rel = (L[sel] / (0.5 / math.pi * E) - cos_true[sel]) / cos_true[sel]
+    assert int(sel.sum()) > 2000
+    assert float(rel.abs().max()) < 1e-3
+
+
+def test_occluded_surface_keeps_only_the_sky_term():
+    plate = MeshSpec("plate", "ground", "dark", params={"size": 0.3}, position=[0.0, 0.0, 3.0])
+    ground = MeshSpec("floor", "ground", "target", params={"size": 2.0})
+    mats_extra = [plate, ground]
+    sc = panel_scene(sun_zen=0.0, extra=mats_extra, sky=0.2)
+    sc.cameras = [Camera(width=128, height=128, zenith_deg=45.0, azimuth_deg=0.0, range_m=8.0, target=[0, 0, 0.5],
+                         fov_deg=30.0)]
+    res = render(sc, sensor=None, dtype=torch.float64)
+    floor = mesh_pixels(res, "floor")
+    shadow = res.gbuffer.shadow[0, 0] & floor
+    lit = ~res.gbuffer.shadow[0, 0] & floor
+    assert int(shadow.sum()) > 20 and int(lit.sum()) > 100
+    rho = torch.tensor([0.2, 0.37, 0.55, 0.8], dtype=torch.float64)
+    E = torch.stack([sc.suns[0].irradiance(torch.tensor(b, dtype=torch.float64)) for b in (544., 633., 1080., 1580.)])
+    sky_only = rho / math.pi * 0.2 * E  # horizontal floor: full sky view
+    torch.testing.assert_close(res.radiance[0, 0][shadow], sky_only.expand(int(shadow.sum()), 4), rtol=1e-9, atol=0)
+    torch.testing.assert_close(res.radiance[0, 0][lit], (rho / math.pi * 1.2 * E).expand(int(lit.sum()), 4),
+                               rtol=1e-6, atol=0)
+    # the shadow sits under the plate, straight below (sun at zenith)
+    pos = res.gbuffer.position[0][shadow]
+    assert float(pos[:, :2].abs().max()) <= 0.3 + 1e-3
+
+
+def test_cylinder_local_angles_match_appendix_a():
+    """Appendix A: a cylinder of radius r whose front is R from the camera; a point (x, y) on it has
+    θ_rot = atan(y/x), θ_i,local = θ_i,global - θ_rot and θ_r,local = θ_rot + atan(y / (R + r - x)) (the
+    thesis prints the last arctangent inverted, which gives -90 degrees at the front)."""
+    r, R, theta_g = 0.1, 3.0, 25.0
+    mats = {"white": Material("lambertian", reflectance=0.97), "dark": Material("lambertian", reflectance=0.03),
+            "skin": Material("skin")}
+    meshes = [MeshSpec("cyl", "cylinder", "skin", params={"radius": r, "height": 1.0, "segments": 512}),
+              MeshSpec("panel_white", "plane", "white", params={"width": 0.2, "height": 0.2}, position=[0, 0.25, 0.4]),
+              MeshSpec("panel_dark", "plane", "dark", params={"width": 0.2, "height": 0.2}, position=[0, -0.25, 0.4])]
+    cam = Camera(width=400, height=41, zenith_deg=90.0, azimuth_deg=0.0, range_m=R + r, target=[0, 0, 0.5],
+                 fov_deg=12.0)
+    sc = Scene(mats, meshes, [cam], [Sun(zenith_deg=90.0, azimuth_deg=theta_g)])
+    gb = render(sc, sensor=None, dtype=torch.float64).gbuffer
+    row = 20  # the central row: horizontal rays through the cylinder's mid-height
+    hit = (gb.mesh[0, row] == 0)
+    p = gb.position[0, row][hit]
+    alpha = torch.atan2(p[:, 1], p[:, 0])
+    keep = alpha.abs() < 60 * DEG  # away from the silhouette
+    n = gb.normal[0, row][hit]
+    s = torch.tensor(direction(90.0, theta_g))
+    ti = torch.acos((n @ s).clamp(-1, 1))
+    tr = torch.acos((n * gb.view[0, row][hit]).sum(-1).clamp(-1, 1))
+    ti_closed = (theta_g * DEG - alpha).abs()
+    tr_closed = (alpha + torch.atan(p[:, 1] / (R + r - p[:, 0]))).abs()
+    assert int(keep.sum()) > 50
+    assert float((ti - ti_closed)[keep].abs().max()) < 0.5 * DEG
+    assert float((tr - tr_closed)[keep].abs().max()) < 0.5 * DEG
+
+
+def test_skin_glint_peaks_where_half_vector_meets_normal():
+    mats = {"white": Material("lambertian", reflectance=0.97), "dark": Material("lambertian", reflectance=0.03),
+            "skin": Material("skin")}
+    meshes = [MeshSpec("ball", "sphere", "skin", params={"radius": 0.3, "subdivisions": 5}, position=[0, 0, 1.0]),
+              MeshSpec("panel_white", "plane", "white", params={"width": 0.2, "height": 0.2}, position=[0, 0.5, 0.3]),
+              MeshSpec("panel_dark", "plane", "dark", params={"width": 0.2, "height": 0.2}, position=[0, -0.5, 0.3])]
+    cam = Camera(width=200, height=200, zenith_deg=80.0, azimuth_deg=0.0, range_m=9.449, target=[0, 0, 1.0],
+                 fov_deg=8.0)
+    sun = Sun(zenith_deg=60.0, azimuth_deg=30.0)
+    res = render(Scene(mats, meshes, [cam], [sun]), sensor=Sensor(noise=False))
+    gb = res.gbuffer
+    px = (gb.mesh[0] == 0) & res.lit[0, 0]
+    refl = torch.where(px, res.reflectance[0, 0, :, :, 3], torch.zeros(()))
+    k = int(torch.argmax(refl))
+    n = gb.normal[0].reshape(-1, 3)[k]
+    v = gb.view[0].reshape(-1, 3)[k]
+    s = torch.tensor(sun.direction, dtype=torch.float32)
+    h = (s + v) / (s + v).norm()
+    assert math.degrees(math.acos(float((n @ h).clamp(-1, 1)))) < 2.0
+    # the glint is far brighter than the diffuse skin and drives the indices towards 0
+    assert float(refl.max()) > 3 * float(res.reflectance[0, 0, :, :, 3][px].median())
+
+
+def test_float32_and_float64_renders_agree():
+    sc = panel_scene(sun_az=30.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    sens = Sensor(noise=False, quantize=False)
+    a = render(sc, sensor=sens, dtype=torch.float32)
+    b = render(sc, sensor=sens, dtype=torch.float64)
+    hit = a.gbuffer.hit[0]
+    ra, rb = a.reflectance[0, 0][hit].double(), b.reflectance[0, 0][hit]
+    lit = rb.abs() > 1e-3
+    assert float(((ra - rb).abs() / rb.abs())[lit].max()) < 1e-4
+
+
+def test_render_runs_on_every_device(device):
+    dt = torch.float32
+    sc = panel_scene(sun_az=20.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    res = render(sc, device=device, dtype=dt, sensor=Sensor(noise=False))
+    assert res.reflectance.device.type == device.type
+    ref = render(sc, device="cpu", dtype=dt, sensor=Sensor(noise=False))
+    torch.testing.assert_close(res.reflectance.cpu(), ref.reflectance, rtol=1e-4, atol=1e-4)
+
+
+def test_several_suns_and_cameras_in_one_call_match_single_renders():
+    sc = panel_scene(extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3}, position=[1.0, 0.0, 1.4])])
+    sc.suns = [Sun(zenith_deg=90.0, azimuth_deg=a) for a in (0.0, 30.0, -50.0)]
+    sc.cameras = [Camera(width=96, height=48, azimuth_deg=a, target=[0.0, 0.0, 1.0], fov_deg=21.0) for a in (0.0, 20.0)]
+    both = render(sc, sensor=None)
+    for si, sun in enumerate(sc.suns):
+        for ci, cam in enumerate(sc.cameras):
+            one = Scene(sc.materials, sc.meshes, [cam], [sun])
+            torch.testing.assert_close(render(one, sensor=None).radiance[0, 0], both.radiance[si, ci])
+
+
+def test_scene_json_round_trip(tmp_path):
+    sc = panel_scene(sun_az=30.0)
+    path = tmp_path / "scene.json"
+    sc.to_json(path)
+    back = Scene.from_json(path)
+    assert back.to_dict() == sc.to_dict()
+    torch.testing.assert_close(render(back, sensor=None).radiance, render(sc, sensor=None).radiance)
+
+
+def test_diffuse_only_skin_is_lambertian_with_the_diffuse_model_reflectance():
+    sc = panel_scene(sun_az=35.0, extra=[MeshSpec("slab", "plane", "skin", params={"width": 0.5, "height": 0.5},
+                                                  position=[0.5, 0.0, 1.6])])
+    sc.materials["skin"] = Material("skin", skin="V-VI", specular=False)
+    res = render(sc, sensor=None, dtype=torch.float64)
+    px = mesh_pixels(res, "slab")
+    expect = tissue.reflectance(tissue.preset("V-VI", dtype=torch.float64),
+                                torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64))
+    torch.testing.assert_close(res.reflectance[0, 0][px], expect.expand(int(px.sum()), 4), rtol=1e-9, atol=1e-9)
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    with pytest.raises(ValueError, match="zenith must lie in"):
+        Sun(zenith_deg=120.0 + 90)
+    with pytest.raises(ValueError, match="at least 1 x 1"):
+        Camera(width=0)
+    with pytest.raises(ValueError, match="does not exist"):
+        MeshSpec("m", "file", "skin", params={"path": str(tmp_path / "missing.obj")}).build()
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing\n")
+    with pytest.raises(ValueError, match="no triangles"):
+        MeshSpec("m", "file", "skin", params={"path": str(empty)}).build()
+    broken = tmp_path / "broken.obj"
+    broken.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")  # one degenerate triangle
+    with pytest.raises(ValueError, match="degenerate"):
+        MeshSpec("m", "file", "skin", params={"path": str(broken)}).build()
+    sc = panel_scene()
+    sc.cameras = [Camera(width=32, height=32, zenith_deg=0.0, target=[0.0, 0.0, 20.0], range_m=5.0)]  # sky only
+    with pytest.raises(ValueError, match="ELM impossible"):
+        render(sc)
+    with pytest.raises(ValueError, match="unknown material"):
+        Scene({}, [MeshSpec("m", "plane", "nope")], [Camera()], [Sun()], panels=[])
+
+
+def test_mesh_file_subject_renders(tmp_path):
+    from torchskin.scene import sphere_mesh
+
+    v, f = sphere_mesh(0.3, 3)
+    path = tmp_path / "ball.obj"
+    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    sc = panel_scene(sun_az=10.0, extra=[MeshSpec("scan", "file", "skin", params={"path": str(path)},
+                                                  position=[1.0, 0.0, 1.4])])
+    res = render(sc, sensor=Sensor(noise=False))
+    assert int(res.skin[0].sum()) > 50
+
+
+def test_cli_render_rejects_bad_angles(capsys, tmp_path):
+    from torchskin.cli import main
+
+    assert main(["render", "--out", str(tmp_path), "--source-zenith", "95"]) == 2
+    assert "--source-zenith must lie in [0, 90]" in capsys.readouterr().err
+    assert main(["render", "--out", str(tmp_path), "--width", "0"]) == 2
+    assert "resolution" in capsys.readouterr().err
+
+
+def test_skin_slab_reads_the_combined_brdf_through_elm():
+    """Skin and panels share a normal, so ELM returns π f(θi, θr, Δφ) cos θi / cos θi = π f exactly (eq 3.1.1
+    with ρ_d from the exact closed form at R0 = Schlick(ρ0, θi))."""
+    from torchskin.optics import THESIS_SPECULAR, combined_brdf
+
+    slab = MeshSpec("slab", "plane", "skin", params={"width": 0.4, "height": 0.4}, position=[0.0, 0.0, 1.7])
+    sc = panel_scene(sun_az=30.0, sun_zen=80.0, extra=[slab])
+    sc.meshes[1] = MeshSpec("target", "plane", "target", params={"width": 1.0, "height": 0.3}, position=[0, 0, 0.2])
+    res = render(sc, sensor=None, dtype=torch.float64)
+    gb = res.gbuffer
+    px = mesh_pixels(res, "slab")
+    n = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    s = torch.tensor(direction(80.0, 30.0))
+    v = gb.view[0][px].double()
+    ti = torch.acos(s @ n).expand(v.shape[0])
+    tr = torch.acos(v @ n)
+    s_t = s - (s @ n) * n
+    v_t = v - (v @ n)[:, None] * n
+    dphi = torch.acos(((v_t @ s_t) / (v_t.norm(dim=-1) * s_t.norm())).clamp(-1, 1))
+    wl = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64)
+    sig, rho0 = THESIS_SPECULAR.at(wl)
+    rho_d = tissue.diffuse_reflectance(tissue.preset("I-II", dtype=torch.float64), wl, theta_i=ti[:1], rho0=rho0)
+    f = combined_brdf(ti[:, None], tr[:, None], dphi[:, None], rho_d, sig, rho0)
+    torch.testing.assert_close(res.reflectance[0, 0][px], math.pi * f, rtol=2e-5, atol=1e-6)
