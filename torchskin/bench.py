@@ -76,8 +76,60 @@ def bench_km(compile: bool = False) -> dict:
     return out
 
 
+def bench_render(compile: bool = False, width: int = 512, height: int = 512, repeat: int = 5,
+                 device: str = "cpu") -> dict:
+    """A 4-band frame of an anny subject with panels, ground, sun and shadows, against open3d's own
+    ``cast_rays`` + ``test_occlusions`` for the same rays; and 16 sun directions shaded from one G-buffer."""
+    import numpy as np
+
+    from .raycast import Raycaster, camera_rays
+    from .render import Sensor, build_meshes, render
+    from .scene import Camera, Sun, default_scene
+
+    sc = default_scene(camera=Camera(width=width, height=height), sun=Sun(zenith_deg=40.0, azimuth_deg=25.0,
+                                                                          sky_fraction=0.1))
+    meshes, names = build_meshes(sc)
+    rc = Raycaster(meshes, names)
+    sensor = Sensor()
+    sun_dirs = np.stack([s.direction for s in sc.suns])
+    dev = torch.device(device)
+
+    def frame():
+        gb = rc.gbuffer(sc.cameras, sun_dirs)
+        return render(sc, device=dev, sensor=sensor, gbuffer=gb)
+
+    rays = camera_rays(sc.cameras[0])[None]
+    gb0 = rc.gbuffer(sc.cameras, sun_dirs)
+    hit = gb0.hit.flatten()
+    org = gb0.position.reshape(-1, 3)[hit]
+    srays = torch.cat([org, torch.as_tensor(sun_dirs, dtype=torch.float32).expand(len(org), 3)], -1)
+
+    def raw():
+        rc.cast(rays)
+        rc.occluded(srays)
+
+    r = _median_seconds(raw, torch.device("cpu"), repeat, warmup=2)
+    t = _median_seconds(frame, dev, repeat, warmup=2)
+    res = frame()
+    suns16 = [Sun(zenith_deg=20.0 + 4 * k, azimuth_deg=-80.0 + 10 * k, sky_fraction=0.1) for k in range(16)]
+    sc16 = default_scene(camera=sc.cameras[0], sun=suns16[0])
+    sc16.suns = suns16
+    dirs16 = np.stack([s.direction for s in suns16])
+
+    def multi():
+        gb = rc.gbuffer(sc16.cameras, dirs16)
+        return render(sc16, device=dev, sensor=sensor, gbuffer=gb)
+
+    tm = _median_seconds(multi, dev, max(2, repeat // 2), warmup=1)
+    return {"render": {
+        "seconds": t, "raycast_seconds": r, "ratio_to_raycast": t / r, "multi_source_frames_per_s": 16 / tm,
+        "width": width, "height": height, "bands": len(sc.bands), "device": str(dev),
+        "stages_s": {k: v for k, v in res.timing.items() if k != "build_s"},
+    }}
+
+
 #: name -> callable(**options) returning a dict of results (later issues add entries)
-BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km}
+BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render}
 
 
 def run(only: list[str] | None = None, compile: bool = False) -> dict:

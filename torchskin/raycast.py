@@ -34,14 +34,20 @@ class GBuffer:
     shadow: torch.Tensor
     material_names: list
     mesh_names: list
+    cache: dict = dataclasses.field(default_factory=dict)  # derived per-G-buffer data (panel pixels, ...)
 
     def to(self, device=None, dtype=None) -> GBuffer:
+        """The G-buffer on ``device`` with floating tensors in ``dtype`` (itself when nothing changes)."""
+        same = all(v.device == torch.device(device or v.device) and (not v.is_floating_point() or dtype in (None, v.dtype))
+                   for v in (self.normal, self.hit))
+        if same:
+            return self
         out = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, torch.Tensor):
                 out[f.name] = v.to(device=device, dtype=dtype if v.is_floating_point() and dtype else None)
-            else:
+            elif f.name != "cache":
                 out[f.name] = v
         return GBuffer(**out)
 
@@ -120,22 +126,24 @@ class Raycaster:
         t = ans["t_hit"]
         hit = torch.isfinite(t)
         gid1 = ans["geometry_ids"].long() + 1
-        face = self._gid_face_off[gid1] + ans["primitive_ids"].long().clamp_min(0)
+        face = self._gid_face_off.index_select(0, gid1.reshape(-1)).reshape(gid1.shape) + ans["primitive_ids"].long().clamp_min(0)
         d = rays[..., 3:]
         view = -d
         pos = torch.addcmul(rays[..., :3], t[..., None], d)  # inf at misses
         uv = ans["primitive_uvs"]
-        tri = self._faces[face]  # (C, H, W, 3)
-        vn = self._vnormals
-        u, v = uv[..., :1], uv[..., 1:]
-        n = vn[tri[..., 0]] + u * (vn[tri[..., 1]] - vn[tri[..., 0]]) + v * (vn[tri[..., 2]] - vn[tri[..., 0]])
+        shp = t.shape
+        tri = self._faces.index_select(0, face.reshape(-1))  # (N, 3) vertex ids
+        nn = self._vnormals.index_select(0, tri.reshape(-1)).reshape(-1, 3, 3)  # (N, vertex, xyz)
+        uvf = uv.reshape(-1, 2)
+        wts = torch.cat([1 - uvf.sum(-1, keepdim=True), uvf], -1)  # barycentric weights (1-u-v, u, v)
+        n = torch.bmm(wts[:, None, :], nn).reshape(*shp, 3)
         # two-sided surfaces: turn both normals to the viewer's side of the triangle
         ng = ans["primitive_normals"]
         side = torch.copysign(torch.ones_like(t), (ng * view).sum(-1))[..., None]
         ng = ng * side
         n = n * (side / n.norm(dim=-1, keepdim=True).clamp_min(1e-12))
-        mesh = self._gid_mesh[gid1]
-        mat = self._fmat[face]
+        mesh = self._gid_mesh.index_select(0, gid1.reshape(-1)).reshape(shp)
+        mat = self._fmat.index_select(0, face.reshape(-1)).reshape(shp)
         sun = torch.as_tensor(np.asarray(sun_directions, dtype=np.float32)).reshape(-1, 3)
         flat = hit.flatten().nonzero().flatten()
         shadow = torch.zeros((len(sun), hit.numel()), dtype=torch.bool)

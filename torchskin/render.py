@@ -7,6 +7,7 @@ G-buffer runs on the requested device and dtype, without Python loops over pixel
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -17,7 +18,7 @@ import torch.nn.functional as F
 
 from . import tissue
 from .bands import Band, band_sampling
-from .calibrate import elm_apply, elm_coefficients
+from .calibrate import elm_coefficients
 from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
 from .optics import THESIS_SPECULAR, combined_brdf_cos
 from .raycast import GBuffer, Raycaster
@@ -95,35 +96,38 @@ class Sensor:
 
 def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands, focal_px: float,
                   generator: torch.Generator | None = None, reference: torch.Tensor | None = None) -> torch.Tensor:
-    """Digital numbers from at-surface radiance (W m^-2 sr^-1 nm^-1), ``(S, C, H, W, B)``. ``sensor=None``
-    returns the radiance unchanged (an ideal linear sensor). ``reference`` (S, C, B): the radiance that
-    automatic exposure maps to ``auto_fill`` of the full well (default: the frame's maximum)."""
+    """Digital numbers from at-surface radiance (W m^-2 sr^-1 nm^-1) of shape ``(S, C, ..., B)``.
+    ``sensor=None`` returns the radiance unchanged (an ideal linear sensor). ``reference`` (S, C, B): the
+    radiance that automatic exposure maps to ``auto_fill`` of the full well (default: the frame's maximum).
+
+    Shot and read noise are independent Gaussians, drawn as one: σ² = N_e + σ_read² (electrons).
+    """
     if sensor is None:
         return radiance
     tb = sensor.tables(tuple(bands), radiance.dtype, radiance.device)
-    atm = (lambda x: tb["tau"] * x + tb["path"]) if sensor.atmosphere else (lambda x: x)
-    L = atm(radiance)
+    S, C, B = radiance.shape[0], radiance.shape[1], radiance.shape[-1]
+    mid = (1,) * (radiance.dim() - 3)
+    L = torch.addcmul(tb["path"], tb["tau"], radiance) if sensor.atmosphere else radiance
     omega = 1.0 / focal_px**2
     area = math.pi * (sensor.aperture_diameter_m / 2) ** 2
     k = omega * area * tb["filter"] * tb["width"] * tb["wavelength_m"] * tb["qe"] / (H_PLANCK * C_LIGHT)
     if sensor.integration_time_s == "auto":
         if reference is None:
-            reference = radiance.amax(dim=(2, 3))
-        t_int = sensor.auto_fill * sensor.full_well_e / (k * atm(reference)).clamp_min(1e-30)  # (S, C, B)
-        k = k * t_int[:, :, None, None, :]
+            reference = radiance.reshape(S, C, -1, B).amax(dim=2)
+        ref = torch.addcmul(tb["path"], tb["tau"], reference) if sensor.atmosphere else reference
+        t_int = sensor.auto_fill * sensor.full_well_e / (k * ref).clamp_min(1e-30)  # (S, C, B)
+        k = (k * t_int).reshape(S, C, *mid, B)
     else:
         k = k * float(sensor.integration_time_s)
-    e = L * k
-    if sensor.noise:
-        g = generator
-        e = e + torch.sqrt(e.clamp_min(0)) * torch.randn(e.shape, generator=g, dtype=e.dtype, device=e.device)
-        e = e + sensor.read_noise_e * torch.randn(e.shape, generator=g, dtype=e.dtype, device=e.device)
-    e = e.clamp(0.0, sensor.full_well_e)
     levels = 2 ** int(sensor.adc_bits)
-    dn = e * (levels / sensor.full_well_e)
+    g = levels / sensor.full_well_e  # DN per electron
+    dn = L * (k * g)
+    if sensor.noise:
+        z = torch.randn(dn.shape, generator=generator, dtype=dn.dtype, device=dn.device)
+        dn = torch.addcmul(dn, torch.sqrt(dn.clamp_min(0) * g + (sensor.read_noise_e * g) ** 2), z)
     if sensor.quantize:
-        dn = torch.round(dn).clamp(0, levels - 1)
-    return dn
+        return torch.round(dn).clamp_(0, levels - 1)
+    return dn.clamp(0, levels * 1.0)
 
 
 # -------------------------------------------------------------------------------------- material tables
@@ -140,7 +144,24 @@ class MaterialTables:
     irradiance: torch.Tensor  # (S, B) sun normal irradiance per band, W m^-2 nm^-1
 
 
+_TABLE_CACHE: dict = {}
+
+
 def material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialTables:
+    """Per-material band tables (cached: the skin model runs once per distinct material set and sun)."""
+    import json
+
+    key = (json.dumps([[dataclasses.asdict(scene.materials[n]) for n in names], scene.bands,
+                       [(s.temperature_k, s.scale) for s in scene.suns]], sort_keys=True), str(dtype), str(device))
+    hit = _TABLE_CACHE.get(key)
+    if hit is None:
+        if len(_TABLE_CACHE) > 64:
+            _TABLE_CACHE.clear()
+        hit = _TABLE_CACHE[key] = _material_tables(scene, names, dtype, device)
+    return hit
+
+
+def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialTables:
     bands = scene.band_list
     grid, W = band_sampling(bands, dtype=torch.float64)
     E = torch.stack([s.irradiance(grid) for s in scene.suns])  # (S, G)
@@ -175,34 +196,39 @@ def material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialTa
 
 
 def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor) -> dict:
-    """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, plus the local cosines.
+    """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, and the sunlit mask (S, C, H, W).
 
     Sunlit: L = f(θi, θr, Δφ) E cos θi, with f the combined skin BRDF (eq 3.1.1, ρ_d from the exact closed
-    form in R0 = Schlick(ρ0, θi)) or ρ/π; plus a uniform sky: ρ_hemi/π · E_sky · (1 + n_z)/2.
+    form in R0 = Schlick(ρ0, θi)) on skin pixels and ρ/π elsewhere; plus a uniform sky on every hit pixel,
+    ρ_hemi/π · E_sky · (1 + n_z)/2. The skin BRDF is evaluated on the skin pixels only (gathered).
     """
-    n, v = gb.normal, gb.view  # (C, H, W, 3)
-    s = sun_dirs[:, None, None, None, :]  # (S, 1, 1, 1, 3)
-    cos_i = (n * s).sum(-1)  # (S, C, H, W)
-    cos_r = (n * v).sum(-1)  # (C, H, W)
-    cos_2b = (v * s).sum(-1)  # (S, C, H, W)
-    mat = gb.material.clamp_min(0)
-    lit = gb.hit & ~gb.shadow & (cos_i > 0)
-    ci = cos_i.clamp_min(0)[..., None]
-    cr = cos_r.expand_as(cos_i)[..., None]
-    f = tables.lambert_f[mat]  # (C, H, W, B)
+    shp = gb.hit.shape  # (C, H, W)
+    S = sun_dirs.shape[0]
+    n = gb.normal.reshape(-1, 3)
+    hit = gb.hit.reshape(-1)
+    mat = gb.material.reshape(-1).clamp_min(0)
+    cos_i = sun_dirs @ n.T  # (S, N)
+    lit = (cos_i > 0) & ~gb.shadow.reshape(S, -1) & hit
+    w = torch.where(lit, cos_i, torch.zeros((), dtype=cos_i.dtype, device=cos_i.device))  # (S, N)
+    E = tables.irradiance[:, None, :]  # (S, 1, B)
+    sky = (tables.albedo.index_select(0, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # (N, B)
+    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(0, mat) * E)
     if bool(tables.is_skin.any()):
-        skin = tables.is_skin[mat][..., None]  # (C, H, W, 1)
-        r_sub = tables.r_sub[mat]
-        r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)  # Schlick at the local incidence
-        rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
-        fs = combined_brdf_cos(ci, cr, cos_2b[..., None], rho_d, tables.sigma2, tables.rho0)
-        f = torch.where(skin, fs, f)
-    E = tables.irradiance[:, None, None, None, :]  # (S, 1, 1, 1, B)
-    L = f * E * ci * lit[..., None]
-    sky = sky_fraction[:, None, None, None, None] * E * (tables.albedo[mat] / math.pi) * (
-        0.5 * (1 + n[..., 2:3]))
-    L = torch.where(gb.hit[..., None], L + sky, torch.zeros_like(L))
-    return {"radiance": L, "cos_i": cos_i, "cos_r": cos_r, "lit": lit}
+        idx = (hit & tables.is_skin[mat]).nonzero().flatten()
+        if idx.numel():
+            ns = n.index_select(0, idx)
+            vs = gb.view.reshape(-1, 3).index_select(0, idx)
+            ci = cos_i.index_select(1, idx).clamp_min(0)[..., None]  # (S, K, 1)
+            cr = (ns * vs).sum(-1)[None, :, None]
+            c2b = (sun_dirs @ vs.T)[..., None]
+            r_sub = tables.r_sub.index_select(0, mat.index_select(0, idx))  # (K, B)
+            r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)  # Schlick at the local incidence
+            rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
+            f = combined_brdf_cos(ci, cr, c2b, rho_d, tables.sigma2, tables.rho0)  # (S, K, B)
+            Ls = torch.addcmul(L.index_select(1, idx), (w.index_select(1, idx)[..., None] * E), f)
+            L = L.index_copy(1, idx, Ls)
+    B = L.shape[-1]
+    return {"radiance": L.reshape(S, *shp, B), "lit": lit.reshape(S, *shp)}
 
 
 # ----------------------------------------------------------------------------------------------------- ELM
@@ -216,24 +242,39 @@ def erode(mask: torch.Tensor, pixels: int = 1) -> torch.Tensor:
     return (grown < 0.5).reshape(shp) & mask
 
 
-def panel_masks(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> torch.Tensor:
-    """Interior pixels of each reference panel, (P, C, H, W); raises if a camera sees no panel interior."""
+def panel_pixels(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> list[list[torch.Tensor]]:
+    """Flat indices (into H*W) of each panel's interior pixels per camera: ``[panel][camera]``. Raises if
+    a camera sees no interior pixel of a panel (ELM impossible). Cached on the G-buffer."""
+    key = ("panel_pixels", tuple(panel_names), erode_px)
+    if key in gb.cache:
+        return gb.cache[key]
     out = []
+    W = gb.mesh.shape[-1]
     for name in panel_names:
-        interior = erode(gb.mesh == gb.mesh_names.index(name), erode_px)  # (C, H, W)
-        counts = interior.flatten(1).sum(1)
-        if bool((counts == 0).any()):
-            cams = (counts == 0).nonzero().flatten().tolist()
-            raise ValueError(f"camera(s) {cams} see no interior pixel of reference panel {name!r}: ELM impossible")
-        out.append(interior)
-    return torch.stack(out)
+        k = gb.mesh_names.index(name)
+        per_cam = []
+        for c in range(gb.mesh.shape[0]):
+            m = gb.mesh[c] == k
+            rows, cols = m.any(1).nonzero().flatten(), m.any(0).nonzero().flatten()
+            if rows.numel() == 0:
+                per_cam.append(rows)
+                continue
+            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            inner = erode(m[y0:y1, x0:x1], erode_px).nonzero()  # erode only the panel's bounding box
+            per_cam.append((inner[:, 0] + y0) * W + inner[:, 1] + x0)
+        empty = [c for c, ix in enumerate(per_cam) if ix.numel() == 0]
+        if empty:
+            raise ValueError(f"camera(s) {empty} see no interior pixel of reference panel {name!r}: ELM impossible")
+        out.append(per_cam)
+    gb.cache[key] = out
+    return out
 
 
-def panel_values(x: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+def panel_values(x: torch.Tensor, pixels: list[list[torch.Tensor]]) -> torch.Tensor:
     """Median of ``x`` (S, C, H, W, B) over each panel's interior pixels: (S, C, P, B)."""
-    nan = torch.full_like(x, float("nan"))
-    return torch.stack([torch.where(m[None, ..., None], x, nan).flatten(2, 3).nanmedian(dim=2).values
-                        for m in masks], dim=2)
+    flat = x.flatten(2, 3)  # (S, C, H*W, B)
+    return torch.stack([torch.stack([flat[:, c].index_select(1, ix).median(dim=1).values
+                                     for c, ix in enumerate(per_cam)], dim=1) for per_cam in pixels], dim=2)
 
 
 def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int = 4) -> list[dict]:
@@ -310,13 +351,14 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
         gen = torch.Generator(device=device)
         gen.manual_seed(int(sensor.seed))
     focal = scene.cameras[0].focal
-    masks = panel_masks(gb, list(scene.panels), erode_px)
+    pix = panel_pixels(gb, list(scene.panels), erode_px)
     signal = sensor_signal(sh["radiance"], sensor, bands, focal, gen)
     refs = torch.tensor([scene.materials[scene.mesh(p).material].band_reflectance(bands) for p in scene.panels],
                         dtype=dtype, device=device)  # (P, B)
-    pv = panel_values(signal, masks)  # (S, C, P, B)
+    pv = panel_values(signal, pix)  # (S, C, P, B)
     a, b = elm_coefficients(pv[:, :, 0], pv[:, :, 1], refs[0], refs[1])  # (S, C, B)
-    refl = elm_apply(signal, a[:, :, None, None, :], b[:, :, None, None, :])
+    inv_a = 1 / a[:, :, None, None, :]
+    refl = torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # eq 2.5.7, (L - b) / a
     g, s = indices(refl, bands)
     mask = rules_detector(g, s, box) & gb.hit
     skin_mat = torch.tensor([scene.materials[n].kind == "skin" for n in gb.material_names], device=device)
