@@ -27,6 +27,7 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	mkdir -p $(OUT)
 	$(VENV)/bin/torchskin spectra --all-presets --plot $(OUT)/presets.png
+	$(VENV)/bin/torchskin experiment --out $(OUT)/experiment
 
 lint: setup
 	$(VENV)/bin/ruff check torchskin tests scripts
