@@ -128,8 +128,25 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     }}
 
 
+def bench_fit(compile: bool = False, n: int = 10_000) -> dict:
+    """``fit_skin`` on n noisy visible spectra (400-1000 nm every 10 nm), default settings."""
+    from .fit import fit_skin
+
+    wl = tissue.wavelength_grid(400.0, 1000.0, 10.0, dtype=torch.float64)
+    skins, _ = tissue.sample(n, 5, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    R = (tissue.total_reflectance(skins, wl) + 0.005 * torch.randn(n, wl.numel(), generator=g,
+                                                                    dtype=torch.float64)).clamp(0, 1)
+    t0 = time.perf_counter()
+    res = fit_skin(R, wl)
+    sec = time.perf_counter() - t0
+    return {"fit": {"spectra_per_s": n / sec, "seconds_for_10000": sec * 10_000 / n, "spectra": n,
+                    "wavelengths": wl.numel(), "converged_fraction": float(res.converged.float().mean()),
+                    "rmse_median": float(res.rmse.median())}}
+
+
 #: name -> callable(**options) returning a dict of results (later issues add entries)
-BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render}
+BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit}
 
 
 def run(only: list[str] | None = None, compile: bool = False) -> dict:

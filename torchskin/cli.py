@@ -189,6 +189,62 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------------------- fits
+def cmd_fit_skin(args) -> int:
+    from . import fit
+
+    names, R, wl = fit.read_spectra_csv(args.spectra)
+    res = fit.fit_skin(R, wl, r0=args.r0, noise=args.noise)
+    fit.write_params_csv(args.out, names, res)
+    if args.plot:
+        from pathlib import Path
+
+        from .plots import fit_spectra
+
+        Path(args.plot).mkdir(parents=True, exist_ok=True)
+        fit_spectra(Path(args.plot) / "fits.png", names, wl, R, res.fitted, res.rmse)
+    if args.json:
+        print(json.dumps({"rmse": res.rmse.tolist(), "converged": res.converged.tolist(), "seconds": res.seconds,
+                          "params": res.reported()}))
+    else:
+        print(f"fitted {len(names)} spectra in {res.seconds:.2f} s: RMSE median {float(res.rmse.median()):.4f}, "
+              f"max {float(res.rmse.max()):.4f}; converged {int(res.converged.sum())}/{len(names)}; "
+              f"wrote {args.out}")
+        und = [k for j, k in enumerate(fit.NAMES) if not bool(res.identifiable[:, j].any())]
+        if und:
+            print(f"not determined by these data (left empty): {', '.join(und)}")
+    return 0
+
+
+def cmd_fit_brdf(args) -> int:
+    from . import fit
+    from .io import write_text
+    from .optics import rho0_to_n
+
+    (ti, tr, dp), f, bands = fit.read_brdf_csv(args.data)
+    res = fit.fit_brdf(ti, tr, dp, f, diffuse=not args.no_diffuse)
+    doc = {"bands_nm": bands, "sigma2": res.sigma2.tolist(), "rho0": res.rho0.tolist(),
+           "n": rho0_to_n(res.rho0).tolist(), "rho_d": res.rho_d.tolist(), "rmse": res.rmse.tolist(),
+           "converged": res.converged.tolist()}
+    write_text(args.out, json.dumps(doc, indent=1))
+    if args.plot:
+        from .plots import fit_brdf_curves
+
+        def model(a, b, c):
+            ci, cr = torch.cos(a)[:, None], torch.cos(b)[:, None]
+            c2b = ci * cr + (torch.sin(a) * torch.sin(b) * torch.cos(c))[:, None]
+            return fit.brdf_model(ci, cr, c2b, res.sigma2, res.rho0, None if args.no_diffuse else res.rho_d)
+
+        fit_brdf_curves(args.plot, ti, tr, dp, f, model, bands)
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        for k, b in enumerate(bands):
+            print(f"{b:g} nm: sigma2 {doc['sigma2'][k]:.4f}, rho0 {doc['rho0'][k]:.4f} (n {doc['n'][k]:.3f}), "
+                  f"rho_d {doc['rho_d'][k]:.3f}, RMSE {doc['rmse'][k]:.3g} sr^-1")
+    return 0
+
+
 # -------------------------------------------------------------------------------------------------- bench
 def cmd_bench(args) -> int:
     from . import bench
@@ -262,6 +318,23 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--device", default="cpu")
     ep.add_argument("--json", action="store_true")
     ep.set_defaults(func=cmd_experiment)
+
+    fp = sub.add_parser("fit-skin", help="fit the skin parameters to measured reflectance spectra")
+    fp.add_argument("spectra", help="CSV: header row of wavelengths (nm), one spectrum per row")
+    fp.add_argument("--out", required=True, help="output CSV of fitted parameters")
+    fp.add_argument("--r0", type=float, default=0.04, help="front-surface reflectance of the measurement")
+    fp.add_argument("--noise", type=float, default=None, help="measurement noise for the uncertainties")
+    fp.add_argument("--plot", metavar="DIR", help="write measured vs fitted spectra (fits.png) here")
+    fp.add_argument("--json", action="store_true")
+    fp.set_defaults(func=cmd_fit_skin)
+
+    bf = sub.add_parser("fit-brdf", help="fit microfacet sigma2 and rho0 per band to goniometric data")
+    bf.add_argument("data", help="CSV: theta_i_deg,theta_r_deg,delta_phi_deg,<band nm>,... (BRDF in 1/sr)")
+    bf.add_argument("--out", required=True, help="output JSON of fitted parameters")
+    bf.add_argument("--no-diffuse", action="store_true", help="fit the lobe alone (no diffuse term)")
+    bf.add_argument("--plot", metavar="PNG", help="measured and fitted in-plane curves (Fig 21 style)")
+    bf.add_argument("--json", action="store_true")
+    bf.set_defaults(func=cmd_fit_brdf)
 
     bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bp.add_argument("--json", action="store_true")

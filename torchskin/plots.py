@@ -1,7 +1,9 @@
-"""Figures: skin spectra like the thesis's Fig 17 with the NDSI x NDGRI rules box beside them."""
+"""Figures: skin spectra like the thesis's Fig 17 with the NDSI x NDGRI rules box beside them, render and
+experiment images, fits."""
 
 from __future__ import annotations
 
+import math
 import os
 
 import torch
@@ -140,3 +142,63 @@ def rules_scatter(ax, ndgri, ndsi, box: RulesBox = DEFAULT_BOX, label: str | Non
     ax.set_xlabel("NDGRI")
     ax.set_ylabel("NDSI")
     ax.grid(alpha=0.3)
+
+
+def fit_spectra(path, names, wavelengths, measured, fitted, rmse, max_panels: int = 12) -> None:
+    """Measured (dots) and fitted (line) spectra, up to ``max_panels`` of them."""
+    plt = _plt()
+    n = min(len(names), max_panels)
+    cols = min(n, 4)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows), squeeze=False)
+    wl = wavelengths.detach().cpu().numpy()
+    for k in range(rows * cols):
+        ax = axes[k // cols][k % cols]
+        if k >= n:
+            ax.axis("off")
+            continue
+        ax.plot(wl, measured[k].detach().cpu().numpy(), ".", ms=3, color="0.3", label="measured")
+        ax.plot(wl, fitted[k].detach().cpu().numpy(), "-", color="C3", label="fit")
+        ax.set_title(f"{names[k]}  RMSE {float(rmse[k]):.4f}", fontsize=9)
+        ax.set_ylim(0, 0.8)
+        ax.grid(alpha=0.3)
+        if k == 0:
+            ax.legend(fontsize=8)
+    fig.supxlabel("wavelength (nm)")
+    fig.supylabel("reflectance")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def fit_brdf_curves(path, theta_i, theta_r, delta_phi, measured, fitted_fn, bands_nm) -> None:
+    """In-plane BRDF, measured (dots) and fitted (lines), per band and incidence (like the thesis's Fig 21).
+    ``fitted_fn(ti, tr, dphi)`` returns (M, B) model values."""
+    import numpy as np
+
+    plt = _plt()
+    ti_deg = np.round(np.degrees(theta_i.cpu().numpy()), 3)
+    inplane = (np.abs(np.cos(delta_phi.cpu().numpy())) > 0.999)
+    incid = sorted(set(ti_deg[inplane].tolist()))
+    B = measured.shape[1]
+    fig, axes = plt.subplots(B, max(len(incid), 1), figsize=(4 * max(len(incid), 1), 2.8 * B), squeeze=False)
+    for b in range(B):
+        for k, a in enumerate(incid):
+            ax = axes[b][k]
+            sel = inplane & (ti_deg == a)
+            sign = np.where(np.cos(delta_phi.cpu().numpy()[sel]) < 0, 1.0, -1.0)  # + forward plane
+            x = sign * np.degrees(theta_r.cpu().numpy()[sel])
+            o = np.argsort(x)
+            ax.semilogy(x[o], measured[sel][o, b].cpu().numpy(), ".", ms=3, color="C3", label="measured")
+            xs = torch.linspace(-89, 89, 357, dtype=torch.float64)
+            tr = xs.abs() * math.pi / 180
+            dp = torch.where(xs >= 0, math.pi, 0.0)
+            f = fitted_fn(torch.full_like(tr, a * math.pi / 180), tr, dp)[:, b]
+            ax.semilogy(xs.numpy(), f.detach().cpu().numpy(), "-", color="C0", label="fit")
+            ax.set_title(f"{bands_nm[b]:g} nm, incidence {a:g}°", fontsize=9)
+            ax.set_xlabel("θr (deg, + forward)")
+            ax.set_ylabel("BRDF (1/sr)")
+            ax.grid(alpha=0.3, which="both")
+            if b == 0 and k == 0:
+                ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)

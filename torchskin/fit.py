@@ -1,0 +1,460 @@
+"""Fit the models to measurements: skin parameters to reflectance spectra (eq 2.4.14), microfacet σ² and ρ0
+to goniometric BRDF data (section 3.3.3). Batched over spectra / bands, with autograd.
+
+Skin fits: every free parameter is bounded through a sigmoid; starts come from a look-up table of model
+spectra across the Fitzpatrick ranges (a multi-start: the best few per spectrum), then Adam on all starts,
+then L-BFGS on the best start of each spectrum. Parameters the data cannot determine (the Fisher
+information at the solution gives them a large uncertainty, e.g. the NIR-only parameters of a visible-only
+spectrum) are flagged rather than reported as if measured.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from . import tissue
+from ._checks import as_tensor
+from .optics import microfacet_brdf_cos
+
+#: search range of each skin parameter (inside tissue.PARAM_BOUNDS)
+FIT_BOUNDS: dict[str, tuple[float, float]] = {
+    "melanosome": (0.002, 0.6),
+    "blood": (0.01, 2.5),
+    "oxygenation": (0.0, 1.0),
+    "reticular_depth": (0.03, 0.5),
+    "collagen": (0.2, 1.0),
+    "subcutaneous_scale": (0.05, 1.0),
+}
+NAMES = tissue.PARAM_NAMES
+
+
+def _bounds(dtype, device):
+    lo = torch.tensor([FIT_BOUNDS[k][0] for k in NAMES], dtype=dtype, device=device)
+    hi = torch.tensor([FIT_BOUNDS[k][1] for k in NAMES], dtype=dtype, device=device)
+    return lo, hi
+
+
+def _to_params(z: torch.Tensor, lo, hi) -> torch.Tensor:
+    return lo + (hi - lo) * torch.sigmoid(z)
+
+
+def _to_z(p: torch.Tensor, lo, hi) -> torch.Tensor:
+    u = ((p - lo) / (hi - lo)).clamp(1e-4, 1 - 1e-4)
+    return torch.log(u / (1 - u))
+
+
+def _skins(p: torch.Tensor) -> tissue.SkinParams:
+    return tissue.SkinParams(*p.unbind(-1))
+
+
+def _model(p: torch.Tensor, wl: torch.Tensor, r0: float) -> torch.Tensor:
+    return tissue.total_reflectance(_skins(p), wl, r0=r0)
+
+
+def rmse(model: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+    """Eq 2.4.14: sqrt(mean over the N bands of (ρ_model - ρ_measured)²), per spectrum."""
+    return torch.sqrt(((model - measured) ** 2).mean(-1))
+
+
+def check_spectra(reflectance, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate measured spectra ``(n, W)`` and their wavelengths ``(W,)``; errors name the row and column."""
+    R = as_tensor(reflectance)
+    wl = as_tensor(wavelengths, like=R)
+    if R.dim() == 1:
+        R = R[None]
+    if R.dim() != 2:
+        raise ValueError(f"reflectance must be (n_spectra, n_wavelengths), got shape {tuple(R.shape)}")
+    if wl.dim() != 1 or wl.numel() != R.shape[1]:
+        raise ValueError(f"wavelengths ({wl.numel()} values) must match the spectra's {R.shape[1]} columns")
+    bad_wl = (wl < tissue.MODEL_RANGE_NM[0]) | (wl > tissue.MODEL_RANGE_NM[1]) | torch.isnan(wl)
+    if bool(bad_wl.any()):
+        j = int(bad_wl.nonzero()[0])
+        raise ValueError(f"column {j}: wavelength {float(wl[j]):g} nm lies outside the tables' "
+                         f"{tissue.MODEL_RANGE_NM[0]:g}-{tissue.MODEL_RANGE_NM[1]:g} nm")
+    if wl.numel() > 1 and bool((torch.diff(wl) <= 0).any()):
+        raise ValueError("wavelengths must be strictly increasing")
+    bad = ~torch.isfinite(R) | (R < 0) | (R > 1)
+    if bool(bad.any()):
+        i, j = (int(x) for x in bad.nonzero()[0])
+        raise ValueError(f"row {i}, column {j} ({float(wl[j]):g} nm): reflectance {float(R[i, j]):g} is NaN or "
+                         "outside [0, 1]")
+    return R, wl
+
+
+@dataclass
+class SkinFit:
+    """Result of ``fit_skin`` for n spectra."""
+
+    params: tissue.SkinParams  # (n,) best-fit values (also where undetermined: see ``identifiable``)
+    rmse: torch.Tensor  # (n,) eq 2.4.14
+    fitted: torch.Tensor  # (n, W) model spectra
+    converged: torch.Tensor  # (n,) bool
+    identifiable: torch.Tensor  # (n, 6) bool, parameter order tissue.PARAM_NAMES
+    std: torch.Tensor  # (n, 6) 1-sigma uncertainty from the Fisher information
+    seconds: float
+
+    def reported(self) -> list[dict]:
+        """Per spectrum: parameter -> value, or None where the data cannot determine it."""
+        vals = self.params.expand().as_dict()
+        out = []
+        for i in range(self.rmse.numel()):
+            out.append({k: (vals[k][i] if bool(self.identifiable[i, j]) else None) for j, k in enumerate(NAMES)})
+        return out
+
+
+def _lut(wl, r0, n, dtype, device):
+    skins, _ = tissue.sample(n, 12345, dtype=dtype, device=device)
+    lo, hi = _bounds(dtype, device)
+    p = torch.stack([getattr(skins, k) for k in NAMES], -1).clamp(lo, hi)
+    with torch.no_grad():
+        R = _model(p, wl, r0)
+    return p, R
+
+
+def _jacobian(p: torch.Tensor, wl, r0) -> torch.Tensor:
+    """d model / d params, (n, W, 6), by central differences in float64 (steps inside the bounds)."""
+    lo, hi = _bounds(torch.float64, p.device)
+    p = p.double()
+    cols = []
+    with torch.no_grad():
+        for k in range(p.shape[-1]):
+            h = 1e-4 * (hi[k] - lo[k])
+            up, dn = p.clone(), p.clone()
+            up[:, k] = (p[:, k] + h).clamp(max=tissue.PARAM_BOUNDS[NAMES[k]][1])
+            dn[:, k] = (p[:, k] - h).clamp(min=0.0)
+            cols.append((_model(up, wl.double(), r0) - _model(dn, wl.double(), r0)) / (up[:, k] - dn[:, k])[:, None])
+    return torch.stack(cols, -1)
+
+
+def fit_skin(
+    reflectance,
+    wavelengths,
+    *,
+    r0: float = 0.04,
+    starts: int = 2,
+    lut_size: int = 3000,
+    adam_steps: int = 40,
+    lbfgs_steps: int = 20,
+    gn_steps: int = 15,
+    noise: float | None = None,
+    rel_tol: float = 0.05,
+    dtype=torch.float64,
+    device=None,
+) -> SkinFit:
+    """Fit the six free skin parameters to measured total reflectance spectra (normal incidence, front
+    surface ``r0``), minimising the RMSE of eq 2.4.14 for every spectrum independently.
+
+    ``reflectance`` (n, W) in [0, 1] at ``wavelengths`` (W,) nm anywhere in 400-1700 nm. ``noise`` is the
+    measurement noise (reflectance units) for the uncertainty estimate; default: the fit's own RMSE (at
+    least 0.002). A parameter is *identifiable* when its 3-sigma uncertainty is within ``rel_tol`` of its
+    value. Stages: look-up-table multi-start, Adam on all starts, L-BFGS on the best start of every spectrum
+    (one joint problem), then per-spectrum Levenberg-Marquardt; a spectrum has *converged* when the
+    Gauss-Newton decrement left (the loss a further Newton step would still remove) is below 1e-3 of its
+    loss.
+    """
+    t0 = time.perf_counter()
+    R, wl = check_spectra(reflectance, wavelengths)
+    device = device or R.device
+    R = R.to(device=device, dtype=dtype)
+    wl = wl.to(device=device, dtype=dtype)
+    n = R.shape[0]
+    lo, hi = _bounds(dtype, device)
+    # multi-start: the best `starts` look-up-table spectra per measurement
+    lut_p, lut_R = _lut(wl, r0, lut_size, dtype, device)
+    d2 = (R * R).sum(1, keepdim=True) - 2 * R @ lut_R.T + (lut_R * lut_R).sum(1)[None]
+    best = d2.topk(min(starts, lut_size), dim=1, largest=False).indices  # (n, starts)
+    z = _to_z(lut_p[best.reshape(-1)], lo, hi).detach().requires_grad_(True)  # (n * starts, 6)
+    target = R.repeat_interleave(best.shape[1], 0)
+    opt = torch.optim.Adam([z], lr=0.08)
+    for _ in range(adam_steps):
+        opt.zero_grad()
+        loss = ((_model(_to_params(z, lo, hi), wl, r0) - target) ** 2).mean(-1).sum()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        err = ((_model(_to_params(z, lo, hi), wl, r0) - target) ** 2).mean(-1).reshape(n, -1)
+        pick = err.argmin(1)
+        z_best = z.detach().reshape(n, -1, 6)[torch.arange(n, device=device), pick]
+    z_fit = _lbfgs(z_best, R, wl, r0, lo, hi, lbfgs_steps) if lbfgs_steps > 0 else z_best
+    z_fit, converged = _gauss_newton(z_fit, R, wl, r0, lo, hi, gn_steps)
+    with torch.no_grad():
+        p = _to_params(z_fit, lo, hi)
+        fitted = _model(p, wl, r0)
+        e = rmse(fitted, R)
+        J = _jacobian(p, wl, r0)  # (n, W, 6)
+        sigma = torch.full_like(e, noise) if noise is not None else e.clamp_min(0.002)
+        F = J.transpose(1, 2) @ J / (sigma.double() ** 2)[:, None, None]
+        cov = torch.linalg.pinv(F, hermitian=True)
+        std = torch.sqrt(torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0)).to(dtype)
+        identifiable = 3 * std <= rel_tol * p.abs()
+    return SkinFit(_skins(p.detach()), e, fitted, converged, identifiable, std, time.perf_counter() - t0)
+
+
+def _lbfgs(z0, R, wl, r0, lo, hi, steps):
+    z = z0.detach().clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([z], lr=1.0, max_iter=steps, history_size=20, tolerance_grad=1e-12,
+                            tolerance_change=1e-15, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = ((_model(_to_params(z, lo, hi), wl, r0) - R) ** 2).mean(-1).sum() * 1e3
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return z.detach()
+
+
+def _jacobian_z(z, base, wl, r0, lo, hi):
+    """d model / d z (n, W, 6) by forward differences in z (the working dtype)."""
+    h = 1e-3 if z.dtype == torch.float32 else 1e-5
+    cols = []
+    for k in range(z.shape[-1]):
+        zk = z.clone()
+        zk[:, k] += h
+        cols.append((_model(_to_params(zk, lo, hi), wl, r0) - base) / h)
+    return torch.stack(cols, -1)
+
+
+def _gauss_newton(z, R, wl, r0, lo, hi, steps):
+    """Levenberg-Marquardt on every spectrum independently (second order: the Gauss-Newton Hessian
+    J^T J of each spectrum's least-squares problem). Returns (z, converged) where converged means the
+    Gauss-Newton decrement (the loss a further Newton step would still remove) is below 1e-3 of the loss."""
+    n, W = R.shape
+    lam = torch.full((n,), 1e-3, dtype=z.dtype, device=z.device)
+    eye = torch.eye(z.shape[-1], dtype=z.dtype, device=z.device)
+    converged = torch.zeros(n, dtype=torch.bool, device=z.device)
+    with torch.no_grad():
+        for _ in range(steps + 1):
+            base = _model(_to_params(z, lo, hi), wl, r0)
+            r = base - R
+            loss = (r * r).mean(-1)
+            J = _jacobian_z(z, base, wl, r0, lo, hi)
+            g = (J.transpose(1, 2) @ r[..., None])  # (n, 6, 1)
+            H = J.transpose(1, 2) @ J
+            damp = torch.diagonal(H, dim1=1, dim2=2).mean(-1)[:, None, None] * 1e-6 * eye  # flat directions
+            decrement = (g.transpose(1, 2) @ torch.linalg.solve(H + damp, g)).reshape(-1) / (2 * W)
+            converged = torch.isfinite(loss) & (decrement <= 1e-3 * loss + 1e-14)
+            if bool(converged.all()) or _ == steps:
+                break
+            diag = torch.diagonal(H, dim1=1, dim2=2)
+            A = H + lam[:, None, None] * torch.diag_embed(diag + 1e-12)
+            step = -torch.linalg.solve(A, g).squeeze(-1)
+            z_try = z + step
+            r_try = _model(_to_params(z_try, lo, hi), wl, r0) - R
+            better = torch.isfinite(r_try).all(-1) & ((r_try * r_try).mean(-1) < loss)
+            z = torch.where(better[:, None], z_try, z)
+            lam = torch.where(better, lam / 3, lam * 4).clamp(1e-9, 1e9)
+    return z, converged
+
+
+# ------------------------------------------------------------------------------------------------- BRDF fit
+@dataclass
+class BrdfFit:
+    sigma2: torch.Tensor  # (B,)
+    rho0: torch.Tensor  # (B,)
+    rho_d: torch.Tensor  # (B,) diffuse reflectance (0 when not fitted)
+    rmse: torch.Tensor  # (B,) eq 2.4.14 on the BRDF values
+    converged: torch.Tensor  # (B,)
+
+
+SIGMA2_BOUNDS = (1e-4, 0.5)
+RHO0_BOUNDS = (1e-3, 0.3)
+
+
+def brdf_model(cos_i, cos_r, cos_2b, sigma2, rho0, rho_d=None) -> torch.Tensor:
+    """The microfacet lobe (eq 2.3.4), plus (1 - F(β)) ρ_d / π when ``rho_d`` is given (eq 3.1.1)."""
+    f = microfacet_brdf_cos(cos_i, cos_r, cos_2b, sigma2, rho0)
+    if rho_d is not None:
+        cos_b = torch.sqrt((0.5 * (1 + cos_2b)).clamp(1e-24, 1.0))
+        f = f + (1 - (rho0 + (1 - rho0) * (1 - cos_b).pow(5))) * rho_d / math.pi
+    return f
+
+
+def fit_brdf(theta_i, theta_r, delta_phi, brdf, *, diffuse: bool = True, steps: int = 200) -> BrdfFit:
+    """Fit σ² and ρ0 (and a diffuse reflectance ρ_d with ``diffuse=True``) per band to BRDF samples.
+
+    ``theta_i``, ``theta_r``, ``delta_phi`` (radians, Δφ = π the forward plane) have shape (M,) or (M, B);
+    ``brdf`` (M, B) in sr^-1 (a 1-D ``brdf`` is one band). Least squares on the BRDF values (eq 2.4.14)
+    from a grid of starts, then L-BFGS, independently per band.
+    """
+    f = as_tensor(brdf, dtype=torch.float64)
+    if f.dim() == 1:
+        f = f[:, None]
+    ti, tr, dp = (as_tensor(x, dtype=torch.float64) for x in (theta_i, theta_r, delta_phi))
+    ti, tr, dp = (x[:, None] if x.dim() == 1 else x for x in (ti, tr, dp))
+    try:
+        ti, tr, dp, f = torch.broadcast_tensors(ti, tr, dp, f)
+    except RuntimeError:
+        raise ValueError(f"angles {tuple(ti.shape)} and brdf {tuple(f.shape)} must have matching rows") from None
+    bad = ~torch.isfinite(f) | (f < 0)
+    if bool(bad.any()):
+        i, j = (int(x) for x in bad.nonzero()[0])
+        raise ValueError(f"row {i}, column {j}: BRDF value {float(f[i, j]):g} is NaN or negative")
+    for name, x in (("theta_i", ti), ("theta_r", tr)):
+        badang = ~torch.isfinite(x) | (x < 0) | (x > math.pi / 2)
+        if bool(badang.any()):
+            i, j = (int(v) for v in badang.nonzero()[0])
+            raise ValueError(f"row {i}: {name} {math.degrees(float(x[i, j])):g} deg must lie in [0, 90] degrees")
+    ci, cr = torch.cos(ti), torch.cos(tr)
+    c2b = ci * cr + torch.sin(ti) * torch.sin(tr) * torch.cos(dp)
+    B = f.shape[1]
+    # grid of starts per band: log σ² x ρ0 (x ρ_d), pick the best per band
+    s_grid = torch.logspace(math.log10(0.003), math.log10(0.2), 12, dtype=torch.float64)
+    r_grid = torch.linspace(0.01, 0.12, 8, dtype=torch.float64)
+    S, Rg = torch.meshgrid(s_grid, r_grid, indexing="ij")
+    S, Rg = S.reshape(-1, 1, 1), Rg.reshape(-1, 1, 1)
+    if diffuse:
+        # best diffuse level for each (σ², ρ0) start by linear least squares on the residual
+        fs = brdf_model(ci, cr, c2b, S, Rg)
+        basis = (1 - (Rg + (1 - Rg) * (1 - torch.sqrt((0.5 * (1 + c2b)).clamp(1e-24, 1))).pow(5))) / math.pi
+        d0 = (((f - fs) * basis).sum(1, keepdim=True) / (basis * basis).sum(1, keepdim=True)).clamp(0.0, 1.0)
+        pred = fs + basis * d0
+    else:
+        d0 = None
+        pred = brdf_model(ci, cr, c2b, S, Rg)
+    err = ((pred - f) ** 2).mean(1)  # (G, B)
+    g = err.argmin(0)
+    cols = torch.arange(B)
+
+    def logit(x, lo, hi):
+        u = ((x - lo) / (hi - lo)).clamp(1e-6, 1 - 1e-6)
+        return torch.log(u / (1 - u))
+
+    def sig(z, lo, hi):
+        return lo + (hi - lo) * torch.sigmoid(z)
+
+    zs = logit(S.reshape(-1)[g], *SIGMA2_BOUNDS).clone().requires_grad_(True)
+    zr = logit(Rg.reshape(-1)[g], *RHO0_BOUNDS).clone().requires_grad_(True)
+    params = [zs, zr]
+    if diffuse:
+        zd = logit(d0.reshape(d0.shape[0], -1)[g, cols], 0.0, 1.0).clone().requires_grad_(True)
+        params.append(zd)
+    scale = 1.0 / f.abs().amax(0).clamp_min(1e-12)  # per-band normalisation of the loss
+
+    def predict():
+        s2, r0 = sig(zs, *SIGMA2_BOUNDS), sig(zr, *RHO0_BOUNDS)
+        rd = sig(zd, 0.0, 1.0) if diffuse else None
+        return brdf_model(ci, cr, c2b, s2, r0, rd)
+
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=steps, history_size=20, tolerance_grad=1e-14,
+                            tolerance_change=1e-16, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = (((predict() - f) * scale) ** 2).mean(0).sum()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    for p in params:
+        p.grad = None
+    loss = (((predict() - f) * scale) ** 2).mean(0)
+    loss.sum().backward()
+    with torch.no_grad():
+        gn = torch.sqrt(sum(p.grad**2 for p in params))
+        pred = predict()
+        e = torch.sqrt(((pred - f) ** 2).mean(0))
+        return BrdfFit(sig(zs, *SIGMA2_BOUNDS), sig(zr, *RHO0_BOUNDS),
+                       sig(zd, 0.0, 1.0) if diffuse else torch.zeros(B, dtype=torch.float64), e,
+                       torch.isfinite(e) & (gn <= 1e-6 + 1e-3 * loss.detach()))
+
+
+__all__ = ["BrdfFit", "FIT_BOUNDS", "SkinFit", "brdf_model", "check_spectra", "fit_brdf", "fit_skin", "rmse"]
+
+
+# ------------------------------------------------------------------------------------------------- file I/O
+def read_spectra_csv(path) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+    """Spectra CSV: header row = wavelengths in nm (optionally a first non-numeric column of names), one
+    spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)); errors name row and column."""
+    import csv
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"spectra file {str(p)!r} does not exist")
+    with open(p, newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise ValueError(f"{p.name}: needs a header row of wavelengths and at least one spectrum")
+    head = [c.strip() for c in rows[0]]
+    named = False
+    try:
+        float(head[0])
+    except ValueError:
+        named = True
+        head = head[1:]
+    try:
+        wl = [float(c) for c in head]
+    except ValueError as e:
+        raise ValueError(f"{p.name}: header must hold wavelengths in nm ({e})") from None
+    names, vals = [], []
+    for i, r in enumerate(rows[1:]):
+        cells = r[1:] if named else r
+        names.append(r[0].strip() if named else str(i))
+        if len(cells) != len(wl):
+            raise ValueError(f"{p.name}: row {i} has {len(cells)} values for {len(wl)} wavelengths")
+        try:
+            vals.append([float(c) for c in cells])
+        except ValueError:
+            j = next(j for j, c in enumerate(cells) if not _is_float(c))
+            raise ValueError(f"{p.name}: row {i}, column {j}: {cells[j]!r} is not a number") from None
+    return names, torch.tensor(vals, dtype=torch.float64), torch.tensor(wl, dtype=torch.float64)
+
+
+def _is_float(c) -> bool:
+    try:
+        float(c)
+        return True
+    except ValueError:
+        return False
+
+
+def write_params_csv(path, names: list[str], res: SkinFit) -> None:
+    from .io import write_text
+
+    lines = [",".join(["name", *NAMES, *(f"std_{k}" for k in NAMES), "rmse", "converged"])]
+    rep = res.reported()
+    for i, n in enumerate(names):
+        vals = ["" if rep[i][k] is None else f"{rep[i][k]:.6g}" for k in NAMES]
+        std = [f"{float(x):.3g}" for x in res.std[i]]
+        lines.append(",".join([n, *vals, *std, f"{float(res.rmse[i]):.6g}", str(bool(res.converged[i])).lower()]))
+    write_text(path, "\n".join(lines) + "\n")
+
+
+def read_brdf_csv(path):
+    """BRDF CSV: columns theta_i_deg, theta_r_deg, delta_phi_deg, then one column per band named by its
+    wavelength in nm (values in sr^-1). Returns (angles in radians (3 tensors), brdf (M, B), bands_nm)."""
+    import csv
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"BRDF file {str(p)!r} does not exist")
+    with open(p, newline="", encoding="utf-8") as fh:
+        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    head = [c.strip() for c in rows[0]] if rows else []
+    if head[:3] != ["theta_i_deg", "theta_r_deg", "delta_phi_deg"] or len(head) < 4:
+        raise ValueError(f"{p.name}: header must start theta_i_deg,theta_r_deg,delta_phi_deg then band columns")
+    try:
+        bands = [float(c) for c in head[3:]]
+    except ValueError:
+        raise ValueError(f"{p.name}: band columns must be named by wavelength in nm, got {head[3:]}") from None
+    data = []
+    for i, r in enumerate(rows[1:]):
+        if len(r) != len(head):
+            raise ValueError(f"{p.name}: row {i} has {len(r)} values for {len(head)} columns")
+        try:
+            data.append([float(c) for c in r])
+        except ValueError:
+            j = next(j for j, c in enumerate(r) if not _is_float(c))
+            raise ValueError(f"{p.name}: row {i}, column {j}: {r[j]!r} is not a number") from None
+    if not data:
+        raise ValueError(f"{p.name}: no data rows")
+    a = torch.tensor(data, dtype=torch.float64)
+    deg = math.pi / 180
+    return (a[:, 0] * deg, a[:, 1] * deg, a[:, 2] * deg), a[:, 3:], bands
