@@ -42,3 +42,12 @@ def test_experiment_detection_and_calibration(small_experiment):
     assert saved["detected_fraction_combined"] == res["detected_fraction_combined"]
     for name in ("reflectance_combined.png", "rules_scatter.png", "histograms.png", "detection_vs_angle.png"):
         assert (out / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_experiment_spectralon_switch_reports_lambertian_panel_error(tmp_path):
+    res = experiment.run(tmp_path, angles=(10.0, 60.0), width=128, height=128, sensor=Sensor(noise=False),
+                         panels="spectralon-brdf")
+    err = np.array(res["lambertian_panel_error"])
+    assert err.shape == (2, 4)
+    assert err[0].max() < 0.005  # near-normal illumination: the panels are Lambertian enough
+    assert err[1].max() > 0.01 and err[1, 2:].mean() > err[1, :2].mean()  # larger off normal, larger in the NIR

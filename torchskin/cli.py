@@ -155,7 +155,7 @@ def cmd_render(args) -> int:
     _check_angle("--camera-zenith", args.camera_zenith, 0, 180)
     sc = _scene_from_args(args)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed)
-    res = render(sc, device=args.device, sensor=sensor)
+    res = render(sc, device=args.device, sensor=sensor, elm=args.elm)
     info = write_outputs(res, sc, args.out)
     if args.json:
         print(json.dumps({"timing_s": res.timing, "skin_pixels": info["skin_pixels"],
@@ -176,15 +176,20 @@ def cmd_experiment(args) -> int:
     if args.width < 16 or args.height < 16:
         raise ValueError("--width and --height must be at least 16 pixels")
     res = experiment.run(args.out, width=args.width, height=args.height, sensor=Sensor(noise=not args.no_noise),
-                         device=args.device)
+                         device=args.device, panels=args.panels)
     if args.json:
         print(json.dumps({k: res[k] for k in ("angles_deg", "detected_fraction_combined",
                                               "detected_fraction_diffuse", "bhattacharyya",
-                                              "appendix_c_middle_reflectance")}))
+                                              "appendix_c_middle_reflectance", "lambertian_panel_error")
+                          if k in res}))
     else:
         for k, a in enumerate(res["angles_deg"]):
             print(f"source {a:4.0f}°: sunlit skin inside the box: diffuse-only {res['detected_fraction_diffuse'][k]:.3f},"
                   f" combined {res['detected_fraction_combined'][k]:.3f}; Bhattacharyya {res['bhattacharyya'][k]:.3f}")
+        if "lambertian_panel_error" in res:
+            for k, a in enumerate(res["angles_deg"]):
+                errs = ", ".join(f"{100 * e:.1f}%" for e in res["lambertian_panel_error"][k])
+                print(f"source {a:4.0f}°: skin reflectance error if the panels are taken as Lambertian: {errs}")
         print(f"Appendix C middle panel: {res['appendix_c_middle_reflectance']:.4f} (true 0.40); wrote {args.out}")
     return 0
 
@@ -301,7 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--width", type=int, default=512)
     rp.add_argument("--height", type=int, default=512)
     rp.add_argument("--bands", metavar="C[/FWHM],...", help="bands in nm (default 544,633,1080,1580)")
-    rp.add_argument("--panels", choices=["lambertian", "spectralon"], default="lambertian")
+    rp.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian")
+    rp.add_argument("--elm", choices=["dhr", "brdf"], default="dhr",
+                    help="calibrate with the panels' DHR (ELM) or their BRDF at the geometry (BRDF-ELM)")
     rp.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
     rp.add_argument("--diffuse-only", action="store_true", help="skin as the diffuse model (no specular lobe)")
     rp.add_argument("--no-ground", action="store_true", help="no ground plane")
@@ -315,6 +322,9 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--width", type=int, default=512)
     ep.add_argument("--height", type=int, default=512)
     ep.add_argument("--no-noise", action="store_true")
+    ep.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian",
+                    help="reference panels; spectralon-brdf calibrates with BRDF-ELM and reports the error of "
+                         "assuming Lambertian panels")
     ep.add_argument("--device", default="cpu")
     ep.add_argument("--json", action="store_true")
     ep.set_defaults(func=cmd_experiment)

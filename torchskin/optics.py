@@ -226,3 +226,38 @@ def check_angles(**angles) -> None:
     for k, v in angles.items():
         check_range(k, as_tensor(v), 0.0, math.pi / 2, "rad")
     broadcast_shapes(**{k: as_tensor(v) for k, v in angles.items()})
+
+
+# ------------------------------------------------------------------------------------ Spectralon-like panel
+#: drop of a Spectralon panel's BRDF seen at θr = 0 when the illumination moves from 0 to 75 degrees: the
+#: thesis's estimate from Appendix B (section 4.1.1): 4.1 % in the visible, 7.4 % in the NIR
+SPECTRALON_DROP_75 = {"vis": 0.041, "nir": 0.074}
+SPECTRALON_LOBE_SIGMA2 = 0.05
+
+
+def _spectralon_k(wavelength_nm: torch.Tensor) -> torch.Tensor:
+    """Lobe strength per band so that f(75°, 0°) / f(0°, 0°) - 1 equals the thesis's estimate exactly."""
+    drop = torch.where(wavelength_nm < 900, SPECTRALON_DROP_75["vis"], SPECTRALON_DROP_75["nir"])
+    c75 = torch.tensor(math.cos(math.radians(75.0)), dtype=wavelength_nm.dtype, device=wavelength_nm.device)
+    one = torch.ones_like(c75)
+    lobe75 = math.pi * microfacet_brdf_cos(c75, one, c75, torch.tensor(SPECTRALON_LOBE_SIGMA2, dtype=c75.dtype), one)
+    return drop / (1 - lobe75)
+
+
+def spectralon_brdf_cos(cos_i, cos_r, cos_2beta, rho, wavelength_nm) -> torch.Tensor:
+    """A Spectralon-like reference panel: Lambertian at normal incidence, with a weak forward lobe that grows
+    with incidence and takes its energy from the diffuse part (Appendix B's behaviour):
+
+        f = ρ/π (1 - k g(θi)) + ρ k g(θi) D(θh) / (4 cos θi cos θr),   g = ((1 - cos θi)/(1 - cos 75°))²,
+
+    with D a Beckmann lobe (σ² = 0.05, no Fresnel, so the lobe's hemispherical reflectance is ≈ 1) and k
+    per band set so that the BRDF seen at θr = 0 falls by the thesis's 4.1 % (VIS) / 7.4 % (NIR) between 0°
+    and 75° illumination. ``rho`` is the panel's DHR (Table 3); inputs broadcast, band axis last.
+    """
+    k = _spectralon_k(as_tensor(wavelength_nm, like=cos_i))
+    g = ((1 - cos_i).clamp_min(0) / (1 - math.cos(math.radians(75.0)))) ** 2
+    one = torch.ones_like(cos_i)
+    lobe = microfacet_brdf_cos(cos_i, cos_r, cos_2beta, torch.tensor(SPECTRALON_LOBE_SIGMA2, dtype=cos_i.dtype,
+                                                                     device=cos_i.device), one)
+    f = rho / math.pi * (1 - k * g) + rho * k * g * lobe
+    return torch.where((cos_i > 0) & (cos_r > 0), f, torch.zeros_like(f))

@@ -20,7 +20,7 @@ from . import tissue
 from .bands import Band, band_sampling
 from .calibrate import elm_coefficients
 from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
-from .optics import THESIS_SPECULAR, combined_brdf_cos
+from .optics import THESIS_SPECULAR, combined_brdf_cos, spectralon_brdf_cos
 from .raycast import GBuffer, Raycaster
 from .scene import Scene, TriMesh
 
@@ -142,6 +142,9 @@ class MaterialTables:
     sigma2: torch.Tensor  # (B,)
     rho0: torch.Tensor  # (B,)
     irradiance: torch.Tensor  # (S, B) sun normal irradiance per band, W m^-2 nm^-1
+    panel_brdf: torch.Tensor  # (M,) bool: Spectralon-like BRDF (optics.spectralon_brdf_cos)
+    dhr: torch.Tensor  # (M, B) hemispherical reflectance of lambertian / spectralon materials
+    wavelengths: torch.Tensor  # (B,) band centres, nm
 
 
 _TABLE_CACHE: dict = {}
@@ -173,6 +176,8 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
     alb = torch.zeros(M, B, dtype=torch.float64)
     rsub = torch.zeros(M, B, dtype=torch.float64)
     skin = torch.zeros(M, dtype=torch.bool)
+    pbrdf = torch.zeros(M, dtype=torch.bool)
+    dhr = torch.zeros(M, B, dtype=torch.float64)
     for k, name in enumerate(names):
         m = scene.materials[name]
         if m.kind == "skin":
@@ -189,10 +194,38 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
             r = torch.tensor(m.band_reflectance(bands), dtype=torch.float64)
             lam[k] = r / math.pi
             alb[k] = r
-    sig, rho0 = THESIS_SPECULAR.at(torch.tensor([b.center_nm for b in bands], dtype=torch.float64))
+            dhr[k] = r
+            pbrdf[k] = m.brdf
+    wl = torch.tensor([b.center_nm for b in bands], dtype=torch.float64)
+    sig, rho0 = THESIS_SPECULAR.at(wl)
+
     def dev(x):
         return x.to(device=device, dtype=dtype) if x.is_floating_point() else x.to(device)
-    return MaterialTables(dev(lam), dev(alb), dev(skin), dev(rsub), dev(sig), dev(rho0), dev(e_band))
+
+    return MaterialTables(dev(lam), dev(alb), dev(skin), dev(rsub), dev(sig), dev(rho0), dev(e_band), dev(pbrdf),
+                          dev(dhr), dev(wl))
+
+
+def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
+    """cos θi (S, K, 1, clamped at 0), cos θr (1, K, 1) and cos 2β = ω_i·ω_r (S, K, 1) at flat pixels ``idx``."""
+    ns = gb.normal.reshape(-1, 3).index_select(0, idx)
+    vs = gb.view.reshape(-1, 3).index_select(0, idx)
+    ci = (sun_dirs @ ns.T).clamp_min(0)[..., None]
+    cr = (ns * vs).sum(-1)[None, :, None]
+    c2b = (sun_dirs @ vs.T)[..., None]
+    return ci, cr, c2b
+
+
+def _skin_brdf(ci, cr, c2b, mat, tables):
+    """Eq 3.1.1 with ρ_d from the exact closed form in R0 = Schlick(ρ0, θi)."""
+    r_sub = tables.r_sub.index_select(0, mat)  # (K, B)
+    r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)
+    rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
+    return combined_brdf_cos(ci, cr, c2b, rho_d, tables.sigma2, tables.rho0)
+
+
+def _panel_brdf(ci, cr, c2b, mat, tables):
+    return spectralon_brdf_cos(ci, cr, c2b, tables.dhr.index_select(0, mat), tables.wavelengths)
 
 
 def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor) -> dict:
@@ -213,19 +246,15 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     E = tables.irradiance[:, None, :]  # (S, 1, B)
     sky = (tables.albedo.index_select(0, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # (N, B)
     L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(0, mat) * E)
-    if bool(tables.is_skin.any()):
-        idx = (hit & tables.is_skin[mat]).nonzero().flatten()
+    for flag, brdf in ((tables.is_skin, _skin_brdf), (tables.panel_brdf, _panel_brdf)):
+        if not bool(flag.any()):
+            continue
+        idx = (hit & flag[mat]).nonzero().flatten()
         if idx.numel():
-            ns = n.index_select(0, idx)
-            vs = gb.view.reshape(-1, 3).index_select(0, idx)
-            ci = cos_i.index_select(1, idx).clamp_min(0)[..., None]  # (S, K, 1)
-            cr = (ns * vs).sum(-1)[None, :, None]
-            c2b = (sun_dirs @ vs.T)[..., None]
-            r_sub = tables.r_sub.index_select(0, mat.index_select(0, idx))  # (K, B)
-            r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)  # Schlick at the local incidence
-            rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
-            f = combined_brdf_cos(ci, cr, c2b, rho_d, tables.sigma2, tables.rho0)  # (S, K, B)
-            Ls = torch.addcmul(L.index_select(1, idx), (w.index_select(1, idx)[..., None] * E), f)
+            ci, cr, c2b = local_cosines(gb, idx, sun_dirs)
+            f = brdf(ci, cr, c2b, mat.index_select(0, idx), tables)  # (S, K, B)
+            lam_part = w.index_select(1, idx)[..., None] * E * tables.lambert_f.index_select(0, mat.index_select(0, idx))
+            Ls = torch.addcmul(L.index_select(1, idx) - lam_part, w.index_select(1, idx)[..., None] * E, f)
             L = L.index_copy(1, idx, Ls)
     B = L.shape[-1]
     return {"radiance": L.reshape(S, *shp, B), "lit": lit.reshape(S, *shp)}
@@ -318,11 +347,44 @@ def build_meshes(scene: Scene) -> tuple[list[TriMesh], list[str]]:
     return meshes, names
 
 
+def panel_references(scene: Scene, gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor,
+                     pix: list[list[torch.Tensor]], elm: str = "dhr") -> torch.Tensor:
+    """Reference reflectance of each panel (S, C, P, B). ``elm="dhr"``: the panels' hemispherical
+    reflectance (the usual ELM, eqs 2.5.5-2.5.6); ``elm="brdf"``: π f_BRDF of each panel at its pixels'
+    source/view geometry (median over the interior), i.e. BRDF-ELM (eqs 3.3.1-3.3.3) in Lambertian-
+    equivalent units (identical to "dhr" for Lambertian panels)."""
+    if elm not in ("dhr", "brdf"):
+        raise ValueError(f"elm must be 'dhr' or 'brdf', got {elm!r}")
+    S, C = sun_dirs.shape[0], gb.hit.shape[0]
+    HW = gb.hit[0].numel()
+    out = []
+    for k, name in enumerate(scene.panels):
+        m = gb.material_names.index(scene.mesh(name).material)
+        ref = tables.dhr[m].expand(S, C, -1)
+        if elm == "brdf" and bool(tables.panel_brdf[m]):
+            per_cam = []
+            for c, ix in enumerate(pix[k]):
+                ci, cr, c2b = local_cosines(gb, ix + c * HW, sun_dirs)
+                f = _panel_brdf(ci, cr, c2b, torch.full_like(ix, m), tables)  # (S, K, B)
+                per_cam.append(math.pi * f.median(dim=1).values)
+            ref = torch.stack(per_cam, dim=1)
+        out.append(ref)
+    return torch.stack(out, dim=2)
+
+
+def apply_elm(signal: torch.Tensor, panel_signal: torch.Tensor, references: torch.Tensor) -> torch.Tensor:
+    """Map signals (S, C, H, W, B) to reflectance with the line through the first two panels (eq 2.5.7)."""
+    a, b = elm_coefficients(panel_signal[:, :, 0], panel_signal[:, :, 1], references[:, :, 0], references[:, :, 1])
+    inv_a = 1 / a[:, :, None, None, :]
+    return torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # (L - b) / a
+
+
 def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | None = None,
            box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None,
-           erode_px: int = 1) -> RenderResult:
+           erode_px: int = 1, elm: str = "dhr") -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM. ``sensor=None`` uses an ideal linear
-    sensor (ELM then recovers Lambertian reflectance exactly). Pass ``raycaster``/``gbuffer`` to reuse
+    sensor (ELM then recovers Lambertian reflectance exactly). ``elm="brdf"`` calibrates with the panels'
+    BRDF at the scene geometry (BRDF-ELM) instead of their DHR. Pass ``raycaster``/``gbuffer`` to reuse
     geometry across calls."""
     device = torch.device(device)
     timing = {}
@@ -353,12 +415,9 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
     focal = scene.cameras[0].focal
     pix = panel_pixels(gb, list(scene.panels), erode_px)
     signal = sensor_signal(sh["radiance"], sensor, bands, focal, gen)
-    refs = torch.tensor([scene.materials[scene.mesh(p).material].band_reflectance(bands) for p in scene.panels],
-                        dtype=dtype, device=device)  # (P, B)
     pv = panel_values(signal, pix)  # (S, C, P, B)
-    a, b = elm_coefficients(pv[:, :, 0], pv[:, :, 1], refs[0], refs[1])  # (S, C, B)
-    inv_a = 1 / a[:, :, None, None, :]
-    refl = torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # eq 2.5.7, (L - b) / a
+    refs = panel_references(scene, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
+    refl = apply_elm(signal, pv, refs)
     g, s = indices(refl, bands)
     mask = rules_detector(g, s, box) & gb.hit
     skin_mat = torch.tensor([scene.materials[n].kind == "skin" for n in gb.material_names], device=device)
@@ -366,7 +425,8 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
     _sync(device)
     timing["sensor_elm_s"] = time.perf_counter() - t3
     timing["total_s"] = time.perf_counter() - t0
-    panels = {p: {"reference": refs[k].tolist(), "signal": pv[:, :, k].tolist()} for k, p in enumerate(scene.panels)}
+    panels = {p: {"reference": refs[:, :, k].tolist(), "signal": pv[:, :, k].tolist()}
+              for k, p in enumerate(scene.panels)}
     return RenderResult(sh["radiance"], signal, refl, g, s, mask, skin, sh["lit"], panels, gb, timing, bands)
 
 

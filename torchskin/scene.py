@@ -36,7 +36,9 @@ class Material:
     """A surface material.
 
     - ``kind="lambertian"``: ``reflectance`` is one value or one per band;
-    - ``kind="spectralon"``: Lambertian with the Table 3 DHR of ``panel`` ("white" or "dark");
+    - ``kind="spectralon"``: the Table 3 DHR of ``panel`` ("white" or "dark"), Lambertian, or with
+      ``brdf=True`` the Spectralon-like BRDF of ``optics.spectralon_brdf_cos`` (a weak forward lobe growing
+      with incidence, Appendix B);
     - ``kind="skin"``: the combined skin BRDF (eq 3.1.1) with skin parameters ``skin`` (a preset name or a
       dict of ``tissue`` parameters) and the section 3.3.3 microfacet parameters per band (``specular``
       False gives the diffuse-only model).
@@ -47,6 +49,7 @@ class Material:
     panel: str | None = None
     skin: str | dict | None = None
     specular: bool = True
+    brdf: bool = False
 
     def __post_init__(self):
         if self.kind not in ("lambertian", "spectralon", "skin"):
@@ -60,6 +63,8 @@ class Material:
                     raise ValueError(f"reflectance must lie in [0, 1], got {v}")
         if self.kind == "spectralon" and self.panel not in SPECTRALON_DHR:
             raise ValueError(f"spectralon panel must be 'white' or 'dark', got {self.panel!r}")
+        if self.brdf and self.kind != "spectralon":
+            raise ValueError("brdf=True is for spectralon materials")
         if self.kind == "skin":
             self.skin = self.skin if self.skin is not None else "I-II"
             self.skin_params()  # validate now
@@ -542,6 +547,22 @@ class Scene:
         return cls.from_dict(json.loads(s))
 
 
+PANEL_KINDS = ("lambertian", "spectralon", "spectralon-brdf")
+
+
+def panel_materials(panels: str = "lambertian") -> dict[str, Material]:
+    """Materials "white" and "dark" for the reference panels: "lambertian" (0.97 / 0.03, the thesis's
+    simulation), "spectralon" (Table 3 DHR, Lambertian) or "spectralon-brdf" (Table 3 DHR with the
+    Spectralon-like BRDF)."""
+    if panels == "lambertian":
+        return {"white": Material("lambertian", reflectance=0.97), "dark": Material("lambertian", reflectance=0.03)}
+    if panels in ("spectralon", "spectralon-brdf"):
+        b = panels == "spectralon-brdf"
+        return {"white": Material("spectralon", panel="white", brdf=b),
+                "dark": Material("spectralon", panel="dark", brdf=b)}
+    raise ValueError(f"panels must be one of {', '.join(PANEL_KINDS)}, got {panels!r}")
+
+
 def default_scene(
     subject: str = "anny",
     mesh_path: str | None = None,
@@ -553,20 +574,13 @@ def default_scene(
     ground: bool = True,
 ) -> Scene:
     """The thesis's layout: a subject at the origin facing +x, reference panels either side of it, a camera
-    in front at 31 ft (9.449 m). ``panels``: "lambertian" (0.97 / 0.03) or "spectralon" (Table 3)."""
+    in front at 31 ft (9.449 m). ``panels``: see ``panel_materials``."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
         "ground": Material("lambertian", reflectance=[0.15, 0.18, 0.30, 0.25]),
     }
-    if panels == "lambertian":
-        mats["white"] = Material("lambertian", reflectance=0.97)
-        mats["dark"] = Material("lambertian", reflectance=0.03)
-    elif panels == "spectralon":
-        mats["white"] = Material("spectralon", panel="white")
-        mats["dark"] = Material("spectralon", panel="dark")
-    else:
-        raise ValueError(f"panels must be 'lambertian' or 'spectralon', got {panels!r}")
+    mats.update(panel_materials(panels))
     if subject == "anny":
         body = MeshSpec("subject", "anny", "skin", other_material="clothing")
     elif subject == "file":
