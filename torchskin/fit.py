@@ -368,41 +368,45 @@ __all__ = ["BrdfFit", "FIT_BOUNDS", "SkinFit", "brdf_model", "check_spectra", "f
 
 
 # ------------------------------------------------------------------------------------------------- file I/O
-def read_spectra_csv(path) -> tuple[list[str], torch.Tensor, torch.Tensor]:
-    """Spectra CSV: header row = wavelengths in nm (optionally a first non-numeric column of names), one
-    spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)); errors name row and column."""
+def _csv_rows(path, what: str) -> tuple[str, list[list[str]]]:
     import csv
     from pathlib import Path
 
     p = Path(path)
     if not p.is_file():
-        raise ValueError(f"spectra file {str(p)!r} does not exist")
+        raise ValueError(f"{what} file {str(p)!r} does not exist")
     with open(p, newline="", encoding="utf-8") as fh:
-        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
-    if len(rows) < 2:
-        raise ValueError(f"{p.name}: needs a header row of wavelengths and at least one spectrum")
-    head = [c.strip() for c in rows[0]]
-    named = False
-    try:
-        float(head[0])
-    except ValueError:
-        named = True
-        head = head[1:]
-    try:
-        wl = [float(c) for c in head]
-    except ValueError as e:
-        raise ValueError(f"{p.name}: header must hold wavelengths in nm ({e})") from None
-    names, vals = [], []
-    for i, r in enumerate(rows[1:]):
-        cells = r[1:] if named else r
-        names.append(r[0].strip() if named else str(i))
-        if len(cells) != len(wl):
-            raise ValueError(f"{p.name}: row {i} has {len(cells)} values for {len(wl)} wavelengths")
+        return p.name, [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+
+
+def _numbers(fname: str, i: int, cells: list[str], n: int) -> list[float]:
+    """Row ``i`` of a CSV as floats; errors name the file, row and column."""
+    if len(cells) != n:
+        raise ValueError(f"{fname}: row {i} has {len(cells)} values for {n} columns")
+    out = []
+    for j, c in enumerate(cells):
         try:
-            vals.append([float(c) for c in cells])
+            out.append(float(c))
         except ValueError:
-            j = next(j for j, c in enumerate(cells) if not _is_float(c))
-            raise ValueError(f"{p.name}: row {i}, column {j}: {cells[j]!r} is not a number") from None
+            raise ValueError(f"{fname}: row {i}, column {j}: {c!r} is not a number") from None
+    return out
+
+
+def read_spectra_csv(path) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+    """Spectra CSV: header row = wavelengths in nm (optionally a first non-numeric column of names), one
+    spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)); errors name row and column."""
+    fname, rows = _csv_rows(path, "spectra")
+    if len(rows) < 2:
+        raise ValueError(f"{fname}: needs a header row of wavelengths and at least one spectrum")
+    head = [c.strip() for c in rows[0]]
+    named = not _is_float(head[0])
+    if named:
+        head = head[1:]
+    if not all(_is_float(c) for c in head):
+        raise ValueError(f"{fname}: the header must hold wavelengths in nm, got {head}")
+    wl = [float(c) for c in head]
+    names = [r[0].strip() if named else str(i) for i, r in enumerate(rows[1:])]
+    vals = [_numbers(fname, i, r[1:] if named else r, len(wl)) for i, r in enumerate(rows[1:])]
     return names, torch.tensor(vals, dtype=torch.float64), torch.tensor(wl, dtype=torch.float64)
 
 
@@ -429,32 +433,15 @@ def write_params_csv(path, names: list[str], res: SkinFit) -> None:
 def read_brdf_csv(path):
     """BRDF CSV: columns theta_i_deg, theta_r_deg, delta_phi_deg, then one column per band named by its
     wavelength in nm (values in sr^-1). Returns (angles in radians (3 tensors), brdf (M, B), bands_nm)."""
-    import csv
-    from pathlib import Path
-
-    p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"BRDF file {str(p)!r} does not exist")
-    with open(p, newline="", encoding="utf-8") as fh:
-        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    fname, rows = _csv_rows(path, "BRDF")
     head = [c.strip() for c in rows[0]] if rows else []
     if head[:3] != ["theta_i_deg", "theta_r_deg", "delta_phi_deg"] or len(head) < 4:
-        raise ValueError(f"{p.name}: header must start theta_i_deg,theta_r_deg,delta_phi_deg then band columns")
-    try:
-        bands = [float(c) for c in head[3:]]
-    except ValueError:
-        raise ValueError(f"{p.name}: band columns must be named by wavelength in nm, got {head[3:]}") from None
-    data = []
-    for i, r in enumerate(rows[1:]):
-        if len(r) != len(head):
-            raise ValueError(f"{p.name}: row {i} has {len(r)} values for {len(head)} columns")
-        try:
-            data.append([float(c) for c in r])
-        except ValueError:
-            j = next(j for j, c in enumerate(r) if not _is_float(c))
-            raise ValueError(f"{p.name}: row {i}, column {j}: {r[j]!r} is not a number") from None
+        raise ValueError(f"{fname}: header must start theta_i_deg,theta_r_deg,delta_phi_deg then band columns")
+    if not all(_is_float(c) for c in head[3:]):
+        raise ValueError(f"{fname}: band columns must be named by wavelength in nm, got {head[3:]}")
+    data = [_numbers(fname, i, r, len(head)) for i, r in enumerate(rows[1:])]
     if not data:
-        raise ValueError(f"{p.name}: no data rows")
+        raise ValueError(f"{fname}: no data rows")
     a = torch.tensor(data, dtype=torch.float64)
     deg = math.pi / 180
-    return (a[:, 0] * deg, a[:, 1] * deg, a[:, 2] * deg), a[:, 3:], bands
+    return (a[:, 0] * deg, a[:, 1] * deg, a[:, 2] * deg), a[:, 3:], [float(c) for c in head[3:]]
