@@ -1,0 +1,75 @@
+"""Dataset configuration: validation, determinism and coverage of the declared ranges."""
+
+import numpy as np
+import pytest
+
+from torchskin import tissue
+from torchskin.dataset import config as C
+
+
+def test_defaults_validate_and_cover_declared_ranges():
+    cfg = C.resolve_config({"sun": {"zenith_deg": [10.0, 60.0]}, "sampling": {"groups_per_shard": 2}})
+    groups = [C.sample_group(cfg, 7, i) for i in range(400)]
+    zen = np.array([s["zenith_deg"] for g in groups for s in g.suns])
+    assert zen.min() >= 10.0 and zen.max() <= 60.0
+    # uniform over the declared range: Kolmogorov-Smirnov distance small
+    x = np.sort((zen - 10.0) / 50.0)
+    ks = np.max(np.abs(np.arange(1, x.size + 1) / x.size - x))
+    assert ks < 0.03
+    cam = np.array([g.camera["zenith_deg"] for g in groups])
+    assert cam.min() >= 0.0 and cam.max() <= 70.0 and cam.max() - cam.min() > 60.0
+    rng_m = np.array([g.camera["range_m"] for g in groups])
+    assert rng_m.min() >= 5.0 and rng_m.max() <= 100.0
+    types = [s["type"] for g in groups for s in g.skins]
+    assert set(types) == set(tissue.FITZPATRICK_TYPES)
+    for g in groups[:50]:
+        for s in g.skins:
+            lo, hi = tissue.FITZPATRICK_RANGES[s["type"]]["melanosome"]
+            assert lo <= s["melanosome"] <= hi
+        assert len(g.suns) == 16 and len(g.skins) == 3 and 0 <= g.confusers <= 3
+
+
+def test_groups_are_a_pure_function_of_seed_and_index():
+    cfg = C.resolve_config()
+    a = [C.sample_group(cfg, 3, i).as_dict() for i in range(5)]
+    b = [C.sample_group(cfg, 3, i).as_dict() for i in reversed(range(5))][::-1]
+    assert a == b
+    assert C.sample_group(cfg, 4, 0).as_dict() != a[0]
+    assert len({C.group_seed(3, i) for i in range(1000)}) == 1000
+
+
+def test_field_of_view_frames_the_subject():
+    cfg = C.resolve_config({"camera": {"range_m": [50.0, 50.0], "subject_fraction": 0.5}})
+    g = C.sample_group(cfg, 0, 0)
+    import math
+
+    fov_v = 2 * math.atan(math.tan(math.radians(g.camera["fov_deg"]) / 2) * 256 / 256)
+    assert abs(2 * 50.0 * math.tan(fov_v / 2) * 0.5 - C.SUBJECT_HEIGHT_M) < 1e-9
+
+
+@pytest.mark.parametrize("override,msg", [
+    ({"sun": {"zenith": [0, 10]}}, "unknown config key sun.zenith"),
+    ({"lights": {}}, "unknown config section 'lights'"),
+    ({"camera": {"range_m": [50.0, 10.0]}}, "camera.range_m: min 50 > max 10"),
+    ({"sun": {"zenith_deg": [0.0, 95.0]}}, r"sun.zenith_deg must lie within \[0, 90\]"),
+    ({"skin": {"types": ["VII"]}}, "skin.types must list Fitzpatrick types"),
+    ({"sampling": {"pixels_per_class": 0}}, "sampling.pixels_per_class must be an integer >= 1"),
+    ({"sensor": {"noise": "yes"}}, "sensor.noise must be true or false"),
+])
+def test_bad_config_raises(override, msg):
+    with pytest.raises(ValueError, match=msg):
+        C.resolve_config(override)
+
+
+def test_load_config_from_toml(tmp_path):
+    p = tmp_path / "cfg.toml"
+    p.write_text('[camera]\nzenith_deg = [20.0, 30.0]\nwidth = 128\n\n[skin]\ntypes = ["I", "VI"]\n')
+    cfg = C.load_config(p)
+    assert cfg["camera"]["zenith_deg"] == [20.0, 30.0] and cfg["camera"]["width"] == 128
+    assert cfg["skin"]["types"] == ["I", "VI"] and cfg["sun"]["per_pose"] == 16
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[camera\n")
+    with pytest.raises(ValueError, match="not valid TOML"):
+        C.load_config(bad)
+    with pytest.raises(ValueError, match="does not exist"):
+        C.load_config(tmp_path / "none.toml")

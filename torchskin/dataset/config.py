@@ -1,0 +1,220 @@
+"""Dataset configuration: a TOML file of ranges with documented defaults, validated, and a deterministic
+sampler of *pose groups* (one camera and subject pose, several sun directions and skins) from a master seed.
+
+A group is the unit of work: its rays are cast once and every sun x skin x band of it is shaded in one
+batch. Group ``i`` is drawn from ``SeedSequence([master_seed, i])`` alone, so it does not depend on how many
+groups are drawn, in which order, or by which worker.
+
+Ranges are ``[min, max]`` (uniform); angles in degrees. See ``DEFAULT_CONFIG`` for every key.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .. import tissue
+
+#: every key with its default and allowed domain: section -> key -> (default, domain or kind)
+SCHEMA: dict[str, dict[str, tuple]] = {
+    "sun": {
+        "zenith_deg": ([0.0, 89.0], (0.0, 90.0)),
+        "azimuth_deg": ([0.0, 360.0], (0.0, 360.0)),
+        "sky_fraction": ([0.0, 0.2], (0.0, 1.0)),
+        "per_pose": (16, "int>=1"),
+    },
+    "camera": {
+        "zenith_deg": ([0.0, 70.0], (0.0, 89.0)),
+        "azimuth_deg": ([0.0, 360.0], (0.0, 360.0)),
+        "range_m": ([5.0, 100.0], (0.5, 10000.0)),
+        "width": (256, "int>=16"),
+        "height": (256, "int>=16"),
+        "subject_fraction": (0.7, (0.05, 1.0)),  # subject height / frame height (sets the field of view)
+    },
+    "subject": {
+        "yaw_deg": ([0.0, 360.0], (0.0, 360.0)),
+        "gender": ([0.0, 1.0], (0.0, 1.0)),
+        "age": ([0.4, 0.9], (0.0, 1.0)),
+        "muscle": ([0.2, 0.8], (0.0, 1.0)),
+        "weight": ([0.2, 0.8], (0.0, 1.0)),
+        "height": ([0.3, 0.8], (0.0, 1.0)),
+        "proportions": ([0.3, 0.7], (0.0, 1.0)),
+        "meshes": ([], "paths"),  # OBJ/PLY files used instead of anny bodies when given
+    },
+    "skin": {
+        "types": (list(tissue.FITZPATRICK_TYPES), "types"),
+        "per_pose": (3, "int>=1"),
+    },
+    "atmosphere": {
+        "transmittance": ([0.85, 1.0], (0.0, 1.0)),
+        "path_radiance_scale": ([0.0, 2.0], (0.0, 100.0)),
+    },
+    "sensor": {
+        "noise": (True, "bool"),
+        "read_noise_e": ([20.0, 80.0], (0.0, 1e6)),
+    },
+    "confusers": {
+        "count": ([0, 3], (0, 32)),
+        "partition": ("train", ("train", "test")),
+    },
+    "panels": {
+        "kinds": (["lambertian", "spectralon"], "panels"),
+    },
+    "sampling": {
+        "pixels_per_class": (128, "int>=1"),
+        "groups_per_shard": (4, "int>=1"),
+    },
+}
+
+
+def default_config() -> dict:
+    """The defaults as a plain dict (section -> key -> value)."""
+    return {s: {k: copy.deepcopy(v[0]) for k, v in keys.items()} for s, keys in SCHEMA.items()}
+
+
+def _check(section: str, key: str, value, domain):
+    name = f"{section}.{key}"
+    if isinstance(domain, tuple) and len(domain) == 2 and all(isinstance(x, (int, float)) for x in domain):
+        lo_d, hi_d = domain
+        if isinstance(value, (list, tuple)):
+            if len(value) != 2 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
+                raise ValueError(f"{name} must be [min, max], got {value!r}")
+            lo, hi = float(value[0]), float(value[1])
+            if lo > hi:
+                raise ValueError(f"{name}: min {lo:g} > max {hi:g}")
+            if lo < lo_d or hi > hi_d:
+                raise ValueError(f"{name} must lie within [{lo_d:g}, {hi_d:g}], got [{lo:g}, {hi:g}]")
+            return [lo, hi]
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not (lo_d <= value <= hi_d):
+            raise ValueError(f"{name} must be a number in [{lo_d:g}, {hi_d:g}], got {value!r}")
+        return float(value)
+    if isinstance(domain, tuple):  # choices
+        if value not in domain:
+            raise ValueError(f"{name} must be one of {list(domain)}, got {value!r}")
+        return value
+    if domain.startswith("int>="):
+        m = int(domain[5:])
+        if not isinstance(value, int) or isinstance(value, bool) or value < m:
+            raise ValueError(f"{name} must be an integer >= {m}, got {value!r}")
+        return value
+    if domain == "bool":
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be true or false, got {value!r}")
+        return value
+    if domain == "types":
+        if not value or any(t not in tissue.FITZPATRICK_TYPES for t in value):
+            raise ValueError(f"{name} must list Fitzpatrick types from {list(tissue.FITZPATRICK_TYPES)}, got {value!r}")
+        return list(value)
+    if domain == "panels":
+        ok = ("lambertian", "spectralon", "spectralon-brdf")
+        if not value or any(p not in ok for p in value):
+            raise ValueError(f"{name} must list panel kinds from {list(ok)}, got {value!r}")
+        return list(value)
+    if domain == "paths":
+        if not isinstance(value, list) or any(not isinstance(p, str) for p in value):
+            raise ValueError(f"{name} must be a list of OBJ/PLY paths, got {value!r}")
+        return list(value)
+    raise AssertionError(domain)  # pragma: no cover
+
+
+def resolve_config(overrides: dict | None = None) -> dict:
+    """Defaults merged with ``overrides`` (section -> key -> value), validated: unknown sections or keys,
+    ranges with min > max and values outside their domain raise ``ValueError`` naming ``section.key``."""
+    cfg = default_config()
+    for section, keys in (overrides or {}).items():
+        if section not in SCHEMA:
+            raise ValueError(f"unknown config section {section!r}; known: {', '.join(SCHEMA)}")
+        if not isinstance(keys, dict):
+            raise ValueError(f"config section {section!r} must be a table of keys")
+        for key, value in keys.items():
+            if key not in SCHEMA[section]:
+                raise ValueError(f"unknown config key {section}.{key}; known: {', '.join(SCHEMA[section])}")
+            cfg[section][key] = value
+    return {s: {k: _check(s, k, v, SCHEMA[s][k][1]) for k, v in keys.items()} for s, keys in cfg.items()}
+
+
+def load_config(path=None) -> dict:
+    """Read and validate a TOML configuration (``None``: the built-in defaults)."""
+    if path is None:
+        return resolve_config()
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ValueError(f"config file {str(path)!r} does not exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"config file {str(path)!r} is not valid TOML: {e}") from None
+    return resolve_config(data)
+
+
+# ------------------------------------------------------------------------------------------------- sampling
+@dataclass
+class PoseGroup:
+    """One camera and subject pose with several suns and skins: everything needed to render it."""
+
+    index: int
+    seed: int
+    camera: dict  # zenith_deg, azimuth_deg, range_m, width, height, fov_deg
+    subject: dict  # kind "anny" (phenotype) or "file" (path); yaw_deg
+    suns: list[dict] = field(default_factory=list)  # zenith_deg, azimuth_deg, sky_fraction
+    skins: list[dict] = field(default_factory=list)  # fitzpatrick type + tissue parameters
+    atmosphere: dict = field(default_factory=dict)
+    sensor: dict = field(default_factory=dict)
+    panels: str = "lambertian"
+    confusers: int = 0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def group_seed(master_seed: int, index: int) -> int:
+    """The 63-bit seed of group ``index``: a pure function of (master seed, index)."""
+    return int(np.random.SeedSequence([int(master_seed), int(index)]).generate_state(2, np.uint32).astype(
+        np.uint64) @ np.array([1 << 32, 1], dtype=np.uint64) >> np.uint64(1))
+
+
+SUBJECT_HEIGHT_M = 1.8  # for the field of view: the subject spans ``subject_fraction`` of the frame
+
+
+def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
+    """Draw pose group ``index`` (deterministic in (config, master seed, index))."""
+    seed = group_seed(master_seed, index)
+    rng = np.random.default_rng(seed)
+
+    def u(r):
+        return float(rng.uniform(r[0], r[1])) if r[0] < r[1] else float(r[0])
+
+    c = cfg["camera"]
+    rng_m = u(c["range_m"])
+    fov_v = 2 * math.degrees(math.atan(0.5 * SUBJECT_HEIGHT_M / c["subject_fraction"] / rng_m))
+    fov_h = 2 * math.degrees(math.atan(math.tan(math.radians(fov_v) / 2) * c["width"] / c["height"]))
+    camera = {"zenith_deg": u(c["zenith_deg"]), "azimuth_deg": u(c["azimuth_deg"]) % 360.0, "range_m": rng_m,
+              "width": c["width"], "height": c["height"], "fov_deg": fov_h}
+    s = cfg["subject"]
+    if s["meshes"]:
+        subject = {"kind": "file", "path": s["meshes"][int(rng.integers(len(s["meshes"])))]}
+    else:
+        subject = {"kind": "anny", "phenotype": {k: u(s[k]) for k in ("gender", "age", "muscle", "weight",
+                                                                       "height", "proportions")}}
+    subject["yaw_deg"] = u(s["yaw_deg"]) % 360.0
+    sn = cfg["sun"]
+    suns = [{"zenith_deg": u(sn["zenith_deg"]), "azimuth_deg": u(sn["azimuth_deg"]) % 360.0,
+             "sky_fraction": u(sn["sky_fraction"])} for _ in range(sn["per_pose"])]
+    types = cfg["skin"]["types"]
+    skins = []
+    for _ in range(cfg["skin"]["per_pose"]):
+        t = types[int(rng.integers(len(types)))]
+        ranges = {**tissue.FITZPATRICK_RANGES[t], **tissue.COMMON_RANGES}
+        skins.append({"type": t, **{k: u(ranges[k]) for k in tissue.PARAM_NAMES}})
+    a = cfg["atmosphere"]
+    atmosphere = {"transmittance": u(a["transmittance"]), "path_radiance_scale": u(a["path_radiance_scale"])}
+    sensor = {"noise": cfg["sensor"]["noise"], "read_noise_e": u(cfg["sensor"]["read_noise_e"]),
+              "seed": int(rng.integers(2**31))}
+    kinds = cfg["panels"]["kinds"]
+    lo, hi = cfg["confusers"]["count"]
+    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor,
+                     kinds[int(rng.integers(len(kinds)))], int(rng.integers(int(lo), int(hi) + 1)))
