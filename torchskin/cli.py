@@ -250,6 +250,37 @@ def cmd_fit_brdf(args) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------ datasets
+def cmd_generate(args) -> int:
+    from .dataset.config import load_config
+    from .dataset.generate import generate
+
+    if args.resume and args.overwrite:
+        raise ValueError("--resume and --overwrite exclude each other")
+    cfg = load_config(args.config)
+    man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
+                   quiet=args.quiet or args.json, device=args.device)
+    rows = sum(s["rows"] for s in man["shards"])
+    if args.json:
+        print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
+                          "shards": len(man["shards"]), "rows": rows}))
+    elif not args.quiet:
+        print(f"wrote {len(man['shards'])} shards, {rows} rows ({man['groups']} pose groups) to {args.out}")
+    return 0
+
+
+def cmd_dataset_verify(args) -> int:
+    from .dataset.generate import verify
+
+    rep = verify(args.dir)
+    if args.json:
+        print(json.dumps(rep))
+    else:
+        print(("ok" if rep["ok"] else "PROBLEMS") + f": {rep['shards']} shards, {rep['rows']} rows; missing "
+              f"{rep['missing'] or 'none'}, corrupted {rep['corrupted'] or 'none'}, partial {rep['partial'] or 'none'}")
+    return 0 if rep["ok"] else 1
+
+
 # -------------------------------------------------------------------------------------------------- bench
 def cmd_bench(args) -> int:
     from . import bench
@@ -345,6 +376,25 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--plot", metavar="PNG", help="measured and fitted in-plane curves (Fig 21 style)")
     bf.add_argument("--json", action="store_true")
     bf.set_defaults(func=cmd_fit_brdf)
+
+    gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)")
+    gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
+    gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
+    gp.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    gp.add_argument("--out", required=True, help="output folder")
+    gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
+    gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    gp.add_argument("--quiet", action="store_true", help="no progress bar")
+    gp.add_argument("--device", default="cpu")
+    gp.add_argument("--json", action="store_true")
+    gp.set_defaults(func=cmd_generate)
+
+    dp = sub.add_parser("dataset", help="dataset utilities")
+    dsub = dp.add_subparsers(dest="dataset_command", required=True)
+    vp = dsub.add_parser("verify", help="check shards against the manifest (non-zero exit on problems)")
+    vp.add_argument("dir")
+    vp.add_argument("--json", action="store_true")
+    vp.set_defaults(func=cmd_dataset_verify)
 
     bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bp.add_argument("--json", action="store_true")

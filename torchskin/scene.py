@@ -8,8 +8,11 @@ disk). World frame: metres, z up; subjects stand on z = 0 facing +x. Directions 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import hashlib
+import io
 import json
 import math
 import os
@@ -226,7 +229,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[
     if path.exists():
         with np.load(path) as z:
             return z["vertices"], z["faces"], z["skin"]
-    model = anny.Anny().to(dtype=torch.float32)
+    model = _anny_model()
     unknown = set(phenotype) - set(model.phenotype_labels)
     if unknown:
         raise ValueError(f"unknown anny phenotype(s) {sorted(unknown)}; known: {list(model.phenotype_labels)}")
@@ -237,7 +240,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[
             raise ValueError(f"unknown anny bone {bone!r} in pose")
         pose_t[0, labels.index(bone), :3, :3] = _euler_deg_to_matrix(ang)
     kw = {k: float(phenotype.get(k, 0.5)) for k in model.phenotype_labels}
-    with torch.no_grad():
+    with torch.no_grad(), contextlib.redirect_stdout(io.StringIO()):  # warp's messages stay off stdout
         out = model(pose_parameters=pose_t, phenotype_kwargs=kw)
     v = out["vertices"][0].double().numpy()
     f = model.faces.numpy().astype(np.int64)
@@ -258,6 +261,14 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[
         with open(tmp, "wb") as fh:
             np.savez(fh, vertices=v, faces=f, skin=face_skin)
     return v, f, face_skin
+
+
+@functools.lru_cache(maxsize=1)
+def _anny_model():
+    import anny
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        return anny.Anny().to(dtype=torch.float32)
 
 
 def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -287,7 +298,8 @@ class MeshSpec:
     ``kind``: "anny" (params: ``phenotype``, ``pose``), "file" (params: ``path``), "plane" (params: ``width``,
     ``height``: a vertical rectangle facing +x standing on z = 0 before the transform), "cylinder" (``radius``,
     ``height``), "sphere" (``radius``), "ground" (``size``: a horizontal square at z = 0).
-    Transform: yaw about z (degrees), then translation ``position``. ``material`` names the material of the
+    Transform: tilt about the local y axis (degrees; turns the +x normal of a plane towards +z), then yaw
+    about z (degrees), then translation ``position``. ``material`` names the material of the
     whole mesh; anny bodies use ``material`` on their exposed skin (head, neck, hands) and
     ``other_material`` elsewhere (clothing).
     """
@@ -299,6 +311,7 @@ class MeshSpec:
     position: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     yaw_deg: float = 0.0
     other_material: str | None = None
+    tilt_deg: float = 0.0
 
     def __post_init__(self):
         if self.kind not in ("anny", "file", "plane", "cylinder", "sphere", "ground"):
@@ -336,9 +349,11 @@ class MeshSpec:
             if k in p and not float(p[k]) > 0:
                 raise ValueError(f"mesh {self.name!r}: {k} must be > 0, got {p[k]}")
         c, s = math.cos(math.radians(self.yaw_deg)), math.sin(math.radians(self.yaw_deg))
+        ct, st = math.cos(math.radians(self.tilt_deg)), math.sin(math.radians(self.tilt_deg))
 
         def turn(x):
-            return np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], 1)
+            x = np.stack([ct * x[:, 0] - st * x[:, 2], x[:, 1], st * x[:, 0] + ct * x[:, 2]], 1)  # tilt
+            return np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], 1)  # yaw
 
         v = turn(np.asarray(v, dtype=np.float64)) + np.asarray(self.position)
         f = np.asarray(f, dtype=np.int32)

@@ -1,0 +1,141 @@
+"""Dataset generation: determinism, shards and manifest, verify/resume, crash safety, readers."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from torchskin.cli import main
+from torchskin.dataset.config import resolve_config
+from torchskin.dataset.generate import MANIFEST, generate, verify
+from torchskin.scene import sphere_mesh
+
+
+@pytest.fixture(scope="module")
+def subject_obj(tmp_path_factory):
+    v, f = sphere_mesh(0.35, 3)
+    p = tmp_path_factory.mktemp("mesh") / "head.obj"
+    p.write_text("".join(f"v {a} {b} {c + 0.9}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    return p
+
+
+def small_cfg(obj, **over):
+    o = {"camera": {"width": 64, "height": 64, "range_m": [5.0, 20.0]}, "sun": {"per_pose": 3},
+         "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]},
+         "sampling": {"groups_per_shard": 1, "pixels_per_class": 16}}
+    for k, v in over.items():
+        o.setdefault(k, {}).update(v)
+    return resolve_config(o)
+
+
+def checksums(d):
+    return {s["name"]: s["sha256"] for s in json.loads((d / MANIFEST).read_text())["shards"]}
+
+
+def test_same_seed_same_bytes_and_balanced_classes(tmp_path, subject_obj):
+    cfg = small_cfg(subject_obj)
+    a = generate(cfg, 18, 1, tmp_path / "a", quiet=True)
+    generate(cfg, 18, 1, tmp_path / "b", quiet=True)
+    generate(cfg, 18, 2, tmp_path / "c", quiet=True)
+    assert a["groups"] == 3 and a["n_shards"] == 3
+    assert checksums(tmp_path / "a") == checksums(tmp_path / "b")
+    assert checksums(tmp_path / "a") != checksums(tmp_path / "c")
+    import pandas as pd
+    import pyarrow.dataset as ds
+
+    df = pd.read_parquet(tmp_path / "a")
+    assert len(df) == sum(s["rows"] for s in a["shards"]) == ds.dataset(tmp_path / "a").count_rows()
+    counts = df.groupby(["group", "sun", "skin", "label"]).size().unstack()
+    assert (counts[True] == counts[False]).all()  # balanced per configuration
+    assert set(df.columns) >= {"sun_zenith_deg", "theta_i_deg", "r1580", "ndsi", "shadow", "label"}
+    skin = df[df.label & ~df.shadow]
+    assert skin.ndsi.median() > 0.5  # skin pixels look like skin at 1080/1580 nm
+
+
+def test_verify_and_resume_repair_shards(tmp_path, subject_obj, capsys):
+    cfg = small_cfg(subject_obj)
+    d = tmp_path / "ds"
+    generate(cfg, 24, 0, d, quiet=True)
+    good = checksums(d)
+    assert verify(d)["ok"]
+    shards = sorted(d.glob("shard-*.parquet"))
+    raw = bytearray(shards[0].read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    shards[0].write_bytes(bytes(raw))  # flipped byte
+    shards[1].write_bytes(shards[1].read_bytes()[:100])  # truncated
+    shards[2].unlink()  # missing
+    (d / ".shard-00003.parquet.abc.tmp").write_bytes(b"partial")
+    rep = verify(d)
+    assert not rep["ok"] and rep["missing"] == [shards[2].name]
+    assert rep["corrupted"] == [shards[0].name, shards[1].name] and rep["partial"]
+    assert main(["dataset", "verify", str(d)]) == 1
+    capsys.readouterr()
+    with pytest.raises(ValueError, match="not empty"):
+        generate(cfg, 24, 0, d, quiet=True)
+    generate(cfg, 24, 0, d, resume=True, quiet=True)
+    assert checksums(d) == good and verify(d)["ok"]
+    assert main(["dataset", "verify", str(d), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["ok"]
+
+
+def test_sigkill_mid_run_then_resume_gives_the_same_dataset(tmp_path, subject_obj):
+    cfgfile = tmp_path / "cfg.toml"
+    cfgfile.write_text(
+        '[camera]\nwidth = 64\nheight = 64\nrange_m = [5.0, 20.0]\n[sun]\nper_pose = 3\n[skin]\nper_pose = 2\n'
+        f'[subject]\nmeshes = ["{subject_obj}"]\n[sampling]\ngroups_per_shard = 1\npixels_per_class = 16\n')
+    args = ["generate", "--config", str(cfgfile), "--configs", "60", "--seed", "5", "--quiet"]
+    ref = tmp_path / "ref"
+    assert main([*args, "--out", str(ref)]) == 0
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "torchskin.cli", *args, "--out", str(run)], env=env)
+    t0 = time.time()
+    while time.time() - t0 < 120 and len(list(run.glob("shard-*.parquet"))) < 3:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert len(list(run.glob("shard-*.parquet"))) < 10  # it was killed mid-run
+    assert main([*args, "--out", str(run), "--resume"]) == 0
+    assert checksums(run) == checksums(ref)
+    assert verify(run)["ok"]
+
+
+def test_bad_inputs_write_nothing(tmp_path, subject_obj, capsys):
+    out = tmp_path / "x"
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[camera]\nzoom = 3\n")
+    assert main(["generate", "--config", str(bad), "--configs", "5", "--out", str(out)]) == 2
+    assert "unknown config key camera.zoom" in capsys.readouterr().err
+    assert not out.exists()
+    bad.write_text("[sun]\nzenith_deg = [50.0, 10.0]\n")
+    assert main(["generate", "--config", str(bad), "--out", str(out)]) == 2
+    assert "min 50 > max 10" in capsys.readouterr().err
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    cfg = small_cfg(subject_obj)
+    with pytest.raises(ValueError, match="not empty"):
+        generate(cfg, 6, 0, out, quiet=True)
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_full_disk_stops_with_a_clear_error_and_no_partial_shard(tmp_path, subject_obj, monkeypatch):
+    import errno
+
+    import pyarrow.parquet as pq
+
+    real = pq.write_table
+
+    def full_disk(table, where, **kw):
+        real(table, where, **kw)  # bytes reach the temporary file, then the disk fills up
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pq, "write_table", full_disk)
+    out = tmp_path / "full"
+    with pytest.raises(ValueError, match="shard-00000.parquet .* failed: No space left on device"):
+        generate(small_cfg(subject_obj), 6, 0, out, quiet=True)
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST]  # no shard, no temporary left behind
+    assert not verify(out)["ok"]

@@ -1,0 +1,306 @@
+"""Generate labelled pixel samples: pose groups -> one ray cast each -> every sun x skin shaded -> balanced
+skin / non-skin pixels -> Parquet shards with a manifest (checksums), resumable and verifiable.
+
+Layout of an output folder:
+    _manifest.json           schema version, package version, resolved config, master seed, shards
+    shard-00000.parquet ...  one row per sampled pixel (columns: ``COLUMNS``)
+
+Every shard holds ``sampling.groups_per_shard`` consecutive pose groups; a shard depends only on the config,
+the master seed and its index, so runs are bit-identical whatever the worker count or order, and an
+interrupted run resumes by regenerating the shards whose checksum does not match.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import __version__
+from ..io import atomic_path, write_text
+from ..raycast import Raycaster
+from ..render import Sensor, build_meshes, render
+from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
+from .config import PoseGroup, sample_group
+
+SCHEMA_VERSION = 1
+MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
+BANDS_NM = (544, 633, 1080, 1580)
+SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
+
+#: Parquet columns: name -> (pyarrow type name, description, unit)
+COLUMNS: dict[str, tuple[str, str, str]] = {
+    "group": ("int32", "pose group index", ""),
+    "sun": ("int16", "sun index within the group", ""),
+    "skin": ("int16", "skin index within the group", ""),
+    "label": ("bool", "true: skin pixel (from the G-buffer)", ""),
+    "sun_zenith_deg": ("float32", "sun zenith", "deg"),
+    "sun_azimuth_deg": ("float32", "sun azimuth (from +x towards +y)", "deg"),
+    "camera_zenith_deg": ("float32", "camera zenith", "deg"),
+    "camera_azimuth_deg": ("float32", "camera azimuth", "deg"),
+    "relative_azimuth_deg": ("float32", "|sun azimuth - camera azimuth| folded to [0, 180]", "deg"),
+    "range_m": ("float32", "camera range to the subject", "m"),
+    "sky_fraction": ("float32", "sky / sun irradiance", ""),
+    "atmosphere_transmittance": ("float32", "path transmittance", ""),
+    "path_radiance_scale": ("float32", "path radiance relative to the sensor default", ""),
+    "skin_type": ("string", "Fitzpatrick type of the group's skin", ""),
+    "melanosome": ("float32", "melanosome volume fraction", ""),
+    "blood": ("float32", "blood level", ""),
+    "oxygenation": ("float32", "blood oxygen saturation", ""),
+    "reticular_depth": ("float32", "reticular dermis thickness", "cm"),
+    "collagen": ("float32", "reticular collagen fraction", ""),
+    "subcutaneous_scale": ("float32", "subcutaneous reflectance scale", ""),
+    "subject_yaw_deg": ("float32", "subject yaw", "deg"),
+    "subject": ("string", "subject source (anny or the mesh path)", ""),
+    "panels": ("string", "reference panel kind", ""),
+    "confuser": ("string", "earthlib confuser spectrum name (empty: none)", ""),
+    "theta_i_deg": ("float32", "local incidence angle", "deg"),
+    "theta_r_deg": ("float32", "local view angle", "deg"),
+    "delta_phi_deg": ("float32", "local relative azimuth (180: forward plane)", "deg"),
+    "shadow": ("bool", "the sun is occluded at this pixel", ""),
+    "r544": ("float32", "ELM reflectance at 544 nm", ""),
+    "r633": ("float32", "ELM reflectance at 633 nm", ""),
+    "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
+    "r1580": ("float32", "ELM reflectance at 1580 nm", ""),
+    "ndgri": ("float32", "(r544 - r633) / (r544 + r633)", ""),
+    "ndsi": ("float32", "(r1080 - r1580) / (r1080 + r1580)", ""),
+}
+
+
+def _arrow_schema():
+    import pyarrow as pa
+
+    types = {"bool": pa.bool_(), "string": pa.string()}
+    return pa.schema([(k, types.get(v[0]) or getattr(pa, v[0])()) for k, v in COLUMNS.items()])
+
+
+def group_scene(g: PoseGroup) -> Scene:
+    """The scene of a pose group: subject at the origin (yawed), two reference panels beside it facing the
+    camera, a ground plane, the group's camera and suns. The skin material is set per skin later."""
+    cam = Camera(width=g.camera["width"], height=g.camera["height"], zenith_deg=g.camera["zenith_deg"],
+                 azimuth_deg=g.camera["azimuth_deg"], range_m=g.camera["range_m"],
+                 target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=g.camera["fov_deg"])
+    mats = {"skin": Material("skin", skin="I-II"), "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
+            "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(g.panels)}
+    if g.subject["kind"] == "anny":
+        body = MeshSpec("subject", "anny", "skin", params={"phenotype": g.subject["phenotype"]},
+                        yaw_deg=g.subject["yaw_deg"], other_material="clothing")
+    else:
+        body = MeshSpec("subject", "file", "skin", params={"path": g.subject["path"]}, yaw_deg=g.subject["yaw_deg"])
+    az = math.radians(g.camera["azimuth_deg"])
+    side = np.array([-math.sin(az), math.cos(az), 0.0])
+    tilt = 90.0 - g.camera["zenith_deg"]  # panels face the camera
+    panels = [MeshSpec(name, "plane", mat, params={"width": 0.5, "height": 0.5},
+                       position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
+                       tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
+    ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
+    suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], sky_fraction=s["sky_fraction"])
+            for s in g.suns]
+    return Scene(mats, [body, *panels, ground], [cam], suns)
+
+
+def _sensor(g: PoseGroup) -> Sensor:
+    base = Sensor()
+    return Sensor(noise=g.sensor["noise"], read_noise_e=g.sensor["read_noise_e"], seed=g.sensor["seed"],
+                  atmosphere_transmittance=g.atmosphere["transmittance"],
+                  path_radiance=[p * g.atmosphere["path_radiance_scale"] for p in base.path_radiance])
+
+
+def _local_angles(gb, idx: torch.Tensor, sun_dir: torch.Tensor):
+    n = gb.normal.reshape(-1, 3)[idx].double()
+    v = gb.view.reshape(-1, 3)[idx].double()
+    s = sun_dir.double()
+    ci, cr = (n @ s).clamp(-1, 1), (n * v).sum(-1).clamp(-1, 1)
+    st, vt = s - ci[:, None] * n, v - cr[:, None] * n
+    cphi = ((st * vt).sum(-1) / (st.norm(dim=-1) * vt.norm(dim=-1)).clamp_min(1e-12)).clamp(-1, 1)
+    deg = 180.0 / math.pi
+    return torch.acos(ci) * deg, torch.acos(cr) * deg, torch.acos(cphi) * deg
+
+
+def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, list]:
+    """Rows (column -> values) for every sun x skin of a pose group: ``pixels_per_class`` skin and as many
+    non-skin pixels (fewer if fewer are visible; balanced per configuration)."""
+    sc = group_scene(g)
+    meshes, names = build_meshes(sc)
+    rc = Raycaster(meshes, names)
+    gb = rc.gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
+    panel_ids = [gb.mesh_names.index(p) for p in sc.panels]
+    is_panel = torch.zeros_like(gb.hit)
+    for k in panel_ids:
+        is_panel |= gb.mesh == k
+    sensor = _sensor(g)
+    rng = np.random.default_rng(g.seed)
+    out: dict[str, list] = {k: [] for k in COLUMNS}
+    sun_dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float32)
+    for ki, skin in enumerate(g.skins):
+        sc.materials["skin"] = Material("skin", skin={k: v for k, v in skin.items() if k != "type"})
+        res = render(sc, device=device, sensor=sensor, gbuffer=gb)
+        skin_px = res.skin[0].reshape(-1).cpu()
+        other_px = (res.gbuffer.hit[0] & ~is_panel[0]).reshape(-1).cpu() & ~skin_px
+        skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
+        m = min(pixels_per_class, len(skin_idx), len(other_idx))
+        if m == 0:
+            continue
+        for si, sun in enumerate(g.suns):
+            pick = np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
+            idx = torch.from_numpy(pick)
+            refl = res.reflectance[si, 0].reshape(-1, 4)[idx].cpu().float()
+            g_, s_ = res.ndgri[si, 0].reshape(-1)[idx].cpu(), res.ndsi[si, 0].reshape(-1)[idx].cpu()
+            ti, tr, dp = _local_angles(gb, idx, sun_dirs[si])
+            shadow = gb.shadow[si, 0].reshape(-1)[idx]
+            rel = abs((sun["azimuth_deg"] - g.camera["azimuth_deg"] + 180.0) % 360.0 - 180.0)
+            n = 2 * m
+            const = {"group": g.index, "sun": si, "skin": ki, "sun_zenith_deg": sun["zenith_deg"],
+                     "sun_azimuth_deg": sun["azimuth_deg"], "camera_zenith_deg": g.camera["zenith_deg"],
+                     "camera_azimuth_deg": g.camera["azimuth_deg"], "relative_azimuth_deg": rel,
+                     "range_m": g.camera["range_m"], "sky_fraction": sun["sky_fraction"],
+                     "atmosphere_transmittance": g.atmosphere["transmittance"],
+                     "path_radiance_scale": g.atmosphere["path_radiance_scale"], "skin_type": skin["type"],
+                     **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
+                                             "subcutaneous_scale")},
+                     "subject_yaw_deg": g.subject["yaw_deg"], "subject": g.subject.get("path", "anny"),
+                     "panels": g.panels, "confuser": ""}
+            for k, v in const.items():
+                out[k].extend([v] * n)
+            out["label"].extend([True] * m + [False] * m)
+            out["theta_i_deg"].extend(ti.tolist())
+            out["theta_r_deg"].extend(tr.tolist())
+            out["delta_phi_deg"].extend(dp.tolist())
+            out["shadow"].extend(shadow.tolist())
+            for b, name in enumerate(("r544", "r633", "r1080", "r1580")):
+                out[name].extend(refl[:, b].tolist())
+            out["ndgri"].extend(g_.tolist())
+            out["ndsi"].extend(s_.tolist())
+    return out
+
+
+# -------------------------------------------------------------------------------------------------- shards
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def shard_name(k: int) -> str:
+    return f"shard-{k:05d}.parquet"
+
+
+def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
+    """Write one shard atomically (temporary name, fsync, rename); return its manifest entry."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    schema = _arrow_schema()
+    table = pa.table({c: pa.array(rows[c], type=schema.field(c).type) for c in COLUMNS}, schema=schema)
+    path = out_dir / shard_name(k)
+    with atomic_path(path, suffix=".tmp") as tmp:
+        pq.write_table(table, tmp, compression="zstd", write_statistics=False)
+    return {"name": path.name, "rows": table.num_rows, "sha256": sha256_file(path), "bytes": path.stat().st_size}
+
+
+def plan(cfg: dict, n_configs: int) -> tuple[int, int]:
+    """(number of pose groups, number of shards) for ``n_configs`` configurations (group x sun x skin)."""
+    if n_configs < 1:
+        raise ValueError(f"--configs must be >= 1, got {n_configs}")
+    per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
+    groups = math.ceil(n_configs / per_group)
+    return groups, math.ceil(groups / cfg["sampling"]["groups_per_shard"])
+
+
+def shard_groups(cfg: dict, k: int, n_groups: int) -> range:
+    gps = cfg["sampling"]["groups_per_shard"]
+    return range(k * gps, min((k + 1) * gps, n_groups))
+
+
+def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, device="cpu") -> dict:
+    """Generate and write shard ``k`` (a pure function of config, seed and k)."""
+    rows: dict[str, list] = {c: [] for c in COLUMNS}
+    for gi in shard_groups(cfg, k, n_groups):
+        part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device)
+        for c in COLUMNS:
+            rows[c].extend(part[c])
+    return write_shard(out_dir, k, rows)
+
+
+def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict]) -> dict:
+    return {"schema_version": SCHEMA_VERSION, "package_version": __version__, "config": cfg, "master_seed": seed,
+            "configs": n_configs, "groups": n_groups, "n_shards": n_shards,
+            "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
+            "shards": [done[k] for k in sorted(done)]}
+
+
+def verify(out_dir) -> dict:
+    """Check a dataset folder against its manifest: missing, partial (temporary leftovers or unreadable)
+    and corrupted (checksum mismatch) shards. ``ok`` is True when everything matches."""
+    out = Path(out_dir)
+    mpath = out / MANIFEST
+    if not mpath.is_file():
+        raise ValueError(f"{str(out)!r} has no {MANIFEST}: not a torchskin dataset")
+    man = json.loads(mpath.read_text())
+    listed = {s["name"]: s for s in man["shards"]}
+    missing, corrupted = [], []
+    for k in range(man["n_shards"]):
+        name = shard_name(k)
+        p = out / name
+        if name not in listed or not p.is_file():
+            missing.append(name)
+        elif p.stat().st_size != listed[name]["bytes"] or sha256_file(p) != listed[name]["sha256"]:
+            corrupted.append(name)
+    partial = sorted(p.name for p in out.iterdir() if p.name.startswith(".shard-") or p.name.endswith(".tmp"))
+    return {"ok": not (missing or corrupted or partial), "shards": man["n_shards"], "missing": missing,
+            "corrupted": corrupted, "partial": partial,
+            "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
+
+
+def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = False, overwrite: bool = False,
+             quiet: bool = False, device="cpu") -> dict:
+    """Generate a dataset into ``out_dir`` (local backend). Returns the manifest."""
+    out = Path(out_dir)
+    n_groups, n_shards = plan(cfg, n_configs)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output {str(out)!r} exists and is not a folder")
+    existing = [p for p in out.iterdir()] if out.is_dir() else []
+    if existing and not (resume or overwrite):
+        raise ValueError(f"output folder {str(out)!r} is not empty: pass --resume to continue or --overwrite")
+    done: dict[int, dict] = {}
+    if existing and overwrite and not resume:
+        for p in existing:
+            if p.name == MANIFEST or p.name.startswith(("shard-", ".shard-")):
+                p.unlink()
+    if existing and resume and (out / MANIFEST).is_file():
+        old = json.loads((out / MANIFEST).read_text())
+        if old.get("config") != cfg or old.get("master_seed") != seed or old.get("configs") != n_configs:
+            raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
+        for s in old["shards"]:
+            p = out / s["name"]
+            if p.is_file() and p.stat().st_size == s["bytes"] and sha256_file(p) == s["sha256"]:
+                done[int(s["name"][6:11])] = s
+    for p in (out.iterdir() if out.is_dir() else []):
+        if p.name.startswith(".shard-"):  # temporaries of a killed run
+            p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+    if not os.access(out, os.W_OK):
+        raise ValueError(f"output folder {str(out)!r} is not writable")
+    write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done), indent=1))
+    from tqdm import tqdm
+
+    per_shard = cfg["sampling"]["groups_per_shard"] * cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
+    todo = [k for k in range(n_shards) if k not in done]
+    with tqdm(total=n_shards * per_shard, initial=(n_shards - len(todo)) * per_shard, unit="config",
+              disable=quiet, desc="generate") as bar:
+        for k in todo:
+            try:
+                done[k] = generate_shard(cfg, seed, k, n_groups, out, device)
+            except OSError as e:  # full disk, permissions: the temporary shard is already removed
+                raise ValueError(f"writing {shard_name(k)} into {str(out)!r} failed: {e.strerror or e}") from None
+            write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done),
+                                                  indent=1))
+            bar.update(per_shard)
+    return _manifest(cfg, seed, n_configs, n_groups, n_shards, done)
