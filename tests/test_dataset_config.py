@@ -26,7 +26,16 @@ def test_defaults_validate_and_cover_declared_ranges():
         for s in g.skins:
             lo, hi = tissue.FITZPATRICK_RANGES[s["type"]]["melanosome"]
             assert lo <= s["melanosome"] <= hi
-        assert len(g.suns) == 16 and len(g.skins) == 3 and 0 <= g.confusers <= 3
+        assert len(g.suns) == 16 and len(g.skins) == 3 and 0 <= len(g.confusers) <= 3
+
+
+def test_confusers_come_from_the_configured_partition_only():
+    from torchskin.confusers import partition
+
+    for part in ("train", "test"):
+        cfg = C.resolve_config({"confusers": {"count": [2, 3], "partition": part}})
+        names = [c["name"] for i in range(30) for c in C.sample_group(cfg, 1, i).confusers]
+        assert len(names) >= 60 and all(partition(n) == part for n in names)
 
 
 def test_groups_are_a_pure_function_of_seed_and_index():

@@ -26,7 +26,7 @@ def subject_obj(tmp_path_factory):
 def small_cfg(obj, **over):
     o = {"camera": {"width": 64, "height": 64, "range_m": [5.0, 20.0]}, "sun": {"per_pose": 3},
          "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]},
-         "sampling": {"groups_per_shard": 1, "pixels_per_class": 16}}
+         "sampling": {"groups_per_shard": 1, "pixels_per_class": 16}, "confusers": {"count": [2, 3]}}
     for k, v in over.items():
         o.setdefault(k, {}).update(v)
     return resolve_config(o)
@@ -54,6 +54,11 @@ def test_same_seed_same_bytes_and_balanced_classes(tmp_path, subject_obj):
     assert set(df.columns) >= {"sun_zenith_deg", "theta_i_deg", "r1580", "ndsi", "shadow", "label"}
     skin = df[df.label & ~df.shadow]
     assert skin.ndsi.median() > 0.5  # skin pixels look like skin at 1080/1580 nm
+    from torchskin.confusers import partition
+
+    conf = df[df.confuser != ""]
+    assert len(conf) > 0 and not conf.label.any()
+    assert all(partition(n) == "train" for n in conf.confuser.unique())
 
 
 def test_verify_and_resume_repair_shards(tmp_path, subject_obj, capsys):

@@ -165,7 +165,7 @@ class PoseGroup:
     atmosphere: dict = field(default_factory=dict)
     sensor: dict = field(default_factory=dict)
     panels: str = "lambertian"
-    confusers: int = 0
+    confusers: list[dict] = field(default_factory=list)  # earthlib spectrum name, ground position, size
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -215,6 +215,16 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
     sensor = {"noise": cfg["sensor"]["noise"], "read_noise_e": u(cfg["sensor"]["read_noise_e"]),
               "seed": int(rng.integers(2**31))}
     kinds = cfg["panels"]["kinds"]
+    panels = kinds[int(rng.integers(len(kinds)))]
     lo, hi = cfg["confusers"]["count"]
-    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor,
-                     kinds[int(rng.integers(len(kinds)))], int(rng.integers(int(lo), int(hi) + 1)))
+    count = int(rng.integers(int(lo), int(hi) + 1))
+    confusers = []
+    if count:
+        from ..confusers import library
+
+        names = library(cfg["confusers"]["partition"])[0]
+        for _ in range(count):
+            ang, dist = float(rng.uniform(0, 2 * math.pi)), float(rng.uniform(0.6, 1.2))
+            confusers.append({"name": names[int(rng.integers(len(names)))], "x": dist * math.cos(ang),
+                              "y": dist * math.sin(ang), "size": 0.5})
+    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor, panels, confusers)

@@ -99,9 +99,16 @@ def group_scene(g: PoseGroup) -> Scene:
                        position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
                        tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
+    from ..confusers import spectrum
+
+    conf = []
+    for k, c in enumerate(g.confusers):  # flat patches on the ground around the subject
+        mats[f"confuser{k}"] = Material("lambertian", reflectance=spectrum(c["name"], BANDS_NM))
+        conf.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}", params={"width": c["size"], "height": c["size"]},
+                             position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
     suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], sky_fraction=s["sky_fraction"])
             for s in g.suns]
-    return Scene(mats, [body, *panels, ground], [cam], suns)
+    return Scene(mats, [body, *panels, ground, *conf], [cam], suns)
 
 
 def _sensor(g: PoseGroup) -> Sensor:
@@ -130,6 +137,8 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
     rc = Raycaster(meshes, names)
     gb = rc.gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
     panel_ids = [gb.mesh_names.index(p) for p in sc.panels]
+    conf_mesh = {gb.mesh_names.index(f"confuser{k}"): c["name"] for k, c in enumerate(g.confusers)}
+    mesh_flat = gb.mesh[0].reshape(-1)
     is_panel = torch.zeros_like(gb.hit)
     for k in panel_ids:
         is_panel |= gb.mesh == k
@@ -164,9 +173,10 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
                      **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
                                              "subcutaneous_scale")},
                      "subject_yaw_deg": g.subject["yaw_deg"], "subject": g.subject.get("path", "anny"),
-                     "panels": g.panels, "confuser": ""}
+                     "panels": g.panels}
             for k, v in const.items():
                 out[k].extend([v] * n)
+            out["confuser"].extend(conf_mesh.get(int(mid), "") for mid in mesh_flat[idx].tolist())
             out["label"].extend([True] * m + [False] * m)
             out["theta_i_deg"].extend(ti.tolist())
             out["theta_r_deg"].extend(tr.tolist())
