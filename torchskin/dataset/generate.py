@@ -62,7 +62,7 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "theta_i_deg": ("float32", "local incidence angle", "deg"),
     "theta_r_deg": ("float32", "local view angle", "deg"),
     "delta_phi_deg": ("float32", "local relative azimuth (180: forward plane)", "deg"),
-    "shadow": ("bool", "the sun is occluded at this pixel", ""),
+    "shadow": ("bool", "not sunlit: the sun is occluded (cast shadow) or behind the surface (θi > 90°)", ""),
     "r544": ("float32", "ELM reflectance at 544 nm", ""),
     "r633": ("float32", "ELM reflectance at 633 nm", ""),
     "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
@@ -161,7 +161,7 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
             refl = res.reflectance[si, 0].reshape(-1, 4)[idx].cpu().float()
             g_, s_ = res.ndgri[si, 0].reshape(-1)[idx].cpu(), res.ndsi[si, 0].reshape(-1)[idx].cpu()
             ti, tr, dp = _local_angles(gb, idx, sun_dirs[si])
-            shadow = gb.shadow[si, 0].reshape(-1)[idx]
+            shadow = ~res.lit[si, 0].reshape(-1)[idx].cpu()  # cast shadow or facing away from the sun
             rel = abs((sun["azimuth_deg"] - g.camera["azimuth_deg"] + 180.0) % 360.0 - 180.0)
             n = 2 * m
             const = {"group": g.index, "sun": si, "skin": ki, "sun_zenith_deg": sun["zenith_deg"],
