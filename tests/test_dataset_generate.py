@@ -144,3 +144,30 @@ def test_full_disk_stops_with_a_clear_error_and_no_partial_shard(tmp_path, subje
         generate(small_cfg(subject_obj), 6, 0, out, quiet=True)
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST]  # no shard, no temporary left behind
     assert not verify(out)["ok"]
+
+
+def test_ray_backend_with_two_workers_matches_local(tmp_path, subject_obj):
+    cfg = small_cfg(subject_obj)
+    generate(cfg, 24, 9, tmp_path / "local", quiet=True)
+    man = generate(cfg, 24, 9, tmp_path / "ray", quiet=True, backend="ray", workers=2)
+    assert man["n_shards"] == 4 and len(man["shards"]) == 4
+    assert checksums(tmp_path / "ray") == checksums(tmp_path / "local")
+    assert verify(tmp_path / "ray")["ok"]
+
+
+def test_peak_memory_does_not_grow_with_the_number_of_configurations(tmp_path, subject_obj):
+    cfgfile = tmp_path / "cfg.toml"
+    cfgfile.write_text(
+        '[camera]\nwidth = 32\nheight = 32\nrange_m = [5.0, 20.0]\n[sun]\nper_pose = 3\n[skin]\nper_pose = 2\n'
+        f'[subject]\nmeshes = ["{subject_obj}"]\n[sampling]\ngroups_per_shard = 5\npixels_per_class = 8\n'
+        '[confusers]\ncount = [0, 0]\n')
+    peaks = []
+    for n in (200, 2000):  # each run measured in a fresh parent, so no other child's peak mixes in
+        cmd = [sys.executable, "-m", "torchskin.cli", "generate", "--config", str(cfgfile), "--configs", str(n),
+               "--out", str(tmp_path / f"d{n}"), "--quiet"]
+        probe = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True); "
+                 "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+        r = subprocess.run([sys.executable, "-c", probe, *cmd], check=True, capture_output=True, text=True)
+        peaks.append(int(r.stdout.strip().splitlines()[-1]))
+    assert len(list((tmp_path / "d2000").glob("shard-*.parquet"))) == 67
+    assert peaks[1] < 1.2 * peaks[0], peaks

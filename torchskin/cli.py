@@ -259,7 +259,8 @@ def cmd_generate(args) -> int:
         raise ValueError("--resume and --overwrite exclude each other")
     cfg = load_config(args.config)
     man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
-                   quiet=args.quiet or args.json, device=args.device)
+                   quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
+                   workers=args.workers)
     rows = sum(s["rows"] for s in man["shards"])
     if args.json:
         print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
@@ -386,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     gp.add_argument("--quiet", action="store_true", help="no progress bar")
     gp.add_argument("--device", default="cpu")
+    gp.add_argument("--backend", choices=["local", "ray"], default="local", help="run shards here or on Ray")
+    gp.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+    gp.add_argument("--workers", type=int, help="CPUs of the local Ray cluster (default: all)")
     gp.add_argument("--json", action="store_true")
     gp.set_defaults(func=cmd_generate)
 

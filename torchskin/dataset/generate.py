@@ -269,9 +269,21 @@ def verify(out_dir) -> dict:
             "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
 
 
+def _ray_shard(cfg, seed, k, n_groups, out_dir, device):
+    return generate_shard(cfg, seed, k, n_groups, Path(out_dir), device)
+
+
 def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = False, overwrite: bool = False,
-             quiet: bool = False, device="cpu") -> dict:
-    """Generate a dataset into ``out_dir`` (local backend). Returns the manifest."""
+             quiet: bool = False, device="cpu", backend: str = "local", address: str | None = None,
+             workers: int | None = None) -> dict:
+    """Generate a dataset into ``out_dir``. Returns the manifest.
+
+    ``backend="local"`` runs the shards in this process; ``backend="ray"`` runs one Ray task per shard on the
+    cluster at ``address`` (a local cluster of ``workers`` CPUs when None; GPUs requested when ``device`` is
+    cuda). Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
+    shared filesystem. Both backends give the same bytes."""
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     out = Path(out_dir)
     n_groups, n_shards = plan(cfg, n_configs)
     if out.exists() and not out.is_dir():
@@ -303,14 +315,45 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = Fa
 
     per_shard = cfg["sampling"]["groups_per_shard"] * cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
     todo = [k for k in range(n_shards) if k not in done]
+
+    def record(k, entry):
+        done[k] = entry
+        write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done), indent=1))
+
     with tqdm(total=n_shards * per_shard, initial=(n_shards - len(todo)) * per_shard, unit="config",
               disable=quiet, desc="generate") as bar:
-        for k in todo:
-            try:
-                done[k] = generate_shard(cfg, seed, k, n_groups, out, device)
-            except OSError as e:  # full disk, permissions: the temporary shard is already removed
-                raise ValueError(f"writing {shard_name(k)} into {str(out)!r} failed: {e.strerror or e}") from None
-            write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done),
-                                                  indent=1))
-            bar.update(per_shard)
+        if backend == "local":
+            for k in todo:
+                try:
+                    entry = generate_shard(cfg, seed, k, n_groups, out, device)
+                except OSError as e:  # full disk, permissions: the temporary shard is already removed
+                    raise ValueError(f"writing {shard_name(k)} into {str(out)!r} failed: {e.strerror or e}") from None
+                record(k, entry)
+                bar.update(per_shard)
+        else:
+            _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, lambda k, e: (record(k, e),
+                                                                                            bar.update(per_shard)))
     return _manifest(cfg, seed, n_configs, n_groups, n_shards, done)
+
+
+def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, on_done) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("the ray backend needs Ray: pip install 'torchskin[ray]'") from None
+    started = not ray.is_initialized()
+    if started:
+        kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}
+        ray.init(include_dashboard=False, log_to_driver=False, **kw)
+    try:
+        opts = {"num_cpus": 1, "num_gpus": 1 if str(device).startswith("cuda") else 0, "max_retries": 2}
+        task = ray.remote(**opts)(_ray_shard)
+        pending = {task.remote(cfg, seed, k, n_groups, str(out), device): k for k in todo}
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                k = pending.pop(ref)
+                on_done(k, ray.get(ref))
+    finally:
+        if started:
+            ray.shutdown()
