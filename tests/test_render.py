@@ -314,3 +314,15 @@ def test_brdf_elm_removes_the_lambertian_panel_error():
     # brighter by about as much (the exact figure depends on each panel's view angle through the lobe)
     assert 0.03 < float(err[:2].min()) and float(err[:2].max()) < 0.07
     assert 0.06 < float(err[2:].min()) and float(err[2:].max()) < 0.12
+
+
+def test_pixel_subset_render_matches_full_frame_with_ideal_sensor():
+    sc = panel_scene(sun_az=30.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    sc.suns = [Sun(zenith_deg=90.0, azimuth_deg=a) for a in (10.0, 40.0)]
+    full = render(sc, sensor=Sensor(noise=False, quantize=False, integration_time_s=1e-4))
+    idx = full.gbuffer.hit[0].flatten().nonzero().flatten()[::7]
+    sub = render(sc, sensor=Sensor(noise=False, quantize=False, integration_time_s=1e-4), pixels=idx)
+    assert sub.reflectance.shape == (2, 1, 1, len(idx), 4)
+    torch.testing.assert_close(sub.reflectance[:, 0, 0], full.reflectance[:, 0].flatten(1, 2)[:, idx])
+    torch.testing.assert_close(sub.ndsi[:, 0, 0], full.ndsi[:, 0].flatten(1)[:, idx], equal_nan=True)

@@ -145,8 +145,70 @@ def bench_fit(compile: bool = False, n: int = 10_000) -> dict:
                     "rmse_median": float(res.rmse.median())}}
 
 
+def _band_slice(tables, b: int):
+    """Material tables of band ``b`` only (for the per-band baseline)."""
+    import dataclasses
+
+    out = {}
+    for f in dataclasses.fields(tables):
+        v = getattr(tables, f.name)
+        out[f.name] = v[..., b:b + 1] if (v.is_floating_point() and v.shape[-1] == tables.sigma2.shape[0]) else v
+    return type(tables)(**out)
+
+
+def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, suns: int = 16, skins: int = 3,
+                  baseline_images: int = 24) -> dict:
+    """Batched generation of one pose group (rays cast once, every sun batched) against rendering each
+    (configuration, band) image on its own with its own ray cast, the way a per-band renderer must; the
+    baseline is timed on ``baseline_images`` images and scaled to suns x skins x bands."""
+    import dataclasses
+
+    from .dataset.config import resolve_config, sample_group
+    from .dataset.generate import _sensor, group_rows, group_scene
+    from .raycast import Raycaster
+    from .render import build_meshes, material_tables, sensor_signal, shade
+    from .scene import Material
+
+    cfg = resolve_config({"camera": {"width": width, "height": height}, "sun": {"per_pose": suns},
+                          "skin": {"per_pose": skins}, "confusers": {"count": [0, 0]}})
+    g = sample_group(cfg, 0, 0)
+    group_rows(g, 1)  # warm-up: anny mesh cache, tables
+    t0 = time.perf_counter()
+    rows = group_rows(g, cfg["sampling"]["pixels_per_class"])
+    t_batched = time.perf_counter() - t0
+    sc = group_scene(g)
+    meshes, names = build_meshes(sc)
+    rc = Raycaster(meshes, names)
+    sensor = _sensor(g)
+    n_bands = len(sc.bands)
+    work = [(s, k, b) for k in range(skins) for s in range(suns) for b in range(n_bands)]
+    step = max(1, len(work) // baseline_images)
+    sample = work[::step][:baseline_images]
+    t0 = time.perf_counter()
+    for s, k, b in sample:
+        sc.materials["skin"] = Material("skin", skin={kk: v for kk, v in g.skins[k].items() if kk != "type"})
+        gb = rc.gbuffer(sc.cameras, sc.suns[s].direction[None])
+        tables = _band_slice(material_tables(sc, gb.material_names, torch.float32, "cpu"), b)
+        tables = dataclasses.replace(tables, irradiance=tables.irradiance[s:s + 1])
+        sun = torch.tensor(sc.suns[s].direction[None], dtype=torch.float32)
+        sky = torch.tensor([sc.suns[s].sky_fraction], dtype=torch.float32)
+        L = shade(gb, tables, sun, sky)["radiance"]
+        band_sensor = dataclasses.replace(sensor, **{f: [getattr(sensor, f)[b]] for f in (
+            "quantum_efficiency", "atmosphere_transmittance", "path_radiance") if isinstance(getattr(sensor, f), list)})
+        sensor_signal(L, band_sensor, [sc.band_list[b]], sc.cameras[0].focal)
+    t_per_image = (time.perf_counter() - t0) / len(sample)
+    t_baseline = t_per_image * len(work)
+    n_configs = suns * skins
+    return {"dataset": {
+        "configs_per_s": n_configs / t_batched, "samples_per_s": len(rows["label"]) / t_batched,
+        "speedup_vs_per_config_render": t_baseline / t_batched, "batched_seconds": t_batched,
+        "per_image_seconds": t_per_image, "images": len(work), "width": width, "height": height,
+    }}
+
+
 #: name -> callable(**options) returning a dict of results (later issues add entries)
-BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit}
+BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit,
+                                               "dataset": bench_dataset}
 
 
 def run(only: list[str] | None = None, compile: bool = False) -> dict:

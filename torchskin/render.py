@@ -379,13 +379,34 @@ def apply_elm(signal: torch.Tensor, panel_signal: torch.Tensor, references: torc
     return torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # (L - b) / a
 
 
+def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
+    """A G-buffer of the pixels ``flat`` (indices into the single camera's H*W), shaped (1, 1, K)."""
+    if gb.hit.shape[0] != 1:
+        raise ValueError("pixel subsets need a single camera")
+    out = {}
+    for f in dataclasses.fields(gb):
+        v = getattr(gb, f.name)
+        if f.name == "shadow":
+            out[f.name] = v.flatten(1).index_select(1, flat).reshape(v.shape[0], 1, 1, -1)
+        elif isinstance(v, torch.Tensor):
+            tail = v.shape[3:]
+            out[f.name] = v.reshape(-1, *tail).index_select(0, flat).reshape(1, 1, -1, *tail)
+        elif f.name != "cache":
+            out[f.name] = v
+    return GBuffer(**out)
+
+
 def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | None = None,
            box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None,
-           erode_px: int = 1, elm: str = "dhr") -> RenderResult:
+           erode_px: int = 1, elm: str = "dhr", pixels: torch.Tensor | None = None) -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM. ``sensor=None`` uses an ideal linear
     sensor (ELM then recovers Lambertian reflectance exactly). ``elm="brdf"`` calibrates with the panels'
     BRDF at the scene geometry (BRDF-ELM) instead of their DHR. Pass ``raycaster``/``gbuffer`` to reuse
-    geometry across calls."""
+    geometry across calls.
+
+    ``pixels`` (flat indices into the single camera's H*W) renders only those pixels and the panels'
+    interior: images then have shape (S, 1, 1, K, ...) for the K requested pixels, and automatic exposure
+    uses the brightest of them (the dataset generator's fast path)."""
     device = torch.device(device)
     timing = {}
     t0 = time.perf_counter()
@@ -400,6 +421,14 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
         timing["raycast_s"] = time.perf_counter() - t1
     t2 = time.perf_counter()
     gb = gbuffer.to(device=device, dtype=dtype)
+    pix = panel_pixels(gb, list(scene.panels), erode_px)
+    if pixels is not None:
+        pixels = pixels.to(gb.hit.device).long()
+        panel_flat = [per_cam[0] for per_cam in pix]
+        sizes = [len(pixels)] + [len(x) for x in panel_flat]
+        gb = gather_pixels(gb, torch.cat([pixels, *panel_flat]))
+        offs = np.cumsum(sizes)
+        pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
     tables = material_tables(scene, gb.material_names, dtype, device)
     bands = scene.band_list
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device)
@@ -413,7 +442,6 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
         gen = torch.Generator(device=device)
         gen.manual_seed(int(sensor.seed))
     focal = scene.cameras[0].focal
-    pix = panel_pixels(gb, list(scene.panels), erode_px)
     signal = sensor_signal(sh["radiance"], sensor, bands, focal, gen)
     pv = panel_values(signal, pix)  # (S, C, P, B)
     refs = panel_references(scene, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
@@ -427,6 +455,10 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
     timing["total_s"] = time.perf_counter() - t0
     panels = {p: {"reference": refs[:, :, k].tolist(), "signal": pv[:, :, k].tolist()}
               for k, p in enumerate(scene.panels)}
+    if pixels is not None:  # keep the requested pixels only
+        n = len(pixels)
+        return RenderResult(sh["radiance"][..., :n, :], signal[..., :n, :], refl[..., :n, :], g[..., :n],
+                            s[..., :n], mask[..., :n], skin[..., :n], sh["lit"][..., :n], panels, gb, timing, bands)
     return RenderResult(sh["radiance"], signal, refl, g, s, mask, skin, sh["lit"], panels, gb, timing, bands)
 
 

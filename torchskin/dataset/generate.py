@@ -146,22 +146,28 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
     rng = np.random.default_rng(g.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
     sun_dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float32)
+    skin_id = gb.material_names.index("skin")
+    hit = gb.hit[0].reshape(-1)
+    skin_px = hit & (gb.material[0].reshape(-1) == skin_id)
+    other_px = hit & ~is_panel[0].reshape(-1) & ~skin_px
+    skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
+    m = min(pixels_per_class, len(skin_idx), len(other_idx))
+    if m == 0:
+        return out
     for ki, skin in enumerate(g.skins):
+        # the pixels of every sun of this skin, drawn first, rendered together (only they and the panels)
+        picks = [np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
+                 for _ in g.suns]
+        union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
         sc.materials["skin"] = Material("skin", skin={k: v for k, v in skin.items() if k != "type"})
-        res = render(sc, device=device, sensor=sensor, gbuffer=gb)
-        skin_px = res.skin[0].reshape(-1).cpu()
-        other_px = (res.gbuffer.hit[0] & ~is_panel[0]).reshape(-1).cpu() & ~skin_px
-        skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
-        m = min(pixels_per_class, len(skin_idx), len(other_idx))
-        if m == 0:
-            continue
+        res = render(sc, device=device, sensor=sensor, gbuffer=gb, pixels=torch.from_numpy(union))
         for si, sun in enumerate(g.suns):
-            pick = np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
-            idx = torch.from_numpy(pick)
-            refl = res.reflectance[si, 0].reshape(-1, 4)[idx].cpu().float()
-            g_, s_ = res.ndgri[si, 0].reshape(-1)[idx].cpu(), res.ndsi[si, 0].reshape(-1)[idx].cpu()
+            pos = torch.from_numpy(inverse[si * 2 * m:(si + 1) * 2 * m])
+            idx = torch.from_numpy(picks[si])
+            refl = res.reflectance[si, 0, 0][pos].cpu().float()
+            g_, s_ = res.ndgri[si, 0, 0][pos].cpu(), res.ndsi[si, 0, 0][pos].cpu()
             ti, tr, dp = _local_angles(gb, idx, sun_dirs[si])
-            shadow = ~res.lit[si, 0].reshape(-1)[idx].cpu()  # cast shadow or facing away from the sun
+            shadow = ~res.lit[si, 0, 0][pos].cpu()  # cast shadow or facing away from the sun
             rel = abs((sun["azimuth_deg"] - g.camera["azimuth_deg"] + 180.0) % 360.0 - 180.0)
             n = 2 * m
             const = {"group": g.index, "sun": si, "skin": ki, "sun_zenith_deg": sun["zenith_deg"],
