@@ -171,3 +171,23 @@ def test_peak_memory_does_not_grow_with_the_number_of_configurations(tmp_path, s
         peaks.append(int(r.stdout.strip().splitlines()[-1]))
     assert len(list((tmp_path / "d2000").glob("shard-*.parquet"))) == 67
     assert peaks[1] < 1.2 * peaks[0], peaks
+
+
+def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj):
+    import numpy as np
+    import pandas as pd
+
+    cfg = small_cfg(subject_obj)
+    d = tmp_path / "img"
+    man = generate(cfg, 12, 3, d, quiet=True, images=True)
+    e = man["shards"][0]["images"]
+    cube = np.load(d / e["name"])
+    assert list(cube.shape) == e["shape"] == [1, 2, 3, 4, 64, 64]  # groups, skins, suns, bands, H, W
+    assert verify(d)["ok"]
+    (d / e["name"]).write_bytes(b"x")
+    rep = verify(d)
+    assert rep["corrupted"] == [e["name"]]
+    generate(cfg, 12, 3, d, quiet=True, images=True, resume=True)
+    assert verify(d)["ok"]
+    df = pd.read_parquet(d / man["shards"][0]["name"])
+    assert np.isfinite(cube.astype(np.float32)).any() and len(df) > 0

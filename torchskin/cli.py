@@ -260,7 +260,7 @@ def cmd_generate(args) -> int:
     cfg = load_config(args.config)
     man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
                    quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
-                   workers=args.workers)
+                   workers=args.workers, images=args.images)
     rows = sum(s["rows"] for s in man["shards"])
     if args.json:
         print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
@@ -387,6 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     gp.add_argument("--quiet", action="store_true", help="no progress bar")
     gp.add_argument("--device", default="cpu")
+    gp.add_argument("--images", action="store_true", help="also store full reflectance cubes (images-*.npy)")
     gp.add_argument("--backend", choices=["local", "ray"], default="local", help="run shards here or on Ray")
     gp.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
     gp.add_argument("--workers", type=int, help="CPUs of the local Ray cluster (default: all)")

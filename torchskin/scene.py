@@ -203,13 +203,15 @@ def _euler_deg_to_matrix(angles) -> torch.Tensor:
     return rz @ ry @ rx
 
 
-def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def anny_body(phenotype: dict | None = None, pose: dict | None = None,
+              cache: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """An anny body: ``(vertices, faces, skin_face_mask)``, feet on z = 0, facing +x, metres.
 
     ``phenotype``: anny phenotype values in [0, 1] (gender, age, muscle, weight, height, proportions; 0.5
     when missing). ``pose``: bone name -> XYZ Euler angles in degrees (anny's local pose parameters), e.g.
-    ``{"head": [0, 0, 20]}``; the rest pose otherwise. Built meshes are cached in ``cache_dir()/anny``
-    (the first anny model load builds anny's own cache and takes about a minute).
+    ``{"head": [0, 0, 20]}`` (for the head: x pitches, z turns); the rest pose otherwise. Built meshes are
+    cached in ``cache_dir()/anny`` unless ``cache=False`` (random bodies of a dataset are not reused); the
+    first anny model load builds anny's own cache and takes about a minute.
     """
     phenotype = dict(phenotype or {})
     pose = {k: [float(x) for x in v] for k, v in (pose or {}).items()}
@@ -226,7 +228,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[
     key = hashlib.sha256(json.dumps([getattr(anny, "__version__", "?"), sorted(phenotype.items()),
                                      sorted(pose.items())]).encode()).hexdigest()[:16]
     path = cache_dir() / "anny" / f"{key}.npz"
-    if path.exists():
+    if cache and path.exists():
         with np.load(path) as z:
             return z["vertices"], z["faces"], z["skin"]
     model = _anny_model()
@@ -254,6 +256,8 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None) -> tuple[
     v[:, 2] -= v[:, 2].min()
     v = v.astype(np.float32)
     f = f.astype(np.int32)
+    if not cache:
+        return v, f, face_skin
     path.parent.mkdir(parents=True, exist_ok=True)
     from .io import atomic_path
 
@@ -327,7 +331,7 @@ class MeshSpec:
         fm = None
         normals = None  # analytic vertex normals of primitives (local frame), else area-weighted
         if self.kind == "anny":
-            v, f, skin = anny_body(p.get("phenotype"), p.get("pose"))
+            v, f, skin = anny_body(p.get("phenotype"), p.get("pose"), cache=bool(p.get("cache", True)))
             mats = [self.other_material, self.material]
             fm = skin.astype(np.int32)
         elif self.kind == "file":

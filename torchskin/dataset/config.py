@@ -43,6 +43,8 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "weight": ([0.2, 0.8], (0.0, 1.0)),
         "height": ([0.3, 0.8], (0.0, 1.0)),
         "proportions": ([0.3, 0.7], (0.0, 1.0)),
+        "head_yaw_deg": ([-40.0, 40.0], (-90.0, 90.0)),  # anny pose: the head turned left/right
+        "head_pitch_deg": ([-20.0, 20.0], (-60.0, 60.0)),  # and tilted down/up
         "meshes": ([], "paths"),  # OBJ/PLY files used instead of anny bodies when given
     },
     "skin": {
@@ -199,7 +201,8 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
         subject = {"kind": "file", "path": s["meshes"][int(rng.integers(len(s["meshes"])))]}
     else:
         subject = {"kind": "anny", "phenotype": {k: u(s[k]) for k in ("gender", "age", "muscle", "weight",
-                                                                       "height", "proportions")}}
+                                                                       "height", "proportions")},
+                   "head_yaw_deg": u(s["head_yaw_deg"]), "head_pitch_deg": u(s["head_pitch_deg"])}
     subject["yaw_deg"] = u(s["yaw_deg"]) % 360.0
     sn = cfg["sun"]
     suns = [{"zenith_deg": u(sn["zenith_deg"]), "azimuth_deg": u(sn["azimuth_deg"]) % 360.0,

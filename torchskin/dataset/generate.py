@@ -32,6 +32,7 @@ SCHEMA_VERSION = 1
 MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
 BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
+PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 
 #: Parquet columns: name -> (pyarrow type name, description, unit)
 COLUMNS: dict[str, tuple[str, str, str]] = {
@@ -56,6 +57,14 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "collagen": ("float32", "reticular collagen fraction", ""),
     "subcutaneous_scale": ("float32", "subcutaneous reflectance scale", ""),
     "subject_yaw_deg": ("float32", "subject yaw", "deg"),
+    "head_yaw_deg": ("float32", "anny head turn (NaN for mesh files)", "deg"),
+    "head_pitch_deg": ("float32", "anny head tilt (NaN for mesh files)", "deg"),
+    "gender": ("float32", "anny phenotype in [0, 1] (NaN for mesh files)", ""),
+    "age": ("float32", "anny phenotype", ""),
+    "muscle": ("float32", "anny phenotype", ""),
+    "weight": ("float32", "anny phenotype", ""),
+    "height": ("float32", "anny phenotype", ""),
+    "proportions": ("float32", "anny phenotype", ""),
     "subject": ("string", "subject source (anny or the mesh path)", ""),
     "panels": ("string", "reference panel kind", ""),
     "confuser": ("string", "earthlib confuser spectrum name (empty: none)", ""),
@@ -88,7 +97,9 @@ def group_scene(g: PoseGroup) -> Scene:
     mats = {"skin": Material("skin", skin="I-II"), "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
             "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(g.panels)}
     if g.subject["kind"] == "anny":
-        body = MeshSpec("subject", "anny", "skin", params={"phenotype": g.subject["phenotype"]},
+        pose = {"head": [g.subject["head_pitch_deg"], 0.0, g.subject["head_yaw_deg"]]}
+        body = MeshSpec("subject", "anny", "skin", params={"phenotype": g.subject["phenotype"], "pose": pose,
+                                                           "cache": False},
                         yaw_deg=g.subject["yaw_deg"], other_material="clothing")
     else:
         body = MeshSpec("subject", "file", "skin", params={"path": g.subject["path"]}, yaw_deg=g.subject["yaw_deg"])
@@ -129,9 +140,10 @@ def _local_angles(gb, idx: torch.Tensor, sun_dir: torch.Tensor):
     return torch.acos(ci) * deg, torch.acos(cr) * deg, torch.acos(cphi) * deg
 
 
-def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, list]:
+def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list | None = None) -> dict[str, list]:
     """Rows (column -> values) for every sun x skin of a pose group: ``pixels_per_class`` skin and as many
-    non-skin pixels (fewer if fewer are visible; balanced per configuration)."""
+    non-skin pixels (fewer if fewer are visible; balanced per configuration). With a list ``images``, the
+    full reflectance cubes of the group, (skins, suns, bands, H, W) float16, are appended to it."""
     sc = group_scene(g)
     meshes, names = build_meshes(sc)
     rc = Raycaster(meshes, names)
@@ -152,6 +164,13 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
     other_px = hit & ~is_panel[0].reshape(-1) & ~skin_px
     skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
     m = min(pixels_per_class, len(skin_idx), len(other_idx))
+    if images is not None:
+        cubes = []
+        for skin in g.skins:
+            sc.materials["skin"] = Material("skin", skin={k: v for k, v in skin.items() if k != "type"})
+            full = render(sc, device=device, sensor=sensor, gbuffer=gb)
+            cubes.append(full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16))
+        images.append(np.stack(cubes))
     if m == 0:
         return out
     for ki, skin in enumerate(g.skins):
@@ -179,6 +198,9 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu") -> dict[str, l
                      **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
                                              "subcutaneous_scale")},
                      "subject_yaw_deg": g.subject["yaw_deg"], "subject": g.subject.get("path", "anny"),
+                     "head_yaw_deg": g.subject.get("head_yaw_deg", math.nan),
+                     "head_pitch_deg": g.subject.get("head_pitch_deg", math.nan),
+                     **{k: g.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
                      "panels": g.panels}
             for k, v in const.items():
                 out[k].extend([v] * n)
@@ -208,6 +230,16 @@ def shard_name(k: int) -> str:
     return f"shard-{k:05d}.parquet"
 
 
+def write_images(out_dir: Path, k: int, cubes: list) -> dict:
+    """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images-NNNNN.npy``."""
+    arr = np.stack(cubes)
+    path = out_dir / f"images-{k:05d}.npy"
+    with atomic_path(path, suffix=".tmp") as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, arr)
+    return {"name": path.name, "shape": list(arr.shape), "sha256": sha256_file(path), "bytes": path.stat().st_size}
+
+
 def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
     """Write one shard atomically (temporary name, fsync, rename); return its manifest entry."""
     import pyarrow as pa
@@ -235,19 +267,30 @@ def shard_groups(cfg: dict, k: int, n_groups: int) -> range:
     return range(k * gps, min((k + 1) * gps, n_groups))
 
 
-def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, device="cpu") -> dict:
-    """Generate and write shard ``k`` (a pure function of config, seed and k)."""
+def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, device="cpu",
+                   images: bool = False) -> dict:
+    """Generate and write shard ``k`` (a pure function of config, seed and k); with ``images`` also the
+    full reflectance cubes of its groups."""
     rows: dict[str, list] = {c: [] for c in COLUMNS}
+    cubes: list | None = [] if images else None
     for gi in shard_groups(cfg, k, n_groups):
-        part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device)
+        part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device, cubes)
         for c in COLUMNS:
             rows[c].extend(part[c])
-    return write_shard(out_dir, k, rows)
+    entry = write_shard(out_dir, k, rows)
+    if images:
+        entry["images"] = write_images(out_dir, k, cubes)
+    return entry
 
 
-def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict]) -> dict:
+def _intact(out: Path, entry: dict) -> bool:
+    p = out / entry["name"]
+    return p.is_file() and p.stat().st_size == entry["bytes"] and sha256_file(p) == entry["sha256"]
+
+
+def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
     return {"schema_version": SCHEMA_VERSION, "package_version": __version__, "config": cfg, "master_seed": seed,
-            "configs": n_configs, "groups": n_groups, "n_shards": n_shards,
+            "configs": n_configs, "groups": n_groups, "n_shards": n_shards, "images": images,
             "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
             "shards": [done[k] for k in sorted(done)]}
 
@@ -264,30 +307,33 @@ def verify(out_dir) -> dict:
     missing, corrupted = [], []
     for k in range(man["n_shards"]):
         name = shard_name(k)
-        p = out / name
-        if name not in listed or not p.is_file():
-            missing.append(name)
-        elif p.stat().st_size != listed[name]["bytes"] or sha256_file(p) != listed[name]["sha256"]:
-            corrupted.append(name)
-    partial = sorted(p.name for p in out.iterdir() if p.name.startswith(".shard-") or p.name.endswith(".tmp"))
+        entries = [listed[name], listed[name].get("images")] if name in listed else []
+        for e in [x for x in entries if x] or [{"name": name}]:
+            p = out / e["name"]
+            if "sha256" not in e or not p.is_file():
+                missing.append(e["name"])
+            elif not _intact(out, e):
+                corrupted.append(e["name"])
+    partial = sorted(p.name for p in out.iterdir() if p.name.startswith((".shard-", ".images-")) or p.name.endswith(".tmp"))
     return {"ok": not (missing or corrupted or partial), "shards": man["n_shards"], "missing": missing,
             "corrupted": corrupted, "partial": partial,
             "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
 
 
-def _ray_shard(cfg, seed, k, n_groups, out_dir, device):
-    return generate_shard(cfg, seed, k, n_groups, Path(out_dir), device)
+def _ray_shard(cfg, seed, k, n_groups, out_dir, device, images):
+    return generate_shard(cfg, seed, k, n_groups, Path(out_dir), device, images)
 
 
 def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = False, overwrite: bool = False,
              quiet: bool = False, device="cpu", backend: str = "local", address: str | None = None,
-             workers: int | None = None) -> dict:
+             workers: int | None = None, images: bool = False) -> dict:
     """Generate a dataset into ``out_dir``. Returns the manifest.
 
     ``backend="local"`` runs the shards in this process; ``backend="ray"`` runs one Ray task per shard on the
     cluster at ``address`` (a local cluster of ``workers`` CPUs when None; GPUs requested when ``device`` is
     cuda). Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
-    shared filesystem. Both backends give the same bytes."""
+    shared filesystem. Both backends give the same bytes. ``images`` also stores every group's full
+    reflectance cubes in ``images-NNNNN.npy`` shards (much larger, and slower: full frames are rendered)."""
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     out = Path(out_dir)
@@ -300,23 +346,25 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = Fa
     done: dict[int, dict] = {}
     if existing and overwrite and not resume:
         for p in existing:
-            if p.name == MANIFEST or p.name.startswith(("shard-", ".shard-")):
+            if p.name == MANIFEST or p.name.startswith(("shard-", ".shard-", "images-", ".images-")):
                 p.unlink()
     if existing and resume and (out / MANIFEST).is_file():
         old = json.loads((out / MANIFEST).read_text())
         if old.get("config") != cfg or old.get("master_seed") != seed or old.get("configs") != n_configs:
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
+        if bool(old.get("images")) != images:
+            raise ValueError("--resume needs the same --images setting as the interrupted run")
         for s in old["shards"]:
-            p = out / s["name"]
-            if p.is_file() and p.stat().st_size == s["bytes"] and sha256_file(p) == s["sha256"]:
+            if all(_intact(out, e) for e in (s, s.get("images")) if e):
                 done[int(s["name"][6:11])] = s
     for p in (out.iterdir() if out.is_dir() else []):
-        if p.name.startswith(".shard-"):  # temporaries of a killed run
+        if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
     out.mkdir(parents=True, exist_ok=True)
     if not os.access(out, os.W_OK):
         raise ValueError(f"output folder {str(out)!r} is not writable")
-    write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done), indent=1))
+    write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done, images),
+                                          indent=1))
     from tqdm import tqdm
 
     per_shard = cfg["sampling"]["groups_per_shard"] * cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
@@ -324,25 +372,26 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = Fa
 
     def record(k, entry):
         done[k] = entry
-        write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done), indent=1))
+        write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done, images),
+                                              indent=1))
 
     with tqdm(total=n_shards * per_shard, initial=(n_shards - len(todo)) * per_shard, unit="config",
               disable=quiet, desc="generate") as bar:
         if backend == "local":
             for k in todo:
                 try:
-                    entry = generate_shard(cfg, seed, k, n_groups, out, device)
+                    entry = generate_shard(cfg, seed, k, n_groups, out, device, images)
                 except OSError as e:  # full disk, permissions: the temporary shard is already removed
                     raise ValueError(f"writing {shard_name(k)} into {str(out)!r} failed: {e.strerror or e}") from None
                 record(k, entry)
                 bar.update(per_shard)
         else:
-            _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, lambda k, e: (record(k, e),
-                                                                                            bar.update(per_shard)))
-    return _manifest(cfg, seed, n_configs, n_groups, n_shards, done)
+            _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, images,
+                     lambda k, e: (record(k, e), bar.update(per_shard)))
+    return _manifest(cfg, seed, n_configs, n_groups, n_shards, done, images)
 
 
-def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, on_done) -> None:
+def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, images, on_done) -> None:
     try:
         import ray
     except ImportError:
@@ -354,7 +403,7 @@ def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, on_
     try:
         opts = {"num_cpus": 1, "num_gpus": 1 if str(device).startswith("cuda") else 0, "max_retries": 2}
         task = ray.remote(**opts)(_ray_shard)
-        pending = {task.remote(cfg, seed, k, n_groups, str(out), device): k for k in todo}
+        pending = {task.remote(cfg, seed, k, n_groups, str(out), device, images): k for k in todo}
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
