@@ -326,3 +326,18 @@ def test_pixel_subset_render_matches_full_frame_with_ideal_sensor():
     assert sub.reflectance.shape == (2, 1, 1, len(idx), 4)
     torch.testing.assert_close(sub.reflectance[:, 0, 0], full.reflectance[:, 0].flatten(1, 2)[:, idx])
     torch.testing.assert_close(sub.ndsi[:, 0, 0], full.ndsi[:, 0].flatten(1)[:, idx], equal_nan=True)
+
+
+def test_several_skins_in_one_batch_match_one_render_per_skin():
+    sc = panel_scene(sun_az=25.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    sc.suns = [Sun(zenith_deg=90.0, azimuth_deg=a, sky_fraction=0.1) for a in (10.0, 50.0)]
+    sens = Sensor(noise=False, quantize=False)
+    skins = ["I-II", {"melanosome": 0.3, "blood": 1.2}]
+    both = render(sc, sensor=sens, skins=skins)
+    assert both.reflectance.shape[0] == 4  # skin-major: (skin 0: 2 suns, skin 1: 2 suns)
+    for k, sk in enumerate(skins):
+        sc.materials["skin"] = Material("skin", skin=sk)
+        one = render(sc, sensor=sens)
+        torch.testing.assert_close(both.radiance[2 * k:2 * k + 2], one.radiance)
+        torch.testing.assert_close(both.reflectance[2 * k:2 * k + 2], one.reflectance)

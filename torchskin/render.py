@@ -218,7 +218,7 @@ def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
 
 def _skin_brdf(ci, cr, c2b, mat, tables):
     """Eq 3.1.1 with ρ_d from the exact closed form in R0 = Schlick(ρ0, θi)."""
-    r_sub = tables.r_sub.index_select(0, mat)  # (K, B)
+    r_sub = tables.r_sub.index_select(-2, mat)  # (K, B), or (S, K, B) for per-sun skins
     r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)
     rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
     return combined_brdf_cos(ci, cr, c2b, rho_d, tables.sigma2, tables.rho0)
@@ -244,8 +244,8 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     lit = (cos_i > 0) & ~gb.shadow.reshape(S, -1) & hit
     w = torch.where(lit, cos_i, torch.zeros((), dtype=cos_i.dtype, device=cos_i.device))  # (S, N)
     E = tables.irradiance[:, None, :]  # (S, 1, B)
-    sky = (tables.albedo.index_select(0, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # (N, B)
-    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(0, mat) * E)
+    sky = (tables.albedo.index_select(-2, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # ([S,] N, B)
+    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(-2, mat) * E)
     for flag, brdf in ((tables.is_skin, _skin_brdf), (tables.panel_brdf, _panel_brdf)):
         if not bool(flag.any()):
             continue
@@ -253,7 +253,7 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
         if idx.numel():
             ci, cr, c2b = local_cosines(gb, idx, sun_dirs)
             f = brdf(ci, cr, c2b, mat.index_select(0, idx), tables)  # (S, K, B)
-            lam_part = w.index_select(1, idx)[..., None] * E * tables.lambert_f.index_select(0, mat.index_select(0, idx))
+            lam_part = w.index_select(1, idx)[..., None] * E * tables.lambert_f.index_select(-2, mat.index_select(0, idx))
             Ls = torch.addcmul(L.index_select(1, idx) - lam_part, w.index_select(1, idx)[..., None] * E, f)
             L = L.index_copy(1, idx, Ls)
     B = L.shape[-1]
@@ -379,6 +379,26 @@ def apply_elm(signal: torch.Tensor, panel_signal: torch.Tensor, references: torc
     return torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # (L - b) / a
 
 
+def skin_batched_tables(scene: Scene, names: list[str], skins: list, dtype, device) -> MaterialTables:
+    """Tables for ``len(skins)`` x S 'suns': skin k (a preset name or parameter dict for the material named
+    "skin") with every sun, skin-major. The skin-dependent fields get a leading (K*S) axis."""
+    import copy
+
+    S = len(scene.suns)
+    per = []
+    for sk in skins:
+        sc = copy.copy(scene)
+        sc.materials = {**scene.materials, "skin": dataclasses.replace(scene.materials["skin"], skin=sk)}
+        per.append(material_tables(sc, names, dtype, device))
+    t0 = per[0]
+
+    def stack(field):
+        return torch.stack([getattr(t, field) for t in per]).repeat_interleave(S, 0)  # (K*S, M, B)
+
+    return dataclasses.replace(t0, lambert_f=stack("lambert_f"), albedo=stack("albedo"), r_sub=stack("r_sub"),
+                               irradiance=t0.irradiance.repeat(len(skins), 1))
+
+
 def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
     """A G-buffer of the pixels ``flat`` (indices into the single camera's H*W), shaped (1, 1, K)."""
     if gb.hit.shape[0] != 1:
@@ -398,7 +418,8 @@ def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
 
 def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | None = None,
            box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None,
-           erode_px: int = 1, elm: str = "dhr", pixels: torch.Tensor | None = None) -> RenderResult:
+           erode_px: int = 1, elm: str = "dhr", pixels: torch.Tensor | None = None,
+           skins: list | None = None) -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM. ``sensor=None`` uses an ideal linear
     sensor (ELM then recovers Lambertian reflectance exactly). ``elm="brdf"`` calibrates with the panels'
     BRDF at the scene geometry (BRDF-ELM) instead of their DHR. Pass ``raycaster``/``gbuffer`` to reuse
@@ -406,7 +427,10 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
 
     ``pixels`` (flat indices into the single camera's H*W) renders only those pixels and the panels'
     interior: images then have shape (S, 1, 1, K, ...) for the K requested pixels, and automatic exposure
-    uses the brightest of them (the dataset generator's fast path)."""
+    uses the brightest of them (the dataset generator's fast path).
+
+    ``skins`` (presets or parameter dicts for the material named "skin") renders every skin under every sun
+    in one batch: the leading axis of the outputs is then skin-major (len(skins) x S)."""
     device = torch.device(device)
     timing = {}
     t0 = time.perf_counter()
@@ -429,10 +453,18 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
         gb = gather_pixels(gb, torch.cat([pixels, *panel_flat]))
         offs = np.cumsum(sizes)
         pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
-    tables = material_tables(scene, gb.material_names, dtype, device)
+    reps = 1
+    if skins is not None:
+        if "skin" not in scene.materials or not skins:
+            raise ValueError("skins needs a material named 'skin' and at least one skin")
+        reps = len(skins)
+        tables = skin_batched_tables(scene, gb.material_names, skins, dtype, device)
+        gb = dataclasses.replace(gb, shadow=gb.shadow.repeat(reps, *([1] * (gb.shadow.dim() - 1))), cache={})
+    else:
+        tables = material_tables(scene, gb.material_names, dtype, device)
     bands = scene.band_list
-    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device)
-    sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device)
+    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
+    sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
     sh = shade(gb, tables, sun_dirs, sky)
     _sync(device)
     timing["shade_s"] = time.perf_counter() - t2

@@ -164,29 +164,28 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
     other_px = hit & ~is_panel[0].reshape(-1) & ~skin_px
     skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
     m = min(pixels_per_class, len(skin_idx), len(other_idx))
-    if images is not None:
-        cubes = []
-        for skin in g.skins:
-            sc.materials["skin"] = Material("skin", skin={k: v for k, v in skin.items() if k != "type"})
-            full = render(sc, device=device, sensor=sensor, gbuffer=gb)
-            cubes.append(full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16))
-        images.append(np.stack(cubes))
+    skin_params = [{k: v for k, v in sk.items() if k != "type"} for sk in g.skins]
+    S = len(g.suns)
+    if images is not None:  # full frames of every skin x sun in one batch
+        full = render(sc, device=device, sensor=sensor, gbuffer=gb, skins=skin_params)
+        cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
+        images.append(cube.reshape(len(g.skins), S, *cube.shape[1:]))
     if m == 0:
         return out
+    # the pixels of every configuration (skin x sun), drawn first, then rendered together in one batch
+    picks = [np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
+             for _ in range(len(g.skins) * S)]
+    union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
+    res = render(sc, device=device, sensor=sensor, gbuffer=gb, pixels=torch.from_numpy(union), skins=skin_params)
     for ki, skin in enumerate(g.skins):
-        # the pixels of every sun of this skin, drawn first, rendered together (only they and the panels)
-        picks = [np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
-                 for _ in g.suns]
-        union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
-        sc.materials["skin"] = Material("skin", skin={k: v for k, v in skin.items() if k != "type"})
-        res = render(sc, device=device, sensor=sensor, gbuffer=gb, pixels=torch.from_numpy(union))
         for si, sun in enumerate(g.suns):
-            pos = torch.from_numpy(inverse[si * 2 * m:(si + 1) * 2 * m])
-            idx = torch.from_numpy(picks[si])
-            refl = res.reflectance[si, 0, 0][pos].cpu().float()
-            g_, s_ = res.ndgri[si, 0, 0][pos].cpu(), res.ndsi[si, 0, 0][pos].cpu()
+            c = ki * S + si  # skin-major configuration index
+            pos = torch.from_numpy(inverse[c * 2 * m:(c + 1) * 2 * m])
+            idx = torch.from_numpy(picks[c])
+            refl = res.reflectance[c, 0, 0][pos].cpu().float()
+            g_, s_ = res.ndgri[c, 0, 0][pos].cpu(), res.ndsi[c, 0, 0][pos].cpu()
             ti, tr, dp = _local_angles(gb, idx, sun_dirs[si])
-            shadow = ~res.lit[si, 0, 0][pos].cpu()  # cast shadow or facing away from the sun
+            shadow = ~res.lit[c, 0, 0][pos].cpu()  # cast shadow or facing away from the sun
             rel = abs((sun["azimuth_deg"] - g.camera["azimuth_deg"] + 180.0) % 360.0 - 180.0)
             n = 2 * m
             const = {"group": g.index, "sun": si, "skin": ki, "sun_zenith_deg": sun["zenith_deg"],
