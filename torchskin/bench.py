@@ -200,7 +200,7 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     t_baseline = t_per_image * len(work)
     n_configs = suns * skins
     return {"dataset": {
-        "configs_per_s": n_configs / t_batched, "samples_per_s": len(rows["label"]) / t_batched,
+        "configs_per_s": n_configs / t_batched, "samples_per_s": sum(len(x) for x in rows["label"]) / t_batched,
         "speedup_vs_per_config_render": t_baseline / t_batched, "batched_seconds": t_batched,
         "per_image_seconds": t_per_image, "images": len(work), "width": width, "height": height,
     }}

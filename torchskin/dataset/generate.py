@@ -141,15 +141,18 @@ def _local_angles(gb, idx: torch.Tensor, sun_dir: torch.Tensor):
 
 
 def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list | None = None) -> dict[str, list]:
-    """Rows (column -> values) for every sun x skin of a pose group: ``pixels_per_class`` skin and as many
-    non-skin pixels (fewer if fewer are visible; balanced per configuration). With a list ``images``, the
-    full reflectance cubes of the group, (skins, suns, bands, H, W) float16, are appended to it."""
+    """Rows for every sun x skin of a pose group, as column -> list of numpy chunks (one per configuration):
+    ``pixels_per_class`` skin and as many non-skin pixels (fewer if fewer are visible; balanced per
+    configuration). With a list ``images``, the full reflectance cubes of the group, (skins, suns, bands,
+    H, W) float16, are appended to it."""
     sc = group_scene(g)
     meshes, names = build_meshes(sc)
     rc = Raycaster(meshes, names)
     gb = rc.gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
     panel_ids = [gb.mesh_names.index(p) for p in sc.panels]
-    conf_mesh = {gb.mesh_names.index(f"confuser{k}"): c["name"] for k, c in enumerate(g.confusers)}
+    conf_names = np.full(len(gb.mesh_names) + 1, "", dtype=object)  # indexed by mesh id + 1 (-1: no hit)
+    for k, c in enumerate(g.confusers):
+        conf_names[gb.mesh_names.index(f"confuser{k}") + 1] = c["name"]
     mesh_flat = gb.mesh[0].reshape(-1)
     is_panel = torch.zeros_like(gb.hit)
     for k in panel_ids:
@@ -202,17 +205,17 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
                      **{k: g.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
                      "panels": g.panels}
             for k, v in const.items():
-                out[k].extend([v] * n)
-            out["confuser"].extend(conf_mesh.get(int(mid), "") for mid in mesh_flat[idx].tolist())
-            out["label"].extend([True] * m + [False] * m)
-            out["theta_i_deg"].extend(ti.tolist())
-            out["theta_r_deg"].extend(tr.tolist())
-            out["delta_phi_deg"].extend(dp.tolist())
-            out["shadow"].extend(shadow.tolist())
+                out[k].append(np.full(n, v, dtype=object if isinstance(v, str) else None))
+            out["confuser"].append(conf_names[mesh_flat[idx].numpy() + 1])
+            out["label"].append(np.repeat(np.array([True, False]), m))
+            out["theta_i_deg"].append(ti.numpy())
+            out["theta_r_deg"].append(tr.numpy())
+            out["delta_phi_deg"].append(dp.numpy())
+            out["shadow"].append(shadow.numpy())
             for b, name in enumerate(("r544", "r633", "r1080", "r1580")):
-                out[name].extend(refl[:, b].tolist())
-            out["ndgri"].extend(g_.tolist())
-            out["ndsi"].extend(s_.tolist())
+                out[name].append(refl[:, b].numpy())
+            out["ndgri"].append(g_.numpy())
+            out["ndsi"].append(s_.numpy())
     return out
 
 
@@ -245,7 +248,13 @@ def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
     import pyarrow.parquet as pq
 
     schema = _arrow_schema()
-    table = pa.table({c: pa.array(rows[c], type=schema.field(c).type) for c in COLUMNS}, schema=schema)
+    cols = {}
+    for c in COLUMNS:
+        chunks = rows[c]
+        arr = np.concatenate(chunks) if chunks else np.zeros(0)
+        cols[c] = pa.array(arr if schema.field(c).type != pa.string() else arr.astype(object),
+                           type=schema.field(c).type)
+    table = pa.table(cols, schema=schema)
     path = out_dir / shard_name(k)
     with atomic_path(path, suffix=".tmp") as tmp:
         pq.write_table(table, tmp, compression="zstd", write_statistics=False)
@@ -275,7 +284,7 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
     for gi in shard_groups(cfg, k, n_groups):
         part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device, cubes)
         for c in COLUMNS:
-            rows[c].extend(part[c])
+            rows[c].extend(part[c])  # lists of numpy chunks
     entry = write_shard(out_dir, k, rows)
     if images:
         entry["images"] = write_images(out_dir, k, cubes)
