@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._checks import as_tensor, broadcast_shapes, check_range
+from ._checks import as_tensor, check_range
 from .bands import Band, as_bands
 
 _EPS_COS = 1e-12
@@ -219,13 +219,6 @@ def dhr(brdf_fn, theta_i, n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
     f = brdf_fn(theta_i[..., None, None], tr[:, None], phi[None, :])
     w = (wt * torch.cos(tr) * torch.sin(tr))[:, None] * (2 * math.pi / n_phi)
     return (f * w).sum(dim=(-2, -1))
-
-
-def check_angles(**angles) -> None:
-    """Validate incidence/reflection angles (radians) lie in [0, π/2]."""
-    for k, v in angles.items():
-        check_range(k, as_tensor(v), 0.0, math.pi / 2, "rad")
-    broadcast_shapes(**{k: as_tensor(v) for k, v in angles.items()})
 
 
 # ------------------------------------------------------------------------------------ Spectralon-like panel
