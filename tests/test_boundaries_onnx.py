@@ -1,0 +1,111 @@
+"""Learned boundaries: quantile training, checkpoints, ONNX export and the torch-free onboard runtime."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from torchskin import boundaries as Bd
+from torchskin.export import Detector, export
+
+
+def synthetic(n=4000, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.stack([torch.rand(n, generator=g) * 89, torch.rand(n, generator=g) * 70,
+                     torch.rand(n, generator=g) * 180], -1)
+    ndgri = -0.45 + 0.004 * X[:, 0] + 0.05 * torch.randn(n, generator=g)  # drifts with sun zenith
+    ndsi = 0.72 - 0.003 * X[:, 1] + 0.03 * torch.randn(n, generator=g)
+    return X, torch.stack([ndgri, ndsi], -1)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    X, Y = synthetic()
+    return X, Y, Bd.train_quantiles(X, Y, q=0.05, steps=1500)
+
+
+def test_learned_boxes_are_calibrated_conditional_quantiles(trained):
+    X, Y, res = trained
+    Xt, Yt = synthetic(20000, seed=1)
+    with torch.no_grad():
+        box = res.model(Xt)
+    assert bool((box[:, 1] >= box[:, 0]).all() and (box[:, 3] >= box[:, 2]).all())
+    below = (Yt[:, 0] < box[:, 0]).float().mean()
+    above = (Yt[:, 0] > box[:, 1]).float().mean()
+    assert abs(float(below) - 0.05) < 0.015 and abs(float(above) - 0.05) < 0.015
+    # the box follows the configuration: high sun zenith moves the NDGRI limits up as the data do
+    lo = res.model(torch.tensor([[10.0, 30.0, 90.0]]))[0]
+    hi = res.model(torch.tensor([[80.0, 30.0, 90.0]]))[0]
+    assert float(hi[0] - lo[0]) == pytest.approx(0.004 * 70, abs=0.06)
+
+
+def test_checkpoint_round_trip(trained, tmp_path):
+    X, _, res = trained
+    Bd.save(res.model, tmp_path / "m.pt", {"note": "test"})
+    back = Bd.load(tmp_path / "m.pt")
+    torch.testing.assert_close(back(X[:50]), res.model(X[:50]))
+
+
+def test_onnx_matches_torch_and_runs_without_torch(trained, tmp_path):
+    import onnx
+
+    X, _, res = trained
+    paths = export(res.model, tmp_path, manifest_sha256="abc123")
+    m = onnx.load(paths["detector"])
+    meta = {p.key: p.value for p in m.metadata_props}
+    assert m.opset_import[0].version >= 17 and json.loads(meta["features"]) == list(Bd.FEATURES)
+    assert meta["training_manifest_sha256"] == "abc123" and json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0]
+    g = torch.Generator().manual_seed(3)
+    cube = (torch.rand(3, 4, 17, 23, generator=g) * 0.6 + 0.02).float()
+    cfg = X[:3].float()
+    with torch.no_grad():
+        mask_t, score_t = Detector(res.model)(cube, cfg)
+        boxes_t = res.model(X[:200])
+    np.save(tmp_path / "cube.npy", cube.numpy())
+    np.save(tmp_path / "cfg.npy", cfg.numpy())
+    np.save(tmp_path / "x.npy", X[:200].numpy())
+    script = f"""
+import sys, json
+sys.modules["torch"] = None  # importing torch must fail here
+import numpy as np
+from torchskin.onboard import Boundaries, Detector
+d = Detector({paths['detector']!r}); b = Boundaries({paths['boundaries']!r})
+out = d(np.load({str(tmp_path / 'cube.npy')!r}), np.load({str(tmp_path / 'cfg.npy')!r}))
+np.save({str(tmp_path / 'mask.npy')!r}, out["mask"]); np.save({str(tmp_path / 'score.npy')!r}, out["score"])
+np.save({str(tmp_path / 'boxes.npy')!r}, b(np.load({str(tmp_path / 'x.npy')!r}))["boxes"])
+print(json.dumps({{"torch_loaded": "torch" in sys.modules and sys.modules["torch"] is not None}}))
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1]) == {"torch_loaded": False}
+    boxes = np.load(tmp_path / "boxes.npy")
+    assert np.abs(boxes - boxes_t.numpy()).max() < 1e-5
+    mask, score = np.load(tmp_path / "mask.npy"), np.load(tmp_path / "score.npy")
+    differ = mask != mask_t.numpy()
+    assert (np.abs(score_t.numpy()[differ]) < 1e-6).all()  # only pixels on a boundary may differ
+    assert mask.any() and not mask.all()
+
+
+def test_onboard_rejects_bad_input_and_flags_out_of_domain(trained, tmp_path):
+    from torchskin.onboard import Detector as OnboardDetector
+
+    _, _, res = trained
+    paths = export(res.model, tmp_path)
+    d = OnboardDetector(paths["detector"])
+    good = np.full((1, 4, 4, 4), 0.3, dtype=np.float32)
+    cfg = np.array([[30.0, 20.0, 90.0]])
+    out = d(good, cfg)
+    assert out["mask"].shape == (1, 4, 4) and not out["out_of_domain"].any()
+    assert d(good, np.array([[95.0, 20.0, 90.0]]))["out_of_domain"].tolist() == [True]
+    for bad, msg in [(good[0], "rank 4"), (good[:, :3], "4 bands"), (good.astype(np.float64), "float32"),
+                     (np.where(np.arange(4) == 0, np.nan, good).astype(np.float32), "NaN"),
+                     (-good, "negative")]:
+        with pytest.raises(ValueError, match=msg):
+            d(bad, cfg)
+    with pytest.raises(ValueError, match="config must be"):
+        d(good, np.array([[30.0, 20.0]]))
+    with pytest.raises(ValueError, match="cannot load ONNX model"):
+        OnboardDetector(tmp_path / "missing.onnx")
