@@ -84,6 +84,7 @@ print(json.dumps({{"torch_loaded": "torch" in sys.modules and sys.modules["torch
     boxes = np.load(tmp_path / "boxes.npy")
     assert np.abs(boxes - boxes_t.numpy()).max() < 1e-5
     mask, score = np.load(tmp_path / "mask.npy"), np.load(tmp_path / "score.npy")
+    assert np.abs(score - score_t.numpy()).max() < 1e-5
     differ = mask != mask_t.numpy()
     assert (np.abs(score_t.numpy()[differ]) < 1e-6).all()  # only pixels on a boundary may differ
     assert mask.any() and not mask.all()
