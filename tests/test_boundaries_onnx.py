@@ -110,3 +110,42 @@ def test_onboard_rejects_bad_input_and_flags_out_of_domain(trained, tmp_path):
         d(good, np.array([[30.0, 20.0]]))
     with pytest.raises(ValueError, match="cannot load ONNX model"):
         OnboardDetector(tmp_path / "missing.onnx")
+
+
+def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
+    from torchskin.cli import main
+    from torchskin.dataset.config import resolve_config
+    from torchskin.dataset.generate import generate
+    from torchskin.scene import sphere_mesh
+
+    v, f = sphere_mesh(0.35, 3)
+    obj = tmp_path / "head.obj"
+    obj.write_text("".join(f"v {a} {b} {c + 0.9}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    cfg = resolve_config({"camera": {"width": 48, "height": 48, "range_m": [5.0, 20.0]}, "sun": {"per_pose": 4},
+                          "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]}, "confusers": {"count": [0, 0]},
+                          "sampling": {"groups_per_shard": 2, "pixels_per_class": 32}})
+    generate(cfg, 64, 0, tmp_path / "data", quiet=True)
+    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "m.pt"), "--steps", "300",
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rows"] > 100
+    assert main(["export", "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "exports"), "--json"]) == 0
+    paths = json.loads(capsys.readouterr().out)
+    import onnx
+
+    meta = {p.key: p.value for p in onnx.load(paths["detector"]).metadata_props}
+    assert len(meta["training_manifest_sha256"]) == 64  # the dataset's manifest hash travels with the model
+    cube = np.full((4, 8, 8), 0.3, dtype=np.float32)
+    cube[0], cube[1], cube[2], cube[3] = 0.3, 0.6, 0.55, 0.08  # a skin-like spectrum
+    np.save(tmp_path / "cube.npy", cube)
+    args = ["detect", "--model", paths["detector"], "--cube", str(tmp_path / "cube.npy"), "--sun-zenith", "40",
+            "--camera-zenith", "30", "--relative-azimuth", "60", "--out", str(tmp_path / "mask.png"), "--json"]
+    script = ("import sys; sys.modules['torch'] = None; from torchskin.cli import main; "
+              f"sys.exit(main({args!r}))")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["shape"] == [1, 8, 8] and out["out_of_domain"] == [False]
+    assert (tmp_path / "mask.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bad = subprocess.run([sys.executable, "-c", script.replace("'40'", "'40'").replace("'--camera-zenith', '30', ", "")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--camera-zenith" in bad.stderr

@@ -1,0 +1,473 @@
+"""The ``torchskin`` commands (everything but the torch-free ``detect``, see ``torchskin.cli``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+import torch
+
+from . import __version__, tissue
+from .bands import DEFAULT_BANDS, band_sampling, parse_bands
+from .detect import DEFAULT_BOX, indices, rules_detector
+
+
+# ------------------------------------------------------------------------------------------------ spectra
+def _parse_params(items: list[str]) -> dict[str, float]:
+    out = {}
+    for it in items:
+        name, sep, val = it.partition("=")
+        name = name.strip()
+        if not sep:
+            raise ValueError(f"--param needs NAME=VALUE, got {it!r}")
+        if name not in tissue.PARAM_NAMES:
+            raise ValueError(f"--param: unknown parameter {name!r}; known: {', '.join(tissue.PARAM_NAMES)}")
+        try:
+            out[name] = float(val)
+        except ValueError:
+            raise ValueError(f"--param {name}: {val!r} is not a number") from None
+    return out
+
+
+def _parse_wavelengths(text: str) -> torch.Tensor:
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"--wavelengths must be START:STOP:STEP in nm, got {text!r}")
+    try:
+        start, stop, step = (float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"--wavelengths must be numbers START:STOP:STEP, got {text!r}") from None
+    return tissue.wavelength_grid(start, stop, step, dtype=torch.float64)
+
+
+def _skins(args) -> tuple[tissue.SkinParams, list[str]]:
+    overrides = _parse_params(args.param or [])
+    names: list[str] = []
+    for p in args.preset or []:
+        names.extend(x for x in p.split(",") if x)
+    if args.all_presets:
+        names.extend(n for n in tissue.PRESETS if n not in names)
+    parts, labels = [], []
+    if names:
+        parts.append(tissue.preset(names, dtype=torch.float64))
+        labels.extend(names)
+    if args.sample:
+        s, types = tissue.sample(args.sample, args.seed, dtype=torch.float64)
+        parts.append(s)
+        labels.extend(f"sample{k}:{t}" for k, t in enumerate(types))
+    if not parts:
+        if overrides:  # one skin: the defaults with the given parameters
+            parts.append(tissue.SkinParams.create(dtype=torch.float64))
+            labels.append("custom")
+        else:  # default: every preset
+            parts.append(tissue.preset(list(tissue.PRESETS), dtype=torch.float64))
+            labels.extend(tissue.PRESETS)
+    skins = tissue.SkinParams.cat(parts)
+    if overrides:
+        skins = skins.replace(**{k: torch.full_like(skins.melanosome, v) for k, v in overrides.items()})
+        skins.validate()
+    return skins, labels
+
+
+def cmd_spectra(args) -> int:
+    if args.sample is not None and args.sample < 1:
+        raise ValueError(f"--sample must be >= 1, got {args.sample}")
+    if not (0.0 <= args.incidence_deg < 90.0):
+        raise ValueError(f"--incidence-deg must lie in [0, 90), got {args.incidence_deg}")
+    skins, labels = _skins(args)
+    theta = math.radians(args.incidence_deg)
+    if args.bands:
+        bands = parse_bands(args.bands)
+        grid, W = band_sampling(bands, dtype=torch.float64)
+        wl_out = torch.tensor([b.center_nm for b in bands], dtype=torch.float64)
+        R = tissue.reflectance(skins, grid, theta_i=theta) @ W
+    else:
+        wl_out = _parse_wavelengths(args.wavelengths) if args.wavelengths else tissue.wavelength_grid(
+            400, 1700, 10, dtype=torch.float64)
+        R = tissue.reflectance(skins, wl_out, theta_i=theta)
+    Rb = tissue.reflectance(skins, torch.tensor([b.center_nm for b in DEFAULT_BANDS], dtype=torch.float64),
+                            theta_i=theta)
+    g, s = indices(Rb)
+    inside = rules_detector(g, s, DEFAULT_BOX)
+    pdict = skins.as_dict()
+    if args.json:
+        out = {"skins": [
+            {"name": labels[k], "params": {n: pdict[n][k] for n in tissue.PARAM_NAMES},
+             "wavelengths_nm": wl_out.tolist(), "reflectance": R[k].tolist(), "ndgri": float(g[k]),
+             "ndsi": float(s[k]), "inside_box": bool(inside[k])}
+            for k in range(len(labels))
+        ], "incidence_deg": args.incidence_deg, "box": DEFAULT_BOX.as_dict()}
+        print(json.dumps(out))
+    else:
+        head = f"{'skin':<14}{'mel':>6}{'blood':>6}{'oxy':>6}  " + "".join(
+            f"{b.center_nm:>7g}" for b in DEFAULT_BANDS) + f"{'NDGRI':>9}{'NDSI':>8}  box"
+        print(head)
+        for k in range(min(len(labels), 50)):
+            print(f"{labels[k]:<14}{pdict['melanosome'][k]:>6.3f}{pdict['blood'][k]:>6.2f}"
+                  f"{pdict['oxygenation'][k]:>6.2f}  " + "".join(f"{x:>7.3f}" for x in Rb[k].tolist())
+                  + f"{float(g[k]):>9.3f}{float(s[k]):>8.3f}  {'in' if inside[k] else 'OUT'}")
+        if len(labels) > 50:
+            print(f"... {len(labels) - 50} more (use --json)")
+        if len(labels) > 1:
+            q = torch.tensor([0.005, 0.995], dtype=g.dtype)
+            qg, qs = torch.quantile(g, q), torch.quantile(s, q)
+            print(f"NDGRI 0.5/99.5 %: {qg[0]:.4f} {qg[1]:.4f} (box {DEFAULT_BOX.b1}, {DEFAULT_BOX.b2});"
+                  f" NDSI: {qs[0]:.4f} {qs[1]:.4f} (box {DEFAULT_BOX.c1}, {DEFAULT_BOX.c2});"
+                  f" inside: {int(inside.sum())}/{len(labels)}")
+    if args.plot:
+        from .plots import plot_spectra
+
+        wl_plot = tissue.wavelength_grid(400, 1700, 2, dtype=torch.float64)
+        plot_spectra(args.plot, wl_plot, tissue.reflectance(skins, wl_plot, theta_i=theta), labels, g, s,
+                     title=f"Diffuse skin reflectance, incidence {args.incidence_deg:g}°",
+                     shade=skins.melanosome / 0.45)
+        if not args.json:
+            print(f"wrote {args.plot}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------- render
+def _scene_from_args(args):
+    from .scene import Camera, Sun, default_scene
+
+    cam = Camera(width=args.width, height=args.height, zenith_deg=args.camera_zenith,
+                 azimuth_deg=args.camera_azimuth, range_m=args.range, fov_deg=args.fov)
+    sun = Sun(zenith_deg=args.source_zenith, azimuth_deg=args.source_azimuth, sky_fraction=args.sky)
+    subject = "file" if args.mesh else "anny"
+    sc = default_scene(subject=subject, mesh_path=args.mesh, skin=args.skin, camera=cam, sun=sun,
+                       panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground)
+    if args.bands:
+        sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
+    return sc
+
+
+def _check_angle(name, v, lo, hi):
+    if not (lo <= v <= hi):
+        raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}] degrees, got {v:g}")
+
+
+def cmd_render(args) -> int:
+    from .render import Sensor, render, write_outputs
+
+    _check_angle("--source-zenith", args.source_zenith, 0, 90)
+    _check_angle("--camera-zenith", args.camera_zenith, 0, 180)
+    sc = _scene_from_args(args)
+    sensor = Sensor(noise=not args.no_noise, seed=args.seed)
+    res = render(sc, device=args.device, sensor=sensor, elm=args.elm)
+    info = write_outputs(res, sc, args.out)
+    if args.json:
+        print(json.dumps({"timing_s": res.timing, "skin_pixels": info["skin_pixels"],
+                          "detected_fraction": info["detected_fraction"], "panels": res.panels,
+                          "sunlit_skin_pixels": info["sunlit_skin_pixels"],
+                          "detected_fraction_sunlit": info["detected_fraction_sunlit"]}))
+    else:
+        print(f"skin pixels {info['skin_pixels']} (sunlit {info['sunlit_skin_pixels']}), inside the rules box "
+              f"{info['detected_fraction']:.3f} (sunlit {info['detected_fraction_sunlit']:.3f}); "
+              f"{res.timing['total_s']:.2f} s; wrote {args.out}")
+    return 0
+
+
+def cmd_experiment(args) -> int:
+    from . import experiment
+    from .render import Sensor
+
+    if args.width < 16 or args.height < 16:
+        raise ValueError("--width and --height must be at least 16 pixels")
+    res = experiment.run(args.out, width=args.width, height=args.height, sensor=Sensor(noise=not args.no_noise),
+                         device=args.device, panels=args.panels)
+    if args.json:
+        print(json.dumps({k: res[k] for k in ("angles_deg", "detected_fraction_combined",
+                                              "detected_fraction_diffuse", "bhattacharyya",
+                                              "appendix_c_middle_reflectance", "lambertian_panel_error")
+                          if k in res}))
+    else:
+        for k, a in enumerate(res["angles_deg"]):
+            print(f"source {a:4.0f}°: sunlit skin inside the box: diffuse-only {res['detected_fraction_diffuse'][k]:.3f},"
+                  f" combined {res['detected_fraction_combined'][k]:.3f}; Bhattacharyya {res['bhattacharyya'][k]:.3f}")
+        if "lambertian_panel_error" in res:
+            for k, a in enumerate(res["angles_deg"]):
+                errs = ", ".join(f"{100 * e:.1f}%" for e in res["lambertian_panel_error"][k])
+                print(f"source {a:4.0f}°: skin reflectance error if the panels are taken as Lambertian: {errs}")
+        print(f"Appendix C middle panel: {res['appendix_c_middle_reflectance']:.4f} (true 0.40); wrote {args.out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------- fits
+def cmd_fit_skin(args) -> int:
+    from . import fit
+
+    names, R, wl = fit.read_spectra_csv(args.spectra)
+    res = fit.fit_skin(R, wl, r0=args.r0, noise=args.noise)
+    fit.write_params_csv(args.out, names, res)
+    if args.plot:
+        from pathlib import Path
+
+        from .plots import fit_spectra
+
+        Path(args.plot).mkdir(parents=True, exist_ok=True)
+        fit_spectra(Path(args.plot) / "fits.png", names, wl, R, res.fitted, res.rmse)
+    if args.json:
+        print(json.dumps({"rmse": res.rmse.tolist(), "converged": res.converged.tolist(), "seconds": res.seconds,
+                          "params": res.reported()}))
+    else:
+        print(f"fitted {len(names)} spectra in {res.seconds:.2f} s: RMSE median {float(res.rmse.median()):.4f}, "
+              f"max {float(res.rmse.max()):.4f}; converged {int(res.converged.sum())}/{len(names)}; "
+              f"wrote {args.out}")
+        und = [k for j, k in enumerate(fit.NAMES) if not bool(res.identifiable[:, j].any())]
+        if und:
+            print(f"not determined by these data (left empty): {', '.join(und)}")
+    return 0
+
+
+def cmd_fit_brdf(args) -> int:
+    from . import fit
+    from .io import write_text
+    from .optics import rho0_to_n
+
+    (ti, tr, dp), f, bands = fit.read_brdf_csv(args.data)
+    res = fit.fit_brdf(ti, tr, dp, f, diffuse=not args.no_diffuse)
+    doc = {"bands_nm": bands, "sigma2": res.sigma2.tolist(), "rho0": res.rho0.tolist(),
+           "n": rho0_to_n(res.rho0).tolist(), "rho_d": res.rho_d.tolist(), "rmse": res.rmse.tolist(),
+           "converged": res.converged.tolist()}
+    write_text(args.out, json.dumps(doc, indent=1))
+    if args.plot:
+        from .plots import fit_brdf_curves
+
+        def model(a, b, c):
+            ci, cr = torch.cos(a)[:, None], torch.cos(b)[:, None]
+            c2b = ci * cr + (torch.sin(a) * torch.sin(b) * torch.cos(c))[:, None]
+            return fit.brdf_model(ci, cr, c2b, res.sigma2, res.rho0, None if args.no_diffuse else res.rho_d)
+
+        fit_brdf_curves(args.plot, ti, tr, dp, f, model, bands)
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        for k, b in enumerate(bands):
+            print(f"{b:g} nm: sigma2 {doc['sigma2'][k]:.4f}, rho0 {doc['rho0'][k]:.4f} (n {doc['n'][k]:.3f}), "
+                  f"rho_d {doc['rho_d'][k]:.3f}, RMSE {doc['rmse'][k]:.3g} sr^-1")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ datasets
+def cmd_generate(args) -> int:
+    from .dataset.config import load_config
+    from .dataset.generate import generate
+
+    if args.resume and args.overwrite:
+        raise ValueError("--resume and --overwrite exclude each other")
+    cfg = load_config(args.config)
+    man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
+                   quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
+                   workers=args.workers, images=args.images)
+    rows = sum(s["rows"] for s in man["shards"])
+    if args.json:
+        print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
+                          "shards": len(man["shards"]), "rows": rows}))
+    elif not args.quiet:
+        print(f"wrote {len(man['shards'])} shards, {rows} rows ({man['groups']} pose groups) to {args.out}")
+    return 0
+
+
+def cmd_dataset_verify(args) -> int:
+    from .dataset.generate import verify
+
+    rep = verify(args.dir)
+    if args.json:
+        print(json.dumps(rep))
+    else:
+        print(("ok" if rep["ok"] else "PROBLEMS") + f": {rep['shards']} shards, {rep['rows']} rows; missing "
+              f"{rep['missing'] or 'none'}, corrupted {rep['corrupted'] or 'none'}, partial {rep['partial'] or 'none'}")
+    return 0 if rep["ok"] else 1
+
+
+# ------------------------------------------------------------------------------------------------ boundaries
+def cmd_train(args) -> int:
+    import hashlib
+    from pathlib import Path
+
+    from . import boundaries as Bd
+
+    X, Y = Bd.load_skin_rows(args.data)
+    res = Bd.train_quantiles(X, Y, q=args.q, steps=args.steps, hidden=args.hidden)
+    man = Path(args.data) / "_manifest.json"
+    digest = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
+    Bd.save(res.model, args.out, {"training_manifest_sha256": digest, "q": args.q, "rows": res.rows})
+    if args.json:
+        print(json.dumps({"rows": res.rows, "loss": res.loss, "out": str(args.out)}))
+    else:
+        print(f"trained on {res.rows} sunlit skin pixels (pinball loss {res.loss:.5f}); wrote {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    import torch as _torch
+
+    from . import boundaries as Bd
+    from .export import export
+
+    model = Bd.load(args.model)
+    meta = _torch.load(args.model, map_location="cpu", weights_only=True).get("meta", {})
+    paths = export(model, args.out, meta.get("training_manifest_sha256", ""))
+    print(json.dumps(paths) if args.json else f"wrote {paths['boundaries']} and {paths['detector']}")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------------- bench
+def cmd_bench(args) -> int:
+    from . import bench
+
+    only = [x.strip() for x in args.only.split(",")] if args.only else None
+    res = bench.run(only, compile=args.compile)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        for name, r in res.items():
+            rate = r.get("samples_x_bands_per_s")
+            extra = f"{rate / 1e6:.1f} M skin-wavelengths/s" if rate else ""
+            print(f"{name:<14}{extra}  ({r.get('device')}, {r.get('dtype')}, {r.get('seconds', 0):.3f} s)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchskin", description="Physics-based multispectral skin toolkit")
+    ap.add_argument("--version", action="version", version=f"torchskin {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    sp = sub.add_parser("spectra", help="diffuse skin reflectance spectra, indices and the rules box",
+                        description="Diffuse-model skin reflectance (9-layer Kubelka-Munk + front surface).")
+    sp.add_argument("--preset", action="append", metavar="NAME",
+                    help=f"preset skin (repeatable or comma separated): {', '.join(tissue.PRESETS)}")
+    sp.add_argument("--all-presets", action="store_true", help="every preset")
+    sp.add_argument("--sample", type=int, metavar="N", help="N random skins across Fitzpatrick I-VI")
+    sp.add_argument("--seed", type=int, default=0, help="seed for --sample (default 0)")
+    sp.add_argument("--param", action="append", metavar="NAME=VALUE",
+                    help=f"set a parameter for every skin: {', '.join(tissue.PARAM_NAMES)}")
+    g = sp.add_mutually_exclusive_group()
+    g.add_argument("--wavelengths", metavar="START:STOP:STEP", help="wavelength grid in nm (default 400:1700:10)")
+    g.add_argument("--bands", metavar="C[/FWHM],...", help="band centres (and FWHM) in nm, e.g. 544,633,1080,1580")
+    sp.add_argument("--incidence-deg", type=float, default=0.0, help="incidence angle in degrees (default 0)")
+    sp.add_argument("--json", action="store_true", help="print one JSON object")
+    sp.add_argument("--plot", metavar="PNG", help="write spectra 400-1700 nm and the rules plane to PNG")
+    sp.set_defaults(func=cmd_spectra)
+
+    rp = sub.add_parser("render", help="render a calibrated multispectral frame of a subject with panels",
+                        description="Ray-cast a subject between two reference panels under a sun, through the "
+                                    "sensor chain, calibrate with ELM and run the rules detector.")
+    rp.add_argument("--out", required=True, help="output folder")
+    src = rp.add_mutually_exclusive_group()
+    src.add_argument("--mesh", metavar="PATH", help="OBJ/PLY subject (all skin)")
+    src.add_argument("--subject", choices=["anny"], default="anny", help="parametric anny body (default)")
+    rp.add_argument("--skin", default="I-II", help=f"skin preset ({', '.join(tissue.PRESETS)})")
+    rp.add_argument("--source-zenith", type=float, default=45.0, help="sun zenith, degrees (default 45)")
+    rp.add_argument("--source-azimuth", type=float, default=20.0, help="sun azimuth from +x, degrees (default 20)")
+    rp.add_argument("--sky", type=float, default=0.1, help="sky irradiance / sun irradiance (default 0.1)")
+    rp.add_argument("--camera-zenith", type=float, default=90.0, help="camera zenith, degrees (default 90)")
+    rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
+    rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")
+    rp.add_argument("--fov", type=float, default=14.0, help="horizontal field of view, degrees (default 14)")
+    rp.add_argument("--width", type=int, default=512)
+    rp.add_argument("--height", type=int, default=512)
+    rp.add_argument("--bands", metavar="C[/FWHM],...", help="bands in nm (default 544,633,1080,1580)")
+    rp.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian")
+    rp.add_argument("--elm", choices=["dhr", "brdf"], default="dhr",
+                    help="calibrate with the panels' DHR (ELM) or their BRDF at the geometry (BRDF-ELM)")
+    rp.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
+    rp.add_argument("--diffuse-only", action="store_true", help="skin as the diffuse model (no specular lobe)")
+    rp.add_argument("--no-ground", action="store_true", help="no ground plane")
+    rp.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, mps)")
+    rp.add_argument("--seed", type=int, default=0, help="noise seed")
+    rp.add_argument("--json", action="store_true")
+    rp.set_defaults(func=cmd_render)
+
+    ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, both models")
+    ep.add_argument("--out", required=True, help="output folder for figures and experiment.json")
+    ep.add_argument("--width", type=int, default=512)
+    ep.add_argument("--height", type=int, default=512)
+    ep.add_argument("--no-noise", action="store_true")
+    ep.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian",
+                    help="reference panels; spectralon-brdf calibrates with BRDF-ELM and reports the error of "
+                         "assuming Lambertian panels")
+    ep.add_argument("--device", default="cpu")
+    ep.add_argument("--json", action="store_true")
+    ep.set_defaults(func=cmd_experiment)
+
+    fp = sub.add_parser("fit-skin", help="fit the skin parameters to measured reflectance spectra")
+    fp.add_argument("spectra", help="CSV: header row of wavelengths (nm), one spectrum per row")
+    fp.add_argument("--out", required=True, help="output CSV of fitted parameters")
+    fp.add_argument("--r0", type=float, default=0.04, help="front-surface reflectance of the measurement")
+    fp.add_argument("--noise", type=float, default=None, help="measurement noise for the uncertainties")
+    fp.add_argument("--plot", metavar="DIR", help="write measured vs fitted spectra (fits.png) here")
+    fp.add_argument("--json", action="store_true")
+    fp.set_defaults(func=cmd_fit_skin)
+
+    bf = sub.add_parser("fit-brdf", help="fit microfacet sigma2 and rho0 per band to goniometric data")
+    bf.add_argument("data", help="CSV: theta_i_deg,theta_r_deg,delta_phi_deg,<band nm>,... (BRDF in 1/sr)")
+    bf.add_argument("--out", required=True, help="output JSON of fitted parameters")
+    bf.add_argument("--no-diffuse", action="store_true", help="fit the lobe alone (no diffuse term)")
+    bf.add_argument("--plot", metavar="PNG", help="measured and fitted in-plane curves (Fig 21 style)")
+    bf.add_argument("--json", action="store_true")
+    bf.set_defaults(func=cmd_fit_brdf)
+
+    gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)")
+    gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
+    gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
+    gp.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    gp.add_argument("--out", required=True, help="output folder")
+    gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
+    gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    gp.add_argument("--quiet", action="store_true", help="no progress bar")
+    gp.add_argument("--device", default="cpu")
+    gp.add_argument("--images", action="store_true", help="also store full reflectance cubes (images-*.npy)")
+    gp.add_argument("--backend", choices=["local", "ray"], default="local", help="run shards here or on Ray")
+    gp.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+    gp.add_argument("--workers", type=int, help="CPUs of the local Ray cluster (default: all)")
+    gp.add_argument("--json", action="store_true")
+    gp.set_defaults(func=cmd_generate)
+
+    dp = sub.add_parser("dataset", help="dataset utilities")
+    dsub = dp.add_subparsers(dest="dataset_command", required=True)
+    vp = dsub.add_parser("verify", help="check shards against the manifest (non-zero exit on problems)")
+    vp.add_argument("dir")
+    vp.add_argument("--json", action="store_true")
+    vp.set_defaults(func=cmd_dataset_verify)
+
+    tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset")
+    tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
+    tp.add_argument("--out", required=True, help="checkpoint (.pt)")
+    tp.add_argument("--q", type=float, default=0.01, help="quantile of the box edges (default 0.01)")
+    tp.add_argument("--steps", type=int, default=2000)
+    tp.add_argument("--hidden", type=int, default=32)
+    tp.add_argument("--json", action="store_true")
+    tp.set_defaults(func=cmd_train)
+
+    xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx")
+    xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train")
+    xp.add_argument("--out", required=True, help="output folder (e.g. exports/)")
+    xp.add_argument("--json", action="store_true")
+    xp.set_defaults(func=cmd_export)
+
+    sub.add_parser("detect", help="skin mask of a cube with detector.onnx (numpy + onnxruntime only; "
+                                  "see torchskin detect --help)")
+
+    bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
+    bp.add_argument("--json", action="store_true")
+    bp.add_argument("--only", metavar="NAMES", help="comma-separated benchmark names (default: all)")
+    bp.add_argument("--compile", action="store_true", help="also measure the torch.compile path (slow start)")
+    bp.set_defaults(func=cmd_bench)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        return args.func(args)
+    except ValueError as e:
+        print(f"torchskin {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
