@@ -149,3 +149,47 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     bad = subprocess.run([sys.executable, "-c", script.replace("'40'", "'40'").replace("'--camera-zenith', '30', ", "")],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--camera-zenith" in bad.stderr
+
+
+def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
+    X, Y, res = trained
+    model = res.model
+    pts = torch.tensor([[-0.30, 0.70], [-0.25, 0.72], [0.4, 0.1]])  # two confusers inside typical boxes
+    before = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
+    scale = Bd.calibrate_false_alarms(model, X[:200], pts, budget=0.0)
+    after = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
+    assert before > 0 and after == 0.0 and 0.0 <= scale < 1.0
+    model.scale.fill_(1.0)
+    # evaluation against the static box on a tiny hand-made dataset folder
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from torchskin.detect import DEFAULT_BOX
+    from torchskin.evaluate import evaluate
+
+    n = 400
+    g = torch.Generator().manual_seed(5)
+    cfg = X[:n]
+    ndgri = torch.rand(n, generator=g) * 0.8 - 0.7
+    ndsi = torch.rand(n, generator=g) * 0.6 + 0.3
+    label = torch.arange(n) % 2 == 0
+    shadow = torch.arange(n) % 4 == 0
+    d = tmp_path / "ds"
+    d.mkdir()
+    pq.write_table(pa.table({"sun_zenith_deg": cfg[:, 0].numpy(), "camera_zenith_deg": cfg[:, 1].numpy(),
+                             "relative_azimuth_deg": cfg[:, 2].numpy(), "label": label.numpy(),
+                             "shadow": shadow.numpy(), "ndgri": ndgri.numpy(), "ndsi": ndsi.numpy(),
+                             "group": torch.arange(n).numpy(), "sun": (torch.arange(n) * 0).numpy(),
+                             "skin": (torch.arange(n) * 0).numpy()}), d / "shard-00000.parquet")
+    Bd.save(model, tmp_path / "m.pt")
+    r = evaluate(d, tmp_path / "m.pt")
+    inside = ((ndgri >= DEFAULT_BOX.b1) & (ndgri <= DEFAULT_BOX.b2) & (ndsi >= DEFAULT_BOX.c1) & (ndsi <= DEFAULT_BOX.c2))
+    assert r["static"]["pd"] == pytest.approx(float(inside[label].float().mean()))
+    assert r["static"]["pfa_scene"] == pytest.approx(float(inside[~label].float().mean()))
+    assert 0.0 <= r["learned"]["pd"] <= 1.0 and r["bins"] and len(r["roc"]["learned"]) == len(r["roc"]["scales"])
+    from torchskin.cli import main
+
+    assert main(["evaluate", "--data", str(d), "--model", str(tmp_path / "m.pt"), "--plots", str(tmp_path / "p"),
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc) >= {"learned", "static", "bins"} and (tmp_path / "p" / "roc.png").exists()

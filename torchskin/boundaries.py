@@ -33,13 +33,16 @@ class BoundaryModel(nn.Module):
         k = len(self.features)
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
+        self.register_buffer("scale", torch.ones(()))  # false-alarm calibration: box half-widths x scale
         self.net = nn.Sequential(nn.Linear(k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
                                  nn.Linear(hidden, 4))
 
     def forward(self, config: torch.Tensor) -> torch.Tensor:
         z = self.net((config - self.mean) / self.std)
         lo_g, w_g, lo_s, w_s = z.unbind(-1)
-        return torch.stack([lo_g, lo_g + nn.functional.softplus(w_g), lo_s, lo_s + nn.functional.softplus(w_s)], -1)
+        hg, hs = 0.5 * self.scale * nn.functional.softplus(w_g), 0.5 * self.scale * nn.functional.softplus(w_s)
+        mg, ms = lo_g + 0.5 * nn.functional.softplus(w_g), lo_s + 0.5 * nn.functional.softplus(w_s)
+        return torch.stack([mg - hg, mg + hg, ms - hs, ms + hs], -1)
 
 
 def pinball(pred: torch.Tensor, target: torch.Tensor, q: float) -> torch.Tensor:
@@ -100,7 +103,7 @@ def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=
                 + pinball(box[:, 2], Y[:, 1], q) + pinball(box[:, 3], Y[:, 1], 1 - q))
         loss.backward()
         opt.step()
-    return TrainResult(model.eval(), float(loss), X.shape[0])
+    return TrainResult(model.eval(), float(loss.detach()), X.shape[0])
 
 
 def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
@@ -117,3 +120,41 @@ def load(path) -> BoundaryModel:
     m = BoundaryModel(ck["features"], ck["hidden"])
     m.load_state_dict(ck["state_dict"])
     return m.eval()
+
+
+def confuser_indices(part: str = "train") -> torch.Tensor:
+    """(NDGRI, NDSI) of the earthlib spectra of one partition, (n, 2): geometry-independent (Lambertian)."""
+    from .confusers import band_reflectance
+    from .detect import indices
+
+    _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
+    g, s = indices(R.float())
+    return torch.stack([g, s], -1)
+
+
+def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Per box (N, 4): the fraction of ``points`` (n, 2) inside it."""
+    g, s = points[:, 0][None], points[:, 1][None]
+    b = boxes[:, :, None]
+    inside = (g >= b[:, 0]) & (g <= b[:, 1]) & (s >= b[:, 2]) & (s <= b[:, 3])
+    return inside.float().mean(-1)
+
+
+def calibrate_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,
+                           budget: float = 1e-3, iters: int = 30) -> float:
+    """Shrink every box about its centre (one global scale, found by bisection) until the false-alarm rate on
+    ``points`` (the earthlib *train* partition) is within ``budget`` for every configuration in ``configs``.
+    Sets and returns ``model.scale``."""
+    def worst(scale):
+        model.scale.fill_(scale)
+        with torch.no_grad():
+            return float(false_alarm_rate(model(configs), points).max())
+
+    if worst(1.0) <= budget:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if worst(mid) <= budget else (lo, mid)
+    worst(lo)
+    return lo

@@ -291,13 +291,16 @@ def cmd_train(args) -> int:
 
     X, Y = Bd.load_skin_rows(args.data)
     res = Bd.train_quantiles(X, Y, q=args.q, steps=args.steps, hidden=args.hidden)
+    scale = Bd.calibrate_false_alarms(res.model, X, Bd.confuser_indices("train"), args.pfa_budget)
     man = Path(args.data) / "_manifest.json"
     digest = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
-    Bd.save(res.model, args.out, {"training_manifest_sha256": digest, "q": args.q, "rows": res.rows})
+    Bd.save(res.model, args.out, {"training_manifest_sha256": digest, "q": args.q, "rows": res.rows,
+                                  "pfa_budget": args.pfa_budget, "scale": scale})
     if args.json:
-        print(json.dumps({"rows": res.rows, "loss": res.loss, "out": str(args.out)}))
+        print(json.dumps({"rows": res.rows, "loss": res.loss, "scale": scale, "out": str(args.out)}))
     else:
-        print(f"trained on {res.rows} sunlit skin pixels (pinball loss {res.loss:.5f}); wrote {args.out}")
+        print(f"trained on {res.rows} sunlit skin pixels (pinball loss {res.loss:.5f}); false-alarm scale "
+              f"{scale:.3f} for Pfa <= {args.pfa_budget:g} on the earthlib train partition; wrote {args.out}")
     return 0
 
 
@@ -311,6 +314,25 @@ def cmd_export(args) -> int:
     meta = _torch.load(args.model, map_location="cpu", weights_only=True).get("meta", {})
     paths = export(model, args.out, meta.get("training_manifest_sha256", ""))
     print(json.dumps(paths) if args.json else f"wrote {paths['boundaries']} and {paths['detector']}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from .evaluate import evaluate, plots
+
+    res = evaluate(args.data, args.model)
+    if args.plots:
+        plots(res, args.plots)
+    if args.json:
+        print(json.dumps({k: res[k] for k in ("learned", "static", "bins", "sun_zenith_ge_60")}))
+    else:
+        for name in ("learned", "static"):
+            r = res[name]
+            print(f"{name:8s} Pd {r['pd']:.3f} (sunlit {r['pd_sunlit']:.3f}, shadow {r['pd_shadow']:.3f}); "
+                  f"Pfa earthlib test {r['pfa']:.2e}, scene non-skin {r['pfa_scene']:.2e}")
+        hi = res["sun_zenith_ge_60"]
+        print(f"sun zenith >= 60°: Pd sunlit learned {hi['learned']['pd_sunlit']:.3f}, "
+              f"static {hi['static']['pd_sunlit']:.3f}")
     return 0
 
 
@@ -439,6 +461,8 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--q", type=float, default=0.01, help="quantile of the box edges (default 0.01)")
     tp.add_argument("--steps", type=int, default=2000)
     tp.add_argument("--hidden", type=int, default=32)
+    tp.add_argument("--pfa-budget", type=float, default=1e-3,
+                    help="false-alarm budget on the earthlib train partition (default 1e-3)")
     tp.add_argument("--json", action="store_true")
     tp.set_defaults(func=cmd_train)
 
@@ -447,6 +471,13 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--out", required=True, help="output folder (e.g. exports/)")
     xp.add_argument("--json", action="store_true")
     xp.set_defaults(func=cmd_export)
+
+    ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data")
+    ev.add_argument("--data", required=True, help="held-out dataset folder")
+    ev.add_argument("--model", required=True, help="checkpoint (.pt) or exported boundaries.onnx")
+    ev.add_argument("--plots", metavar="DIR", help="write roc.png and pd_heatmap.png here")
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=cmd_evaluate)
 
     sub.add_parser("detect", help="skin mask of a cube with detector.onnx (numpy + onnxruntime only; "
                                   "see torchskin detect --help)")

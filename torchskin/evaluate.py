@@ -1,0 +1,146 @@
+"""Evaluate learned boundaries against the static box on held-out configurations and on the earthlib test
+partition: detection probability Pd of skin pixels (sunlit and shadowed), false-alarm probability Pfa (test
+spectra inside each configuration's box, and the scene's non-skin pixels), overall and per (sun zenith x
+camera zenith) bin; ROC curves and a Pd heat map as PNG."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .boundaries import FEATURES, confuser_indices, false_alarm_rate
+from .detect import DEFAULT_BOX
+
+SUN_BINS = (0.0, 30.0, 60.0, 90.0)
+CAMERA_BINS = (0.0, 35.0, 70.0, 90.0)
+
+
+def box_function(model_path):
+    """``features (N, k) -> boxes (N, 4)`` from a torch checkpoint (.pt) or an exported boundaries.onnx."""
+    p = str(model_path)
+    if p.endswith(".onnx"):
+        from .onboard import Boundaries
+
+        b = Boundaries(p)
+        return list(b.features), lambda x: torch.from_numpy(b(np.asarray(x, dtype=np.float32))["boxes"])
+    from .boundaries import load
+
+    m = load(p)
+    return list(m.features), lambda x: m(torch.as_tensor(x, dtype=torch.float32)).detach()
+
+
+def _inside(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    return (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
+
+
+ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
+
+
+def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
+    """Pd / Pfa of the boxes of ``model_path`` and of the static box on the dataset at ``data_dir``."""
+    import pyarrow.dataset as ds
+
+    features, boxes_of = box_function(model_path)
+    cols = sorted(set(features) | {"sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri", "ndsi",
+                                   "group", "sun", "skin"})
+    t = ds.dataset(str(data_dir), format="parquet").to_table(columns=cols)
+    col = {c: torch.from_numpy(np.array(t.column(c).to_numpy(zero_copy_only=False))) for c in cols}
+    X = torch.stack([col[f].float() for f in features], -1)
+    g, s = col["ndgri"].float(), col["ndsi"].float()
+    label, shadow = col["label"].bool(), col["shadow"].bool()
+    learned = boxes_of(X)
+    static = torch.tensor([DEFAULT_BOX.b1, DEFAULT_BOX.b2, DEFAULT_BOX.c1, DEFAULT_BOX.c2]).expand_as(learned)
+    test_pts = confuser_indices("test")
+    keys = torch.stack([col["group"].long(), col["sun"].long(), col["skin"].long()], -1)
+
+    def summary(boxes, mask=None):
+        m = torch.ones_like(label) if mask is None else mask
+        hit = _inside(boxes, g, s)
+        sk, lit = label & m, label & m & ~shadow
+        # Pfa on the earthlib test partition: each configuration's box (its first row) against every test spectrum
+        pos = m.nonzero().flatten()
+        if pos.numel():
+            _, inv = torch.unique(keys[pos], dim=0, return_inverse=True)
+            first = torch.full((int(inv.max()) + 1,), pos.numel(), dtype=torch.long).scatter_reduce(
+                0, inv, torch.arange(pos.numel()), "amin")
+            pfa = float(false_alarm_rate(boxes[pos[first]], test_pts).mean())
+        else:
+            pfa = float("nan")
+        nonskin = ~label & m
+        return {"pd": float(hit[sk].float().mean()) if bool(sk.any()) else float("nan"),
+                "pd_sunlit": float(hit[lit].float().mean()) if bool(lit.any()) else float("nan"),
+                "pd_shadow": float(hit[sk & shadow].float().mean()) if bool((sk & shadow).any()) else float("nan"),
+                "pfa": pfa,
+                "pfa_scene": float(hit[nonskin].float().mean()) if bool(nonskin.any()) else float("nan"),
+                "skin_pixels": int(sk.sum())}
+
+    out = {"learned": summary(learned), "static": summary(static), "bins": []}
+    sz, cz = col["sun_zenith_deg"].float(), col["camera_zenith_deg"].float()
+    for i in range(len(SUN_BINS) - 1):
+        for j in range(len(CAMERA_BINS) - 1):
+            m = (sz >= SUN_BINS[i]) & (sz < SUN_BINS[i + 1]) & (cz >= CAMERA_BINS[j]) & (cz < CAMERA_BINS[j + 1])
+            if not bool((m & label).any()):
+                continue
+            out["bins"].append({"sun_zenith_deg": [SUN_BINS[i], SUN_BINS[i + 1]],
+                                "camera_zenith_deg": [CAMERA_BINS[j], CAMERA_BINS[j + 1]],
+                                "learned": summary(learned, m), "static": summary(static, m)})
+    hi = sz >= 60
+    out["sun_zenith_ge_60"] = {"learned": summary(learned, hi), "static": summary(static, hi)}
+    # ROC: scale every box about its centre
+    roc = {}
+    for name, bx in (("learned", learned), ("static", static)):
+        c = torch.stack([(bx[:, 0] + bx[:, 1]) / 2, (bx[:, 0] + bx[:, 1]) / 2, (bx[:, 2] + bx[:, 3]) / 2,
+                         (bx[:, 2] + bx[:, 3]) / 2], -1)
+        pts = []
+        for k in scales:
+            b = c + float(k) * (bx - c)
+            r = summary(b)
+            pts.append([r["pfa"], r["pd_sunlit"], r["pfa_scene"]])
+        roc[name] = pts
+    out["roc"] = {"scales": [float(k) for k in scales], **roc}
+    out["features"] = features
+    return out
+
+
+def plots(result: dict, out_dir) -> None:
+    from pathlib import Path
+
+    from .plots import _plt, save_figure
+
+    plt = _plt()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(5.5, 4.2))
+    for name in ("learned", "static"):
+        pts = np.array(result["roc"][name], dtype=float)
+        ax.plot(np.maximum(pts[:, 2], 1e-5), pts[:, 1], "o-", ms=3, label=f"{name} (scene non-skin pixels)")
+        ax.plot(np.maximum(pts[:, 0], 1e-5), pts[:, 1], "s--", ms=3, label=f"{name} (earthlib test spectra)")
+    ax.set_xscale("log")
+    ax.set_xlabel("false-alarm probability")
+    ax.set_ylabel("Pd, sunlit skin")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    ax.set_title("ROC: boxes scaled about their centres")
+    fig.tight_layout()
+    save_figure(fig, out / "roc.png")
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, name in zip(axes, ("learned", "static")):
+        grid = np.full((len(SUN_BINS) - 1, len(CAMERA_BINS) - 1), np.nan)
+        for b in result["bins"]:
+            i = SUN_BINS.index(b["sun_zenith_deg"][0])
+            j = CAMERA_BINS.index(b["camera_zenith_deg"][0])
+            grid[i, j] = b[name]["pd_sunlit"]
+        im = ax.imshow(grid, vmin=0, vmax=1, cmap="viridis", origin="lower")
+        ax.set_xticks(range(len(CAMERA_BINS) - 1), [f"{a:g}-{b:g}" for a, b in zip(CAMERA_BINS, CAMERA_BINS[1:])])
+        ax.set_yticks(range(len(SUN_BINS) - 1), [f"{a:g}-{b:g}" for a, b in zip(SUN_BINS, SUN_BINS[1:])])
+        ax.set_xlabel("camera zenith (deg)")
+        ax.set_ylabel("sun zenith (deg)")
+        ax.set_title(f"Pd sunlit skin, {name}")
+        for (i, j), v in np.ndenumerate(grid):
+            if np.isfinite(v):
+                ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=8)
+    fig.colorbar(im, ax=axes, fraction=0.03)
+    save_figure(fig, out / "pd_heatmap.png")
+
+
+__all__ = ["FEATURES", "evaluate", "plots"]
