@@ -458,7 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     tp.add_argument("--out", required=True, help="checkpoint (.pt)")
-    tp.add_argument("--q", type=float, default=0.01, help="quantile of the box edges (default 0.01)")
+    tp.add_argument("--q", type=float, default=0.15, help="quantile of the box edges (default 0.15)")
     tp.add_argument("--steps", type=int, default=2000)
     tp.add_argument("--hidden", type=int, default=32)
     tp.add_argument("--pfa-budget", type=float, default=1e-3,
