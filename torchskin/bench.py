@@ -206,9 +206,35 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     }}
 
 
+def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
+    """The exported detector on a 1024 x 1024 x 4 float32 frame with onnxruntime's CPU provider, a single
+    boundary query, and the memory-bound floor: reading the same frame once (numpy sum), in the same run."""
+    import tempfile
+
+    import numpy as np
+
+    from .boundaries import BoundaryModel
+    from .export import export
+    from .onboard import Boundaries, Detector
+
+    with tempfile.TemporaryDirectory() as d:
+        model = BoundaryModel()
+        paths = export(model, d)
+        det, bnd = Detector(paths["detector"]), Boundaries(paths["boundaries"])
+        rng = np.random.default_rng(0)
+        cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
+        cfg = np.array([[40.0, 30.0, 60.0]])
+        cpu = torch.device("cpu")
+        t_frame = _median_seconds(lambda: det(cube, cfg), cpu, repeat, warmup=3)
+        t_query = _median_seconds(lambda: bnd(cfg), cpu, repeat * 10, warmup=10)
+        t_read = _median_seconds(lambda: float(cube.sum()), cpu, repeat, warmup=3)
+    return {"detector_onnx": {"ms_per_1mp_frame": 1e3 * t_frame, "us_per_boundary_query": 1e6 * t_query,
+                              "memory_read_ms_1mp": 1e3 * t_read}}
+
+
 #: name -> callable(**options) returning a dict of results (later issues add entries)
 BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit,
-                                               "dataset": bench_dataset}
+                                               "dataset": bench_dataset, "detector_onnx": bench_detector_onnx}
 
 
 def run(only: list[str] | None = None, compile: bool = False) -> dict:

@@ -66,9 +66,10 @@ class Detector(_Model):
                              f"got {x.shape[1]}")
         if x.dtype != np.float32:
             raise ValueError(f"cube must be float32 reflectance, got {x.dtype}")
-        if np.isnan(x).any():
+        lo = x.min()  # one pass: NaN propagates through min
+        if np.isnan(lo):
             raise ValueError("cube holds NaN reflectance")
-        if (x < 0).any():
+        if lo < 0:
             raise ValueError("cube holds negative reflectance")
         c, ood = self._config(config)
         if c.shape[0] != x.shape[0]:
