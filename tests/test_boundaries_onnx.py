@@ -193,3 +193,12 @@ def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
                  "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) >= {"learned", "static", "bins"} and (tmp_path / "p" / "roc.png").exists()
+    lit = label & ~shadow  # each row is its own configuration here: the per-configuration mean is pooled Pd
+    assert r["static"]["pd_sunlit_mean_over_configs"] == pytest.approx(float(inside[lit].float().mean()))
+    # the exported boundaries.onnx evaluates to the same figures as the checkpoint
+    from torchskin.export import export
+
+    paths = export(model, tmp_path / "exports")
+    r_onnx = evaluate(d, paths["boundaries"])
+    assert r_onnx["learned"]["pd"] == pytest.approx(r["learned"]["pd"], abs=1e-6)
+    assert r_onnx["learned"]["pfa"] == pytest.approx(r["learned"]["pfa"], abs=1e-6)

@@ -332,7 +332,8 @@ def cmd_evaluate(args) -> int:
                   f"Pfa earthlib test {r['pfa']:.2e}, scene non-skin {r['pfa_scene']:.2e}")
         hi = res["sun_zenith_ge_60"]
         print(f"sun zenith >= 60°: Pd sunlit learned {hi['learned']['pd_sunlit']:.3f}, "
-              f"static {hi['static']['pd_sunlit']:.3f}")
+              f"static {hi['static']['pd_sunlit']:.3f} (mean over configurations: "
+              f"{hi['learned']['pd_sunlit_mean_over_configs']:.3f} vs {hi['static']['pd_sunlit_mean_over_configs']:.3f})")
     return 0
 
 

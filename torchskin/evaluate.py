@@ -67,7 +67,18 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
         else:
             pfa = float("nan")
         nonskin = ~label & m
+        # mean over configurations of each configuration's sunlit-skin Pd
+        lit_pos = lit.nonzero().flatten()
+        if lit_pos.numel():
+            _, cinv = torch.unique(keys[lit_pos], dim=0, return_inverse=True)
+            n_c = int(cinv.max()) + 1
+            hits = torch.zeros(n_c).index_add_(0, cinv, hit[lit_pos].float())
+            cnt = torch.zeros(n_c).index_add_(0, cinv, torch.ones(lit_pos.numel()))
+            pd_cfg = float((hits / cnt).mean())
+        else:
+            pd_cfg = float("nan")
         return {"pd": float(hit[sk].float().mean()) if bool(sk.any()) else float("nan"),
+                "pd_sunlit_mean_over_configs": pd_cfg,
                 "pd_sunlit": float(hit[lit].float().mean()) if bool(lit.any()) else float("nan"),
                 "pd_shadow": float(hit[sk & shadow].float().mean()) if bool((sk & shadow).any()) else float("nan"),
                 "pfa": pfa,
