@@ -13,13 +13,7 @@ from collections.abc import Callable
 import torch
 
 from . import tissue
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-    elif device.type == "mps":
-        torch.mps.synchronize()
+from .render import _sync
 
 
 def _median_seconds(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 1) -> float:

@@ -182,8 +182,9 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
         m = scene.materials[name]
         if m.kind == "skin":
             p = m.skin_params(dtype=torch.float64)
-            rs = tissue.subsurface_reflectance(p, grid) @ wE
-            rtot = tissue.surface_total(torch.tensor(0.04, dtype=torch.float64), tissue.subsurface_reflectance(p, grid)) @ wE
+            r_sub_grid = tissue.subsurface_reflectance(p, grid)  # once per material: both quantities derive from it
+            rs = r_sub_grid @ wE
+            rtot = tissue.surface_total(torch.tensor(0.04, dtype=torch.float64), r_sub_grid) @ wE
             alb[k] = rtot
             if m.specular:
                 skin[k] = True
@@ -495,8 +496,11 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
 
 
 def _sync(device: torch.device) -> None:
+    """Wait for queued device work (for stage timings)."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
 
 
 def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
