@@ -24,10 +24,18 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
+EXPORTS ?= exports
+
+# the thesis experiment, then the detector pipeline: generate -> train -> evaluate -> export -> verify
 demo: setup
 	mkdir -p $(OUT)
 	$(VENV)/bin/torchskin spectra --all-presets --plot $(OUT)/presets.png
 	$(VENV)/bin/torchskin experiment --out $(OUT)/experiment
+	$(PY) scripts/pipeline_generate.py --work $(OUT)/pipeline
+	$(PY) scripts/pipeline_train.py --work $(OUT)/pipeline
+	$(PY) scripts/pipeline_evaluate.py --work $(OUT)/pipeline
+	$(PY) scripts/pipeline_export.py --work $(OUT)/pipeline --exports $(EXPORTS)
+	$(PY) scripts/pipeline_verify.py --exports $(EXPORTS)
 
 lint: setup
 	$(VENV)/bin/ruff check torchskin tests scripts

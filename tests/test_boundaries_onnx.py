@@ -128,6 +128,8 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "m.pt"), "--steps", "300",
                  "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"] > 100
+    # the training domain is the dataset's declared ranges, not the extremes of its few draws
+    assert Bd.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 70.0], [0.0, 180.0]]
     assert main(["export", "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "exports"), "--json"]) == 0
     paths = json.loads(capsys.readouterr().out)
     import onnx
@@ -202,3 +204,88 @@ def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
     r_onnx = evaluate(d, paths["boundaries"])
     assert r_onnx["learned"]["pd"] == pytest.approx(r["learned"]["pd"], abs=1e-6)
     assert r_onnx["learned"]["pfa"] == pytest.approx(r["learned"]["pfa"], abs=1e-6)
+
+
+def diagonal(n=6000, seed=0):
+    """Skin whose (NDGRI, NDSI) walks along a diagonal with sun zenith, and confusers off the diagonal where a
+    single box spanning the whole walk would have to include them."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.stack([torch.rand(n, generator=g) * 80, torch.rand(n, generator=g) * 70,
+                     torch.rand(n, generator=g) * 180], -1)
+    t = X[:, 0] / 80
+    Y = torch.stack([-0.6 + 0.5 * t, 0.55 + 0.3 * t], -1) + 0.015 * torch.randn(n, 2, generator=g)
+    C = torch.tensor([[-0.5, 0.8], [-0.45, 0.84], [-0.2, 0.58], [-0.15, 0.6], [0.3, 0.1], [-0.8, 0.2]])
+    return X, Y, C
+
+
+def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
+    X, Y, C = diagonal()
+    res = Bd.train_boxes(X, Y, C, steps=800, margin=0.02)
+    flat = Bd.train_boxes(X, Y, C, hidden=0, steps=800, margin=0.02)
+    Xt, Yt, _ = diagonal(20000, seed=1)
+    with torch.no_grad():
+        pd = float(Bd.soft_inside(res.model(Xt), Yt, 1e-9).mean())
+        pd_flat = float(Bd.soft_inside(flat.model(Xt), Yt, 1e-9).mean())
+        grid = Bd.calibration_configs(res.model, X, grid=12)
+        boxes = res.model(grid)
+    # no confuser within the margin of any box over the whole training domain (no calibration needed)
+    assert float(Bd.margin_violation(boxes, C, 0.0).max()) == 0.0
+    assert Bd.calibrate_false_alarms(res.model, grid, C, budget=0.0) == 1.0
+    # the configuration-dependent box covers the walk; one constant box cannot without a confuser inside
+    assert pd > 0.95 and pd_flat < 0.8, (pd, pd_flat)
+    assert bool((boxes[:, 1] > boxes[:, 0]).all() and (boxes[:, 3] > boxes[:, 2]).all())
+    lo, hi = res.model(torch.tensor([[5.0, 30.0, 90.0], [75.0, 30.0, 90.0]])).detach()
+    assert float(hi[0] - lo[0]) == pytest.approx(0.5 * 70 / 80, abs=0.1)  # NDGRI edges move with the sun
+    assert list(res.model.domain[0]) == pytest.approx([float(X[:, 0].min()), float(X[:, 0].max())])
+    with pytest.raises(ValueError, match="margin"):
+        Bd.train_boxes(X, Y, C, margin=-1.0)
+    with pytest.raises(ValueError, match="method"):
+        Bd.learn(X, Y, "svm", confusers=C)
+
+
+def test_detector_edge_forms_equal_the_index_rules():
+    from torchskin.detect import indices
+
+    g = torch.Generator().manual_seed(7)
+    X, _ = synthetic(8, seed=3)
+    model = Bd.BoundaryModel()
+    cube = torch.rand(8, 4, 32, 32, generator=g) * 0.7
+    cube[0, :, 0, 0] = 0.0  # undefined indices: never skin
+    with torch.no_grad():
+        mask, score = Detector(model)(cube, X)
+        box = model(X)[:, :, None, None]
+    ndgri, ndsi = indices(cube.movedim(1, -1))
+    inside = (ndgri > box[:, 0]) & (ndgri < box[:, 1]) & (ndsi > box[:, 2]) & (ndsi < box[:, 3])
+    margin = torch.minimum(torch.minimum(ndgri - box[:, 0], box[:, 1] - ndgri),
+                           torch.minimum(ndsi - box[:, 2], box[:, 3] - ndsi))
+    differ = mask != inside
+    assert bool((margin[differ].abs() < 1e-6).all()) and bool(mask.any()) and not bool(mask[0, 0, 0])
+    # the score is the index margin weighted by the band-pair sum of the edge it is nearest to
+    pair = torch.stack([cube[:, 0] + cube[:, 1], cube[:, 2] + cube[:, 3]], 1)
+    m4 = torch.stack([ndgri - box[:, 0], box[:, 1] - ndgri, ndsi - box[:, 2], box[:, 3] - ndsi], 1)
+    w4 = torch.stack([pair[:, 0], pair[:, 0], pair[:, 1], pair[:, 1]], 1)
+    ok = pair.min(1).values > 0
+    torch.testing.assert_close(score[ok], (m4 * w4).amin(1)[ok], atol=1e-6, rtol=1e-5)
+
+
+def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
+    from torchskin.onboard import Detector as OnboardDetector
+
+    X, _, res = trained
+    paths = export(res.model, tmp_path)
+    rng = np.random.default_rng(4)
+    cube = (rng.random((2, 4, 96, 70)) * 0.7).astype(np.float32)
+    cfg = X[:2].numpy().astype(np.float64)
+    whole = OnboardDetector(paths["detector"], tile=1 << 20)(cube, cfg)
+    tiled = OnboardDetector(paths["detector"], threads=3, tile=1024)(cube, cfg)  # 14 tiles, ragged last one
+    assert np.array_equal(whole["mask"], tiled["mask"]) and np.array_equal(whole["score"], tiled["score"])
+    with torch.no_grad():
+        mask_t, score_t = Detector(res.model)(torch.from_numpy(cube), torch.from_numpy(cfg).float())
+    assert np.abs(tiled["score"] - score_t.numpy()).max() < 1e-5 and tiled["mask"].any()
+    late = cube.copy()
+    late[1, 2, 90, 60] = np.nan  # in the last tile of the second frame
+    with pytest.raises(ValueError, match="NaN"):
+        OnboardDetector(paths["detector"], threads=2, tile=1024)(late, cfg)
+    late[1, 2, 90, 60] = -0.01
+    with pytest.raises(ValueError, match="negative"):
+        OnboardDetector(paths["detector"], threads=2, tile=1024)(late, cfg)

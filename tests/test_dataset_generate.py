@@ -198,3 +198,31 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj):
     assert verify(d)["ok"]
     df = pd.read_parquet(d / man["shards"][0]["name"])
     assert np.isfinite(cube.astype(np.float32)).any() and len(df) > 0
+
+
+def test_elm_validity_follows_panel_sunlight(tmp_path, subject_obj):
+    """Level panels: lit by any sun above the horizon, not by one below it, and not when the subject's
+    shadow covers them (a grazing sun straight along the panel-subject line)."""
+    import math
+
+    import numpy as np
+    import torch
+
+    from torchskin.dataset.config import sample_group
+    from torchskin.dataset.generate import group_scene, panels_sunlit
+    from torchskin.raycast import Raycaster
+    from torchskin.render import build_meshes
+
+    g = sample_group(small_cfg(subject_obj, camera={"zenith_deg": [30.0, 30.0]}), 0, 0)
+    sc = group_scene(g)
+    az = math.radians(g.camera["azimuth_deg"])
+    side = np.array([-math.sin(az), math.cos(az), 0.0])  # the white panel sits at +0.9 m along this
+    zen = math.radians(89.0)
+    dirs = np.stack([[0.0, 0.0, 1.0],                                          # overhead
+                     [*(math.sin(math.radians(60)) * np.array([math.cos(az), math.sin(az)])), 0.5],
+                     [*(-side[:2] * math.sin(zen)), math.cos(zen)],             # grazing, behind the subject
+                     [0.6, 0.0, -0.8]])                                         # below the horizon
+    meshes, names = build_meshes(sc)
+    gb = Raycaster(meshes, names).gbuffer(sc.cameras, dirs)
+    ok = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32))
+    assert ok.tolist() == [True, True, False, False]

@@ -3,7 +3,16 @@
 
 The model is a small MLP on standardised features with an output that keeps b1 <= b2 and c1 <= c2:
     (lo_g, w_g, lo_s, w_s) -> b1 = lo_g, b2 = lo_g + softplus(w_g), c1 = lo_s, c2 = lo_s + softplus(w_s).
-It is exported to ONNX (``torchskin.export``) and run onboard without torch (``torchskin.onboard``).
+``hidden=0`` gives a constant box (one box for every configuration: the refitted static baseline).
+
+Two trainers:
+- ``train_boxes`` (default): per configuration, the box that covers the most sunlit skin pixels while every
+  earthlib *train* spectrum stays at least ``margin`` (index units, L-infinity) outside it, for the training
+  configurations and for random configurations over the training domain; a small cost per unit of box width
+  keeps the edges where the skin pixels are (soft, sigmoid edges during training; hard boxes afterwards).
+- ``train_quantiles``: the box edges as conditional quantiles of skin NDGRI and NDSI (pinball loss).
+Both are followed by ``calibrate_false_alarms`` (a hard guarantee on the train spectra). The model is exported
+to ONNX (``torchskin.export``) and run onboard without torch (``torchskin.onboard``).
 """
 
 from __future__ import annotations
@@ -27,22 +36,37 @@ FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0
 class BoundaryModel(nn.Module):
     """Configuration features (N, k) -> boxes (N, 4) = (b1, b2, c1, c2)."""
 
-    def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None):
+    def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None, domain=None):
         super().__init__()
         self.features = tuple(features)
         k = len(self.features)
+        if hidden < 0:
+            raise ValueError(f"hidden must be >= 0 (0: a constant box), got {hidden}")
+        self.hidden = int(hidden)
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
         self.register_buffer("scale", torch.ones(()))  # false-alarm calibration: box half-widths x scale
-        self.net = nn.Sequential(nn.Linear(k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
-                                 nn.Linear(hidden, 4))
+        if domain is None:
+            domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
+        # the training domain of each feature (k, 2): configurations outside it are flagged onboard
+        self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
+        if hidden == 0:  # a constant box: the input weights stay zero
+            self.net = nn.Sequential(nn.Linear(k, 4))
+            nn.init.zeros_(self.net[0].weight)
+            self.net[0].weight.requires_grad_(False)
+        else:
+            self.net = nn.Sequential(nn.Linear(k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+                                     nn.Linear(hidden, 4))
 
     def forward(self, config: torch.Tensor) -> torch.Tensor:
+        # z = (lo_g, w_g, lo_s, w_s); centre m = lo + softplus(w) / 2, half-width h = scale * softplus(w) / 2:
+        # box = z P + softplus(z) Q (two small matrix products keep the exported graph short)
         z = self.net((config - self.mean) / self.std)
-        lo_g, w_g, lo_s, w_s = z.unbind(-1)
-        hg, hs = 0.5 * self.scale * nn.functional.softplus(w_g), 0.5 * self.scale * nn.functional.softplus(w_s)
-        mg, ms = lo_g + 0.5 * nn.functional.softplus(w_g), lo_s + 0.5 * nn.functional.softplus(w_s)
-        return torch.stack([mg - hg, mg + hg, ms - hs, ms + hs], -1)
+        P = z.new_tensor([[1.0, 1.0, 0, 0], [0, 0, 0, 0], [0, 0, 1.0, 1.0], [0, 0, 0, 0]])
+        q = torch.stack([0.5 * (1 - self.scale), 0.5 * (1 + self.scale)]).to(z.dtype)
+        zero = torch.zeros(2, dtype=z.dtype, device=z.device)
+        Q = torch.stack([torch.cat([zero, zero]), torch.cat([q, zero]), torch.cat([zero, zero]), torch.cat([zero, q])])
+        return z @ P + nn.functional.softplus(z) @ Q
 
 
 def pinball(pred: torch.Tensor, target: torch.Tensor, q: float) -> torch.Tensor:
@@ -59,13 +83,19 @@ class TrainResult:
 
 
 def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
-    """Features (n, k) and (NDGRI, NDSI) (n, 2) of the skin pixels of a generated dataset (float32)."""
+    """Features (n, k) and (NDGRI, NDSI) (n, 2) of the skin pixels of a generated dataset (float32), from
+    frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
     import pyarrow.dataset as ds
 
-    cols = list(features) + ["ndgri", "ndsi", "label", "shadow"]
-    t = ds.dataset(str(data_dir), format="parquet").to_table(columns=cols)
-    label = t.column("label").to_numpy(zero_copy_only=False)
-    keep = label & (~t.column("shadow").to_numpy(zero_copy_only=False) if sunlit_only else True)
+    d = ds.dataset(str(data_dir), format="parquet")
+    has_valid = "elm_valid" in d.schema.names
+    cols = list(features) + ["ndgri", "ndsi", "label", "shadow"] + (["elm_valid"] if has_valid else [])
+    t = d.to_table(columns=cols)
+    keep = t.column("label").to_numpy(zero_copy_only=False).copy()
+    if sunlit_only:
+        keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
+    if has_valid:
+        keep &= t.column("elm_valid").to_numpy(zero_copy_only=False)
     X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
     Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False),
                   t.column("ndsi").to_numpy(zero_copy_only=False)], -1)[keep]
@@ -75,26 +105,67 @@ def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
     return torch.from_numpy(X[ok].astype(np.float32)), torch.from_numpy(Y[ok].astype(np.float32))
 
 
-def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=FEATURES, hidden: int = 32,
-                    steps: int = 2000, lr: float = 3e-3, seed: int = 0) -> TrainResult:
-    """Fit the box as conditional quantiles: b1, c1 at ``q`` and b2, c2 at ``1 - q`` of sunlit skin NDGRI and
-    NDSI given the configuration features (full-batch Adam on the pinball loss; deterministic in ``seed``)."""
-    if not (0.0 < q < 0.5):
-        raise ValueError(f"q must lie in (0, 0.5), got {q}")
-    if X.shape[0] != Y.shape[0] or X.shape[1] != len(features) or Y.shape[1] != 2:
+def domain_from_manifest(data_dir, features=FEATURES) -> list[tuple[float, float]] | None:
+    """The training domain of each feature as declared by the dataset's configuration (``_manifest.json``):
+    the ranges the configurations were drawn from, not the extremes of the draws. None without a manifest."""
+    import json
+    from pathlib import Path
+
+    man = Path(data_dir) / "_manifest.json"
+    if not man.is_file():
+        return None
+    cfg = json.loads(man.read_text()).get("config", {})
+    declared = {"sun_zenith_deg": cfg.get("sun", {}).get("zenith_deg"),
+                "camera_zenith_deg": cfg.get("camera", {}).get("zenith_deg"),
+                "range_m": cfg.get("camera", {}).get("range_m"),
+                "relative_azimuth_deg": [0.0, 180.0]}
+    out = []
+    for f in features:
+        r = declared.get(f)
+        if r is None:
+            return None
+        out.append((float(r[0]), float(r[1])))
+    return out
+
+
+def _check_xy(X: torch.Tensor, Y: torch.Tensor, features) -> None:
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] != len(features) or Y.shape[1] != 2:
         raise ValueError(f"X (n, {len(features)}) and Y (n, 2) expected, got {tuple(X.shape)} and {tuple(Y.shape)}")
+    if X.shape[0] < 10:
+        raise ValueError(f"at least 10 skin pixels are needed to learn boundaries, got {X.shape[0]}")
+
+
+def _initial_model(X: torch.Tensor, Y: torch.Tensor, features, hidden: int, q: float, seed: int,
+                   domain=None) -> BoundaryModel:
+    """A model that starts at the pooled (q, 1 - q) quantile box, with small deterministic weights (``seed``)
+    and the training ``domain`` ((k, 2); default: the extremes of ``X``)."""
     g = torch.Generator().manual_seed(seed)
-    model = BoundaryModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6))
-    with torch.no_grad():  # deterministic init, then start at the pooled quantiles
+    if domain is None:
+        domain = torch.stack([X.min(0).values, X.max(0).values], -1)
+    model = BoundaryModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
+    with torch.no_grad():
         for p in model.net.parameters():
-            p.copy_(torch.randn(p.shape, generator=g) * (0.3 / math.sqrt(max(p.shape[-1], 1))))
+            if p.requires_grad:
+                p.copy_(torch.randn(p.shape, generator=g) * (0.3 / math.sqrt(max(p.shape[-1], 1))))
         last = model.net[-1]
-        last.weight.mul_(0.1)
+        if hidden:
+            last.weight.mul_(0.1)
         qg = torch.quantile(Y[:, 0], torch.tensor([q, 1 - q]))
         qs = torch.quantile(Y[:, 1], torch.tensor([q, 1 - q]))
         inv_sp = lambda w: torch.log(torch.expm1(w.clamp_min(1e-3)))  # noqa: E731
         last.bias.copy_(torch.stack([qg[0], inv_sp(qg[1] - qg[0]), qs[0], inv_sp(qs[1] - qs[0])]))
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    return model
+
+
+def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=FEATURES, hidden: int = 32,
+                    steps: int = 2000, lr: float = 3e-3, seed: int = 0, domain=None) -> TrainResult:
+    """Fit the box as conditional quantiles: b1, c1 at ``q`` and b2, c2 at ``1 - q`` of sunlit skin NDGRI and
+    NDSI given the configuration features (full-batch Adam on the pinball loss; deterministic in ``seed``)."""
+    if not (0.0 < q < 0.5):
+        raise ValueError(f"q must lie in (0, 0.5), got {q}")
+    _check_xy(X, Y, features)
+    model = _initial_model(X, Y, features, hidden, q, seed, domain)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
     loss = torch.tensor(0.0)
     for _ in range(steps):
         opt.zero_grad()
@@ -106,30 +177,139 @@ def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=
     return TrainResult(model.eval(), float(loss.detach()), X.shape[0])
 
 
+def soft_inside(boxes: torch.Tensor, points: torch.Tensor, tau: float) -> torch.Tensor:
+    """Smooth indicator that (NDGRI, NDSI) ``points`` (n, 2) lie in ``boxes`` (n, 4): the product of four
+    sigmoids of the edge distances over ``tau`` (index units)."""
+    g, s = points[:, 0], points[:, 1]
+    d = torch.stack([g - boxes[:, 0], boxes[:, 1] - g, s - boxes[:, 2], boxes[:, 3] - s], -1)
+    return torch.sigmoid(d / tau).prod(-1)
+
+
+def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float) -> torch.Tensor:
+    """Per box (N, 4), the summed violation of ``points`` (n, 2) that lie inside it or within ``margin``
+    (L-infinity, index units) of it: sum_j relu(min(edge distances_j) + margin)."""
+    g, s = points[:, 0][None], points[:, 1][None]
+    b = boxes[:, :, None]
+    depth = torch.minimum(torch.minimum(g - b[:, 0], b[:, 1] - g), torch.minimum(s - b[:, 2], b[:, 3] - s))
+    return torch.relu(depth + margin).sum(-1)
+
+
+def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, features=FEATURES, hidden: int = 32,
+                steps: int = 1500, lr: float = 1e-2, tau: float = 0.01, margin: float = 0.03,
+                width_cost: float = 0.05, fa_weight: float = 10.0, domain_configs: int = 128,
+                batch: int | None = 32768, seed: int = 0, domain=None) -> TrainResult:
+    """Learn the box that, per configuration, covers the most sunlit skin pixels ``Y`` (n, 2) given their
+    configuration features ``X`` (n, k), while every ``confusers`` point (m, 2) (the earthlib *train* spectra)
+    stays ``margin`` outside it, for ``domain_configs`` training configurations and as many random
+    configurations over the training domain per step:
+
+        loss = -mean_i soft_inside(box(x_i), y_i) + width_cost * mean(box widths)
+               + fa_weight * mean_configs margin_violation(box(config), confusers)
+
+    Adam on random batches of ``batch`` pixels (None: all of them), deterministic in ``seed``; the sigmoid
+    edges sharpen from 3 tau to tau over the first half of the steps. ``domain`` (k, 2): the training domain
+    (default: the extremes of ``X``; ``domain_from_manifest`` gives the declared ranges)."""
+    for name, v, lo in (("tau", tau, 0.0), ("margin", margin, -1e-12), ("width_cost", width_cost, -1e-12),
+                        ("fa_weight", fa_weight, -1e-12)):
+        if not (v > lo) or not math.isfinite(v):
+            raise ValueError(f"{name} must be {'positive' if lo == 0 else 'non-negative'} and finite, got {v}")
+    _check_xy(X, Y, features)
+    if confusers.ndim != 2 or confusers.shape[1] != 2 or confusers.shape[0] == 0:
+        raise ValueError(f"confusers must be (m, 2) (NDGRI, NDSI) points, got {tuple(confusers.shape)}")
+    model = _initial_model(X, Y, features, hidden, 0.05, seed, domain)
+    g = torch.Generator().manual_seed(seed + 1)
+    # pixels share their configuration: evaluate the model once per distinct configuration
+    uniq, inv = np.unique(X.numpy(), axis=0, return_inverse=True)
+    train_cfg, inv = torch.from_numpy(uniq), torch.from_numpy(inv.reshape(-1))
+    lo, hi = model.domain[:, 0], model.domain[:, 1]
+    # only the spectra near the skin pixels can meet a box (the hard calibration afterwards checks them all)
+    qy = torch.quantile(Y, torch.tensor([0.01, 0.99]), dim=0)  # (2, 2)
+    near = ((confusers >= qy[0] - 0.25) & (confusers <= qy[1] + 0.25)).all(-1)
+    C = confusers[near].float()
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
+    loss = torch.tensor(0.0)
+    for step in range(steps):
+        t = tau * (3.0 - 2.0 * min(1.0, step / max(1, steps // 2)))
+        cfg = torch.cat([train_cfg[torch.randint(len(train_cfg), (min(len(train_cfg), domain_configs),), generator=g)],
+                         lo + (hi - lo) * torch.rand(domain_configs, X.shape[1], generator=g)])
+        if batch is not None and batch < len(Y):
+            idx = torch.randint(len(Y), (batch,), generator=g)
+            yb, ib = Y[idx], inv[idx]
+        else:
+            yb, ib = Y, inv
+        opt.zero_grad()
+        box = model(train_cfg)[ib]
+        cover = soft_inside(box, yb, t).mean()
+        width = (box[:, 1] - box[:, 0] + box[:, 3] - box[:, 2]).mean()
+        fa = margin_violation(model(cfg), C, margin).mean()
+        loss = -cover + width_cost * width + fa_weight * fa
+        loss.backward()
+        opt.step()
+    return TrainResult(model.eval(), float(loss.detach()), X.shape[0])
+
+
+def calibration_configs(model: BoundaryModel, X: torch.Tensor, grid: int = 10) -> torch.Tensor:
+    """The configurations the false-alarm budget is enforced on: every distinct training configuration in
+    ``X`` and a ``grid``^k lattice over the model's training domain."""
+    uniq = torch.from_numpy(np.unique(X.numpy(), axis=0)).float()
+    axes = [torch.linspace(float(lo), float(hi), grid) for lo, hi in model.domain]
+    lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
+    return torch.cat([uniq, lattice])
+
+
+METHODS = ("boxes", "quantiles")
+
+
+def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: float = 1e-3,
+          confusers: torch.Tensor | None = None, **options) -> tuple[BoundaryModel, dict]:
+    """Train (``train_boxes`` or ``train_quantiles``) and enforce the false-alarm budget on the earthlib train
+    partition (``calibrate_false_alarms`` over ``calibration_configs``). Returns the model and a summary."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if not (0.0 <= pfa_budget < 1.0):
+        raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
+    C = confuser_indices("train") if confusers is None else confusers
+    if method == "boxes":
+        res = train_boxes(X, Y, C, **options)
+    else:
+        res = train_quantiles(X, Y, **options)
+    cfg = calibration_configs(res.model, X)
+    scale = calibrate_false_alarms(res.model, cfg, C, pfa_budget)
+    with torch.no_grad():
+        pfa_train = float(false_alarm_rate(res.model(cfg), C).max())
+    return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale,
+                       "pfa_budget": pfa_budget, "pfa_train_worst": pfa_train,
+                       "calibration_configs": int(cfg.shape[0]), "options": options}
+
+
 def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
     """A torch checkpoint: state, features and hidden size (+ metadata)."""
     from .io import atomic_path
 
     with atomic_path(path, suffix=".pt") as tmp:
         torch.save({"state_dict": model.state_dict(), "features": list(model.features),
-                    "hidden": model.net[0].out_features, "meta": meta or {}}, tmp)
+                    "hidden": model.hidden, "meta": meta or {}}, tmp)
 
 
 def load(path) -> BoundaryModel:
     ck = torch.load(path, map_location="cpu", weights_only=True)
     m = BoundaryModel(ck["features"], ck["hidden"])
-    m.load_state_dict(ck["state_dict"])
+    state = dict(ck["state_dict"])
+    state.setdefault("domain", m.domain)  # checkpoints written before the domain was stored
+    m.load_state_dict(state)
     return m.eval()
 
 
 def confuser_indices(part: str = "train") -> torch.Tensor:
-    """(NDGRI, NDSI) of the earthlib spectra of one partition, (n, 2): geometry-independent (Lambertian)."""
+    """(NDGRI, NDSI) of the earthlib spectra of one partition, (n, 2): geometry-independent (Lambertian).
+    Spectra whose indices are undefined (zero reflectance in a band pair) are left out: no box holds them."""
     from .confusers import band_reflectance
     from .detect import indices
 
     _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
     g, s = indices(R.float())
-    return torch.stack([g, s], -1)
+    pts = torch.stack([g, s], -1)
+    return pts[torch.isfinite(pts).all(-1)]
 
 
 def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -290,17 +290,24 @@ def cmd_train(args) -> int:
     from . import boundaries as Bd
 
     X, Y = Bd.load_skin_rows(args.data)
-    res = Bd.train_quantiles(X, Y, q=args.q, steps=args.steps, hidden=args.hidden)
-    scale = Bd.calibrate_false_alarms(res.model, X, Bd.confuser_indices("train"), args.pfa_budget)
+    opts = {"hidden": args.hidden, "steps": args.steps, "seed": args.seed}
+    domain = Bd.domain_from_manifest(args.data)
+    if args.method == "quantiles":
+        opts["q"] = args.q
+    else:
+        opts.update(margin=args.margin, width_cost=args.width_cost)
+    model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain, **opts)
+    info["options"].pop("domain", None)
     man = Path(args.data) / "_manifest.json"
     digest = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
-    Bd.save(res.model, args.out, {"training_manifest_sha256": digest, "q": args.q, "rows": res.rows,
-                                  "pfa_budget": args.pfa_budget, "scale": scale})
+    info.update(training_manifest_sha256=digest, data=str(args.data))
+    Bd.save(model, args.out, info)
     if args.json:
-        print(json.dumps({"rows": res.rows, "loss": res.loss, "scale": scale, "out": str(args.out)}))
+        print(json.dumps({**info, "out": str(args.out)}))
     else:
-        print(f"trained on {res.rows} sunlit skin pixels (pinball loss {res.loss:.5f}); false-alarm scale "
-              f"{scale:.3f} for Pfa <= {args.pfa_budget:g} on the earthlib train partition; wrote {args.out}")
+        print(f"trained ({args.method}) on {info['rows']} sunlit skin pixels, loss {info['loss']:.5f}; false-alarm "
+              f"scale {info['scale']:.3f}: worst Pfa {info['pfa_train_worst']:.2e} <= {args.pfa_budget:g} on the "
+              f"earthlib train partition over {info['calibration_configs']} configurations; wrote {args.out}")
     return 0
 
 
@@ -308,21 +315,39 @@ def cmd_export(args) -> int:
     import torch as _torch
 
     from . import boundaries as Bd
-    from .export import export
+    from .export import export, write_model_cards
 
     model = Bd.load(args.model)
-    meta = _torch.load(args.model, map_location="cpu", weights_only=True).get("meta", {})
-    paths = export(model, args.out, meta.get("training_manifest_sha256", ""))
-    print(json.dumps(paths) if args.json else f"wrote {paths['boundaries']} and {paths['detector']}")
+    train = _torch.load(args.model, map_location="cpu", weights_only=True).get("meta", {})
+    evaluation = None
+    if args.metrics:
+        try:
+            with open(args.metrics) as fh:
+                evaluation = json.load(fh)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"cannot read --metrics {args.metrics!r}: {e}") from None
+    paths = export(model, args.out, train.get("training_manifest_sha256", ""))
+    paths.update(write_model_cards(args.out, train, evaluation))
+    print(json.dumps(paths) if args.json else "wrote " + ", ".join(paths.values()))
     return 0
 
 
 def cmd_evaluate(args) -> int:
+    import hashlib
+    from pathlib import Path
+
     from .evaluate import evaluate, plots
+    from .io import write_text
 
     res = evaluate(args.data, args.model)
+    man = Path(args.data) / "_manifest.json"
+    res["data"] = str(args.data)
+    res["data_manifest_sha256"] = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
+    res["model"] = str(args.model)
     if args.plots:
         plots(res, args.plots)
+    if args.save:
+        write_text(args.save, json.dumps(res, indent=1))
     if args.json:
         print(json.dumps({k: res[k] for k in ("learned", "static", "bins", "sun_zenith_ge_60")}))
     else:
@@ -459,9 +484,17 @@ def build_parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     tp.add_argument("--out", required=True, help="checkpoint (.pt)")
-    tp.add_argument("--q", type=float, default=0.15, help="quantile of the box edges (default 0.15)")
-    tp.add_argument("--steps", type=int, default=2000)
-    tp.add_argument("--hidden", type=int, default=32)
+    tp.add_argument("--method", choices=("boxes", "quantiles"), default="boxes",
+                    help="boxes: most sunlit skin per configuration with the earthlib train spectra kept a margin "
+                         "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss)")
+    tp.add_argument("--margin", type=float, default=0.03,
+                    help="boxes: distance (index units) kept from every earthlib train spectrum (default 0.03)")
+    tp.add_argument("--width-cost", type=float, default=0.05,
+                    help="boxes: cost per unit of box width, keeps the box tight (default 0.05)")
+    tp.add_argument("--q", type=float, default=0.15, help="quantiles: quantile of the box edges (default 0.15)")
+    tp.add_argument("--steps", type=int, default=1500)
+    tp.add_argument("--hidden", type=int, default=32, help="MLP width (0: one constant box; default 32)")
+    tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--pfa-budget", type=float, default=1e-3,
                     help="false-alarm budget on the earthlib train partition (default 1e-3)")
     tp.add_argument("--json", action="store_true")
@@ -470,6 +503,7 @@ def build_parser() -> argparse.ArgumentParser:
     xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx")
     xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train")
     xp.add_argument("--out", required=True, help="output folder (e.g. exports/)")
+    xp.add_argument("--metrics", metavar="EVAL.json", help="torchskin evaluate --save output for the model cards")
     xp.add_argument("--json", action="store_true")
     xp.set_defaults(func=cmd_export)
 
@@ -477,6 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--data", required=True, help="held-out dataset folder")
     ev.add_argument("--model", required=True, help="checkpoint (.pt) or exported boundaries.onnx")
     ev.add_argument("--plots", metavar="DIR", help="write roc.png and pd_heatmap.png here")
+    ev.add_argument("--save", metavar="FILE", help="write the full result (JSON, with ROC points) here")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 

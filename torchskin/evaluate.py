@@ -11,8 +11,8 @@ import torch
 from .boundaries import FEATURES, confuser_indices, false_alarm_rate
 from .detect import DEFAULT_BOX
 
-SUN_BINS = (0.0, 30.0, 60.0, 90.0)
-CAMERA_BINS = (0.0, 35.0, 70.0, 90.0)
+SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+CAMERA_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 
 
 def box_function(model_path):
@@ -43,7 +43,16 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
     features, boxes_of = box_function(model_path)
     cols = sorted(set(features) | {"sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri", "ndsi",
                                    "group", "sun", "skin"})
-    t = ds.dataset(str(data_dir), format="parquet").to_table(columns=cols)
+    d = ds.dataset(str(data_dir), format="parquet")
+    has_valid = "elm_valid" in d.schema.names
+    t = d.to_table(columns=cols + (["elm_valid"] if has_valid else []))
+    excluded = 0
+    if has_valid:  # frames without sunlit panels have no physical ELM: no detector sees them
+        valid = t.column("elm_valid")
+        excluded = len(t) - int(np.count_nonzero(valid.to_numpy(zero_copy_only=False)))
+        t = t.filter(valid)
+    if len(t) == 0:
+        raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
     col = {c: torch.from_numpy(np.array(t.column(c).to_numpy(zero_copy_only=False))) for c in cols}
     X = torch.stack([col[f].float() for f in features], -1)
     g, s = col["ndgri"].float(), col["ndsi"].float()
@@ -110,6 +119,8 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
         roc[name] = pts
     out["roc"] = {"scales": [float(k) for k in scales], **roc}
     out["features"] = features
+    out["rows"] = len(t)
+    out["rows_excluded_no_sunlit_panels"] = excluded
     return out
 
 
@@ -127,14 +138,14 @@ def plots(result: dict, out_dir) -> None:
         ax.plot(np.maximum(pts[:, 2], 1e-5), pts[:, 1], "o-", ms=3, label=f"{name} (scene non-skin pixels)")
         ax.plot(np.maximum(pts[:, 0], 1e-5), pts[:, 1], "s--", ms=3, label=f"{name} (earthlib test spectra)")
     ax.set_xscale("log")
-    ax.set_xlabel("false-alarm probability")
+    ax.set_xlabel("false-alarm probability (0 drawn at 1e-5)")
     ax.set_ylabel("Pd, sunlit skin")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
     ax.set_title("ROC: boxes scaled about their centres")
     fig.tight_layout()
     save_figure(fig, out / "roc.png")
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
     for ax, name in zip(axes, ("learned", "static")):
         grid = np.full((len(SUN_BINS) - 1, len(CAMERA_BINS) - 1), np.nan)
         for b in result["bins"]:
@@ -149,7 +160,7 @@ def plots(result: dict, out_dir) -> None:
         ax.set_title(f"Pd sunlit skin, {name}")
         for (i, j), v in np.ndenumerate(grid):
             if np.isfinite(v):
-                ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="w", fontsize=8)
+                ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="k" if v > 0.6 else "w", fontsize=7)
     fig.colorbar(im, ax=axes, fraction=0.03)
     save_figure(fig, out / "pd_heatmap.png")
 

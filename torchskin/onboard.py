@@ -4,6 +4,9 @@
     out = det(cube, config)      # cube (B, 4, H, W) float32 reflectance, config (B, k) in the model's units
     out["mask"], out["score"], out["out_of_domain"]
 
+``score`` is the smallest margin to a box edge in index units weighted by the band-pair sum (positive inside;
+see ``torchskin.export.Detector``).
+
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance raise ``ValueError``;
 configurations outside the training domain are flagged per frame in ``out_of_domain`` (never silently used).
 """
@@ -16,12 +19,18 @@ import numpy as np
 
 
 class _Model:
-    def __init__(self, path):
+    def __init__(self, path, threads: int | None = None):
+        import os
+
         import onnxruntime as ort
 
         self.path = str(path)
+        self.threads = max(1, int(threads or min(os.cpu_count() or 1, 8)))
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = 1  # frames are split into tiles that run on ``threads`` workers instead
+        so.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(self.path, providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(self.path, so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise ValueError(f"cannot load ONNX model {self.path!r}: {e}") from None
         meta = self.session.get_modelmeta().custom_metadata_map
@@ -29,6 +38,7 @@ class _Model:
         self.features = json.loads(meta.get("features", "[]"))
         self.domain = np.array(json.loads(meta.get("feature_domain", "[]")), dtype=np.float64).reshape(-1, 2)
         self.bands_nm = json.loads(meta.get("bands_nm", "[]"))
+        self._pool = None
 
     def _config(self, config) -> tuple[np.ndarray, np.ndarray]:
         c = np.asarray(config)
@@ -55,7 +65,41 @@ class Boundaries(_Model):
 
 
 class Detector(_Model):
-    """``detector.onnx``: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and score."""
+    """``detector.onnx``: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and score.
+
+    Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that run on
+    ``threads`` workers (one onnxruntime session, one intra-op thread each, outputs bound straight into the
+    result arrays), so the intermediates stay in cache: the frame is read from memory about once."""
+
+    def __init__(self, path, threads: int | None = None, tile: int = 65536):
+        super().__init__(path, threads)
+        if tile < 1024:
+            raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
+        self.tile = int(tile)
+
+    def _run_tiles(self, flat, c, mask, score, jobs) -> float:
+        """Run ``jobs`` (frame, first, last pixel); return the smallest reflectance seen (NaN if any)."""
+        io = self.session.io_binding()
+        low = np.inf
+        buf = np.empty((1, 4, 1, self.tile), dtype=np.float32)
+        for b, lo, hi in jobs:
+            n = hi - lo
+            t = buf[:, :, :, :n] if n == self.tile else np.empty((1, 4, 1, n), dtype=np.float32)
+            t[0, :, 0, :] = flat[b, :, lo:hi]
+            low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
+            io.bind_cpu_input("config", c[b:b + 1])
+            io.bind_output("mask", "cpu", 0, np.bool_, (1, 1, n), mask[b, lo:hi].ctypes.data)
+            io.bind_output("score", "cpu", 0, np.float32, (1, 1, n), score[b, lo:hi].ctypes.data)
+            io.bind_cpu_input("cube", t)
+            self.session.run_with_iobinding(io)
+        return low
+
+    @staticmethod
+    def _check_low(low) -> None:
+        if np.isnan(low):
+            raise ValueError("cube holds NaN reflectance")
+        if low < 0:
+            raise ValueError("cube holds negative reflectance")
 
     def __call__(self, cube, config) -> dict:
         x = np.asarray(cube)
@@ -66,16 +110,32 @@ class Detector(_Model):
                              f"got {x.shape[1]}")
         if x.dtype != np.float32:
             raise ValueError(f"cube must be float32 reflectance, got {x.dtype}")
-        lo = x.min()  # one pass: NaN propagates through min
-        if np.isnan(lo):
-            raise ValueError("cube holds NaN reflectance")
-        if lo < 0:
-            raise ValueError("cube holds negative reflectance")
+        if x.size == 0:
+            raise ValueError(f"cube is empty: shape {x.shape}")
         c, ood = self._config(config)
         if c.shape[0] != x.shape[0]:
             raise ValueError(f"config has {c.shape[0]} rows for a batch of {x.shape[0]} frames")
-        mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
-        return {"mask": mask.astype(bool), "score": score, "out_of_domain": ood}
+        B, _, H, W = x.shape
+        n = H * W
+        if B * n <= self.tile:  # small frames: one call
+            self._check_low(x.min())
+            mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
+            return {"mask": mask.astype(bool), "score": score, "out_of_domain": ood}
+        flat = x.reshape(B, 4, n)
+        mask, score = np.empty((B, n), dtype=bool), np.empty((B, n), dtype=np.float32)
+        jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
+        k = min(self.threads, len(jobs))
+        if k == 1:
+            low = self._run_tiles(flat, c, mask, score, jobs)
+        else:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="torchskin-detect")
+            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k]) for i in range(k)]
+            low = np.min([f.result() for f in futures])  # NaN propagates
+        self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
+        return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood}
 
 
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",

@@ -28,7 +28,7 @@ from ..render import Sensor, build_meshes, render
 from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
 from .config import PoseGroup, sample_group
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: elm_valid column, level panels
 MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
 BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
@@ -72,6 +72,8 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "theta_r_deg": ("float32", "local view angle", "deg"),
     "delta_phi_deg": ("float32", "local relative azimuth (180: forward plane)", "deg"),
     "shadow": ("bool", "not sunlit: the sun is occluded (cast shadow) or behind the surface (θi > 90°)", ""),
+    "elm_valid": ("bool", "both reference panels sunlit (>= half of each interior): the frame's ELM is physical; "
+                  "training and evaluation use only these frames", ""),
     "r544": ("float32", "ELM reflectance at 544 nm", ""),
     "r633": ("float32", "ELM reflectance at 633 nm", ""),
     "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
@@ -89,8 +91,10 @@ def _arrow_schema():
 
 
 def group_scene(g: PoseGroup) -> Scene:
-    """The scene of a pose group: subject at the origin (yawed), two reference panels beside it facing the
-    camera, a ground plane, the group's camera and suns. The skin material is set per skin later."""
+    """The scene of a pose group: subject at the origin (yawed), two level reference panels beside it (on
+    0.8 m stands, as panels are laid out for ELM in the field: every sun above the horizon lights them unless
+    the subject shadows them), a ground plane, the group's camera and suns. The skin material is set per skin
+    later."""
     cam = Camera(width=g.camera["width"], height=g.camera["height"], zenith_deg=g.camera["zenith_deg"],
                  azimuth_deg=g.camera["azimuth_deg"], range_m=g.camera["range_m"],
                  target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=g.camera["fov_deg"])
@@ -105,7 +109,7 @@ def group_scene(g: PoseGroup) -> Scene:
         body = MeshSpec("subject", "file", "skin", params={"path": g.subject["path"]}, yaw_deg=g.subject["yaw_deg"])
     az = math.radians(g.camera["azimuth_deg"])
     side = np.array([-math.sin(az), math.cos(az), 0.0])
-    tilt = 90.0 - g.camera["zenith_deg"]  # panels face the camera
+    tilt = 90.0  # level panels
     panels = [MeshSpec(name, "plane", mat, params={"width": 0.5, "height": 0.5},
                        position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
                        tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
@@ -140,6 +144,23 @@ def _local_angles(gb, idx: torch.Tensor, sun_dir: torch.Tensor):
     return torch.acos(ci) * deg, torch.acos(cr) * deg, torch.acos(cphi) * deg
 
 
+def panels_sunlit(gb, panel_names: list[str], sun_dirs: torch.Tensor, min_fraction: float = 0.5) -> torch.Tensor:
+    """Per sun (S,): whether every reference panel has at least ``min_fraction`` of its interior pixels
+    sunlit (facing the sun and not in a cast shadow). Without sunlit panels the ELM gain is set by sky light
+    alone and the frame's reflectance is meaningless."""
+    from ..render import panel_pixels
+
+    ok = torch.ones(sun_dirs.shape[0], dtype=torch.bool)
+    normal = gb.normal[0].reshape(-1, 3).float()
+    shadow = gb.shadow[:, 0].reshape(sun_dirs.shape[0], -1)
+    for per_cam in panel_pixels(gb, panel_names):
+        ix = per_cam[0]
+        facing = normal[ix] @ sun_dirs.T.to(normal.dtype) > 0  # (K, S)
+        lit = facing.T & ~shadow[:, ix]
+        ok &= lit.float().mean(1) >= min_fraction
+    return ok
+
+
 def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list | None = None) -> dict[str, list]:
     """Rows for every sun x skin of a pose group, as column -> list of numpy chunks (one per configuration):
     ``pixels_per_class`` skin and as many non-skin pixels (fewer if fewer are visible; balanced per
@@ -161,6 +182,7 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
     rng = np.random.default_rng(g.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
     sun_dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float32)
+    elm_valid = panels_sunlit(gb, list(sc.panels), sun_dirs)
     skin_id = gb.material_names.index("skin")
     hit = gb.hit[0].reshape(-1)
     skin_px = hit & (gb.material[0].reshape(-1) == skin_id)
@@ -212,6 +234,7 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
             out["theta_r_deg"].append(tr.numpy())
             out["delta_phi_deg"].append(dp.numpy())
             out["shadow"].append(shadow.numpy())
+            out["elm_valid"].append(np.full(n, bool(elm_valid[si])))
             for b, name in enumerate(("r544", "r633", "r1080", "r1580")):
                 out[name].append(refl[:, b].numpy())
             out["ndgri"].append(g_.numpy())

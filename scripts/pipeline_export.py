@@ -1,0 +1,36 @@
+#!/usr/bin/env python
+"""Pipeline step 4/5: export WORK/boundaries.pt to EXPORTS (boundaries.onnx, detector.onnx, model cards with
+the evaluation), and keep the checkpoint, the evaluation and its plots beside them.
+
+    python scripts/pipeline_export.py [--work out/pipeline] [--exports exports]"""
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+from torchskin.cli import main
+
+
+def run(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", default="out/pipeline")
+    ap.add_argument("--exports", default="exports")
+    a = ap.parse_args(argv)
+    work, out = Path(a.work), Path(a.exports)
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"[export] to {out}", flush=True)
+    rc = main(["export", "--model", str(work / "boundaries.pt"), "--out", str(out),
+               "--metrics", str(work / "evaluation.json")])
+    if rc:
+        return rc
+    for src, dst in ((work / "boundaries.pt", out / "boundaries.pt"), (work / "evaluation.json", out / "evaluation.json"),
+                     (work / "plots" / "roc.png", out / "roc.png"), (work / "plots" / "pd_heatmap.png", out / "pd_heatmap.png")):
+        tmp = dst.with_name("." + dst.name + ".tmp")
+        shutil.copyfile(src, tmp)
+        tmp.replace(dst)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run())
