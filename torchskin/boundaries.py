@@ -43,6 +43,7 @@ class BoundaryModel(nn.Module):
         if hidden < 0:
             raise ValueError(f"hidden must be >= 0 (0: a constant box), got {hidden}")
         self.hidden = int(hidden)
+        self.standardize = True  # False once the standardisation is folded into the first layer (export)
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
         self.register_buffer("scale", torch.ones(()))  # false-alarm calibration: box half-widths x scale
@@ -61,12 +62,27 @@ class BoundaryModel(nn.Module):
     def forward(self, config: torch.Tensor) -> torch.Tensor:
         # z = (lo_g, w_g, lo_s, w_s); centre m = lo + softplus(w) / 2, half-width h = scale * softplus(w) / 2:
         # box = z P + softplus(z) Q (two small matrix products keep the exported graph short)
-        z = self.net((config - self.mean) / self.std)
+        z = self.net((config - self.mean) / self.std if self.standardize else config)
         P = z.new_tensor([[1.0, 1.0, 0, 0], [0, 0, 0, 0], [0, 0, 1.0, 1.0], [0, 0, 0, 0]])
         q = torch.stack([0.5 * (1 - self.scale), 0.5 * (1 + self.scale)]).to(z.dtype)
         zero = torch.zeros(2, dtype=z.dtype, device=z.device)
         Q = torch.stack([torch.cat([zero, zero]), torch.cat([q, zero]), torch.cat([zero, zero]), torch.cat([zero, q])])
         return z @ P + nn.functional.softplus(z) @ Q
+
+
+def folded(model: BoundaryModel) -> BoundaryModel:
+    """A copy of ``model`` with the feature standardisation folded into its first linear layer (the same
+    function with two nodes fewer in the exported graph)."""
+    import copy
+
+    m = copy.deepcopy(model).eval()
+    first = m.net[0]
+    with torch.no_grad():
+        w = first.weight / m.std
+        first.bias -= w @ m.mean
+        first.weight.copy_(w)
+    m.standardize = False
+    return m
 
 
 def pinball(pred: torch.Tensor, target: torch.Tensor, q: float) -> torch.Tensor:

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from . import __version__
-from .boundaries import FEATURE_UNITS, BoundaryModel
+from .boundaries import FEATURE_UNITS, BoundaryModel, folded
 from .io import atomic_path
 
 OPSET = 17
@@ -140,7 +140,7 @@ def export(model: BoundaryModel, out_dir, manifest_sha256: str = "") -> dict:
     meta = metadata(model, manifest_sha256)
     k = len(model.features)
     cfg = torch.zeros(2, k)
-    _to_onnx(model, (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}}, meta,
+    _to_onnx(folded(model), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}}, meta,
              out / "boundaries.onnx")
     det = _detector_graph(onnx.load(str(out / "boundaries.onnx")), meta)
     with atomic_path(out / "detector.onnx", suffix=".onnx") as tmp:

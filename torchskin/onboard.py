@@ -80,18 +80,26 @@ class Detector(_Model):
     def _run_tiles(self, flat, c, mask, score, jobs) -> float:
         """Run ``jobs`` (frame, first, last pixel); return the smallest reflectance seen (NaN if any)."""
         io = self.session.io_binding()
-        low = np.inf
         buf = np.empty((1, 4, 1, self.tile), dtype=np.float32)
+        io.bind_cpu_input("cube", buf)  # the tile buffer is bound once and refilled
+        low, frame = np.inf, -1
         for b, lo, hi in jobs:
             n = hi - lo
-            t = buf[:, :, :, :n] if n == self.tile else np.empty((1, 4, 1, n), dtype=np.float32)
+            if n != self.tile:  # the ragged last tile of a frame
+                t = np.empty((1, 4, 1, n), dtype=np.float32)
+                io.bind_cpu_input("cube", t)
+            else:
+                t = buf
             t[0, :, 0, :] = flat[b, :, lo:hi]
             low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
-            io.bind_cpu_input("config", c[b:b + 1])
+            if b != frame:
+                io.bind_cpu_input("config", c[b:b + 1])
+                frame = b
             io.bind_output("mask", "cpu", 0, np.bool_, (1, 1, n), mask[b, lo:hi].ctypes.data)
             io.bind_output("score", "cpu", 0, np.float32, (1, 1, n), score[b, lo:hi].ctypes.data)
-            io.bind_cpu_input("cube", t)
             self.session.run_with_iobinding(io)
+            if t is not buf:
+                io.bind_cpu_input("cube", buf)
         return low
 
     @staticmethod
