@@ -243,6 +243,13 @@ def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
         Bd.learn(X, Y, "svm", confusers=C)
 
 
+def test_coverage_training_is_deterministic():
+    X, Y, C = diagonal(3000, seed=2)
+    a = Bd.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
+    b = Bd.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_detector_edge_forms_equal_the_index_rules():
     from torchskin.detect import indices
 

@@ -254,7 +254,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
         else:
             yb, ib = Y, inv
         opt.zero_grad()
-        box = model(train_cfg)[ib]
+        box = model(train_cfg).index_select(0, ib)  # (its backward accumulates deterministically)
         cover = soft_inside(box, yb, t).mean()
         width = (box[:, 1] - box[:, 0] + box[:, 3] - box[:, 2]).mean()
         fa = margin_violation(model(cfg), C, margin).mean()
