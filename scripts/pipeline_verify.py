@@ -28,6 +28,11 @@ def run(argv=None) -> int:
     from torchskin.onboard import Boundaries, Detector
 
     out = Path(a.exports)
+    missing = [f for f in ("boundaries.pt", "boundaries.onnx", "detector.onnx", "boundaries.md", "detector.md",
+                           "evaluation.json") if not (out / f).is_file()]
+    if missing:
+        print(f"[verify] FAIL {out} lacks {', '.join(missing)} (scripts/pipeline_export.py writes them)")
+        return 1
     failures = []
 
     def check(ok, what):
