@@ -25,7 +25,8 @@ def run(argv=None) -> int:
     if rc:
         return rc
     for src, dst in ((work / "boundaries.pt", out / "boundaries.pt"), (work / "evaluation.json", out / "evaluation.json"),
-                     (work / "plots" / "roc.png", out / "roc.png"), (work / "plots" / "pd_heatmap.png", out / "pd_heatmap.png")):
+                     (work / "plots" / "roc.png", out / "roc.png"), (work / "plots" / "pd_heatmap.png", out / "pd_heatmap.png"),
+                     (work / "plots" / "boxes.png", out / "boxes.png")):
         tmp = dst.with_name("." + dst.name + ".tmp")
         shutil.copyfile(src, tmp)
         tmp.replace(dst)

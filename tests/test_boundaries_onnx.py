@@ -195,6 +195,7 @@ def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
                  "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc) >= {"learned", "static", "bins"} and (tmp_path / "p" / "roc.png").exists()
+    assert (tmp_path / "p" / "boxes.png").stat().st_size > 1000
     lit = label & ~shadow  # each row is its own configuration here: the per-configuration mean is pooled Pd
     assert r["static"]["pd_sunlit_mean_over_configs"] == pytest.approx(float(inside[lit].float().mean()))
     # the exported boundaries.onnx evaluates to the same figures as the checkpoint

@@ -345,7 +345,12 @@ def cmd_evaluate(args) -> int:
     res["data_manifest_sha256"] = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
     res["model"] = str(args.model)
     if args.plots:
+        from pathlib import Path as _P
+
+        from .evaluate import boxes_plot
+
         plots(res, args.plots)
+        boxes_plot(args.data, args.model, _P(args.plots) / "boxes.png")
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))
     if args.json:
@@ -510,7 +515,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data")
     ev.add_argument("--data", required=True, help="held-out dataset folder")
     ev.add_argument("--model", required=True, help="checkpoint (.pt) or exported boundaries.onnx")
-    ev.add_argument("--plots", metavar="DIR", help="write roc.png and pd_heatmap.png here")
+    ev.add_argument("--plots", metavar="DIR", help="write roc.png, pd_heatmap.png and boxes.png here")
     ev.add_argument("--save", metavar="FILE", help="write the full result (JSON, with ROC points) here")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_evaluate)

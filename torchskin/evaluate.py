@@ -124,6 +124,50 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
     return out
 
 
+def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 40.0, 90.0), (80.0, 60.0, 10.0)),
+               max_points: int = 20000) -> None:
+    """The picture behind the numbers: held-out sunlit skin pixels (colour: sun zenith), the earthlib test
+    spectra, the static box and the learned box at a few configurations, on (NDGRI, NDSI)."""
+    import pyarrow.dataset as ds
+    from matplotlib.patches import Rectangle
+
+    from .plots import _plt, save_figure
+
+    features, boxes_of = box_function(model_path)
+    d = ds.dataset(str(data_dir), format="parquet")
+    cols = ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"] + (["elm_valid"] if "elm_valid" in d.schema.names else [])
+    t = d.to_table(columns=cols)
+    keep = t.column("label").to_numpy(zero_copy_only=False) & ~t.column("shadow").to_numpy(zero_copy_only=False)
+    if "elm_valid" in cols:
+        keep &= t.column("elm_valid").to_numpy(zero_copy_only=False)
+    g, s, sz = (t.column(c).to_numpy(zero_copy_only=False)[keep] for c in ("ndgri", "ndsi", "sun_zenith_deg"))
+    if len(g) > max_points:
+        pick = np.random.default_rng(0).choice(len(g), max_points, replace=False)
+        g, s, sz = g[pick], s[pick], sz[pick]
+    conf = confuser_indices("test").numpy()
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.0, 5.2))
+    sc = ax.scatter(g, s, c=sz, s=2, alpha=0.35, cmap="viridis", vmin=0, vmax=90, rasterized=True)
+    ax.scatter(conf[:, 0], conf[:, 1], s=5, c="k", marker="x", lw=0.6, label="earthlib test spectra")
+    b = DEFAULT_BOX
+    ax.add_patch(Rectangle((b.b1, b.c1), b.b2 - b.b1, b.c2 - b.c1, fill=False, ec="r", lw=1.8, label="static box (thesis)"))
+    if len(features) == 3:
+        boxes = boxes_of(np.array(configs, dtype=np.float32)).numpy()
+        for k, (c, bx) in enumerate(zip(configs, boxes)):
+            ax.add_patch(Rectangle((bx[0], bx[2]), bx[1] - bx[0], bx[3] - bx[2], fill=False, ec=f"C{k + 1}", lw=1.4,
+                                   ls=("-", "--", ":")[k % 3],
+                                   label=f"learned: sun {c[0]:g}°, camera {c[1]:g}°, rel. az. {c[2]:g}°"))
+    ax.set_xlim(-1.0, 0.6)
+    ax.set_ylim(-0.2, 1.1)
+    ax.set_xlabel("NDGRI (544, 633 nm)")
+    ax.set_ylabel("NDSI (1080, 1580 nm)")
+    ax.set_title("held-out sunlit skin (colour: sun zenith, deg) and confusers")
+    fig.colorbar(sc, ax=ax, fraction=0.04)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
 def plots(result: dict, out_dir) -> None:
     from pathlib import Path
 
