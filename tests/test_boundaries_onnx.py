@@ -290,6 +290,18 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
     with torch.no_grad():
         mask_t, score_t = Detector(res.model)(torch.from_numpy(cube), torch.from_numpy(cfg).float())
     assert np.abs(tiled["score"] - score_t.numpy()).max() < 1e-5 and tiled["mask"].any()
+    det = OnboardDetector(paths["detector"], threads=2, tile=1024)
+    out = (np.zeros((2, 96, 70), dtype=bool), np.zeros((2, 96, 70), dtype=np.float32))
+    for _ in range(2):  # preallocated outputs, reused across frames
+        r = det(cube, cfg, out=out)
+        assert r["mask"] is out[0] and np.array_equal(out[0], whole["mask"]) and np.array_equal(out[1], whole["score"])
+    small = OnboardDetector(paths["detector"])  # one-call path (frame smaller than a tile)
+    out1 = (np.zeros((2, 96, 70), dtype=bool), np.zeros((2, 96, 70), dtype=np.float32))
+    small(cube, cfg, out=out1)
+    assert np.array_equal(out1[1], whole["score"])
+    for bad in [(out[0],), (out[0][:, :-1], out[1]), (out[0], out[1].astype(np.float64)), (out[0], out[1][:, :, ::2])]:
+        with pytest.raises(ValueError, match="out"):
+            det(cube, cfg, out=bad)
     late = cube.copy()
     late[1, 2, 90, 60] = np.nan  # in the last tile of the second frame
     with pytest.raises(ValueError, match="NaN"):

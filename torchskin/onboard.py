@@ -76,11 +76,15 @@ class Detector(_Model):
         if tile < 1024:
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
         self.tile = int(tile)
+        self._buffers: dict[int, np.ndarray] = {}
 
-    def _run_tiles(self, flat, c, mask, score, jobs) -> float:
-        """Run ``jobs`` (frame, first, last pixel); return the smallest reflectance seen (NaN if any)."""
+    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0) -> float:
+        """Run ``jobs`` (frame, first, last pixel) with tile buffer ``slot``; return the smallest reflectance
+        seen (NaN if any)."""
         io = self.session.io_binding()
-        buf = np.empty((1, 4, 1, self.tile), dtype=np.float32)
+        buf = self._buffers.get(slot)
+        if buf is None:  # kept between calls: no fresh pages to fault in per frame
+            buf = self._buffers[slot] = np.empty((1, 4, 1, self.tile), dtype=np.float32)
         io.bind_cpu_input("cube", buf)  # the tile buffer is bound once and refilled
         low, frame = np.inf, -1
         for b, lo, hi in jobs:
@@ -109,7 +113,9 @@ class Detector(_Model):
         if low < 0:
             raise ValueError("cube holds negative reflectance")
 
-    def __call__(self, cube, config) -> dict:
+    def __call__(self, cube, config, out=None) -> dict:
+        """``out``: optional preallocated (mask, score) arrays, (B, H, W) bool and float32, C-contiguous, that
+        receive the result (an onboard loop reuses them; their content is undefined if the call raises)."""
         x = np.asarray(cube)
         if x.ndim != 4:
             raise ValueError(f"cube must have rank 4 (B, bands, H, W), got shape {x.shape}")
@@ -125,12 +131,26 @@ class Detector(_Model):
             raise ValueError(f"config has {c.shape[0]} rows for a batch of {x.shape[0]} frames")
         B, _, H, W = x.shape
         n = H * W
+        if out is not None:
+            if (not isinstance(out, (tuple, list)) or len(out) != 2
+                    or not all(isinstance(a, np.ndarray) for a in out)):
+                raise ValueError("out must be a (mask, score) pair of numpy arrays")
+            for a, dt, name in ((out[0], np.bool_, "mask"), (out[1], np.float32, "score")):
+                if a.shape != (B, H, W) or a.dtype != dt or not a.flags.c_contiguous or not a.flags.writeable:
+                    raise ValueError(f"out {name} must be a writeable C-contiguous {np.dtype(dt).name} array of shape "
+                                     f"{(B, H, W)}, got {a.dtype} {a.shape}")
         if B * n <= self.tile:  # small frames: one call
             self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
-            return {"mask": mask.astype(bool), "score": score, "out_of_domain": ood}
+            if out is not None:
+                out[0][...], out[1][...] = mask, score
+                mask, score = out
+            return {"mask": mask.astype(bool, copy=False), "score": score, "out_of_domain": ood}
         flat = x.reshape(B, 4, n)
-        mask, score = np.empty((B, n), dtype=bool), np.empty((B, n), dtype=np.float32)
+        if out is not None:
+            mask, score = out[0].reshape(B, n), out[1].reshape(B, n)
+        else:
+            mask, score = np.empty((B, n), dtype=bool), np.empty((B, n), dtype=np.float32)
         jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
         k = min(self.threads, len(jobs))
         if k == 1:
@@ -140,9 +160,11 @@ class Detector(_Model):
                 from concurrent.futures import ThreadPoolExecutor
 
                 self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="torchskin-detect")
-            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k]) for i in range(k)]
+            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k], i) for i in range(k)]
             low = np.min([f.result() for f in futures])  # NaN propagates
         self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
+        if out is not None:
+            return {"mask": out[0], "score": out[1], "out_of_domain": ood}
         return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood}
 
 
