@@ -341,3 +341,12 @@ def test_several_skins_in_one_batch_match_one_render_per_skin():
         one = render(sc, sensor=sens)
         torch.testing.assert_close(both.radiance[2 * k:2 * k + 2], one.radiance)
         torch.testing.assert_close(both.reflectance[2 * k:2 * k + 2], one.reflectance)
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 4096, 4), (1, 2, 1001, 4), (3, 1, 50, 3)])
+def test_band_max_equals_amax(shape):
+    from torchskin.render import band_max
+
+    x = torch.rand(shape, generator=torch.Generator().manual_seed(sum(shape)))
+    assert torch.equal(band_max(x), x.amax(dim=2))
+    assert torch.equal(band_max(x.transpose(0, 1).contiguous().transpose(0, 1)), x.amax(dim=2))  # strided input

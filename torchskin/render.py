@@ -94,6 +94,16 @@ class Sensor:
         return {k: torch.tensor(v, dtype=dtype, device=device) for k, v in t.items()}
 
 
+def band_max(x: torch.Tensor) -> torch.Tensor:
+    """Max over axis 2 of (S, C, N, B) -> (S, C, B). Reducing a strided middle axis with 4 bands innermost is
+    ~60x slower on CPU than two reductions over 64-wide contiguous rows, so the frame is viewed that way."""
+    S, C, N, B = x.shape
+    k = B * max(1, 64 // B)
+    if not x.is_contiguous() or (N * B) % k:
+        return x.amax(dim=2)
+    return x.reshape(S * C, -1, k).amax(dim=1).reshape(S * C, k // B, B).amax(dim=1).reshape(S, C, B)
+
+
 def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands, focal_px: float,
                   generator: torch.Generator | None = None, reference: torch.Tensor | None = None) -> torch.Tensor:
     """Digital numbers from at-surface radiance (W m^-2 sr^-1 nm^-1) of shape ``(S, C, ..., B)``.
@@ -113,7 +123,7 @@ def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands, focal_px
     k = omega * area * tb["filter"] * tb["width"] * tb["wavelength_m"] * tb["qe"] / (H_PLANCK * C_LIGHT)
     if sensor.integration_time_s == "auto":
         if reference is None:
-            reference = radiance.reshape(S, C, -1, B).amax(dim=2)
+            reference = band_max(radiance.reshape(S, C, -1, B))
         ref = torch.addcmul(tb["path"], tb["tau"], reference) if sensor.atmosphere else reference
         t_int = sensor.auto_fill * sensor.full_well_e / (k * ref).clamp_min(1e-30)  # (S, C, B)
         k = (k * t_int).reshape(S, C, *mid, B)
