@@ -52,6 +52,12 @@ class GBuffer:
         return GBuffer(**out)
 
 
+def rowsum(x: torch.Tensor) -> torch.Tensor:
+    """Sum over a short last axis (2-4 components) as a matrix-vector product: on CPU ~2-3x faster than
+    ``x.sum(-1)``, whose innermost reduction of 3 values does not vectorise."""
+    return x @ x.new_ones(x.shape[-1])
+
+
 class Raycaster:
     """An open3d ``RaycastingScene`` over a list of ``TriMesh``; build once, cast many times."""
 
@@ -135,13 +141,13 @@ class Raycaster:
         tri = self._faces.index_select(0, face.reshape(-1))  # (N, 3) vertex ids
         nn = self._vnormals.index_select(0, tri.reshape(-1)).reshape(-1, 3, 3)  # (N, vertex, xyz)
         uvf = uv.reshape(-1, 2)
-        wts = torch.cat([1 - uvf.sum(-1, keepdim=True), uvf], -1)  # barycentric weights (1-u-v, u, v)
+        wts = torch.cat([1 - rowsum(uvf)[:, None], uvf], -1)  # barycentric weights (1-u-v, u, v)
         n = torch.bmm(wts[:, None, :], nn).reshape(*shp, 3)
         # two-sided surfaces: turn both normals to the viewer's side of the triangle
         ng = ans["primitive_normals"]
-        side = torch.copysign(torch.ones_like(t), (ng * view).sum(-1))[..., None]
+        side = torch.copysign(torch.ones_like(t), rowsum(ng * view))[..., None]
         ng = ng * side
-        n = n * (side / n.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+        n = n * (side / rowsum(n * n).sqrt_()[..., None].clamp_min(1e-12))
         mesh = self._gid_mesh.index_select(0, gid1.reshape(-1)).reshape(shp)
         mat = self._fmat.index_select(0, face.reshape(-1)).reshape(shp)
         sun = torch.as_tensor(np.asarray(sun_directions, dtype=np.float32)).reshape(-1, 3)

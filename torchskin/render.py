@@ -21,7 +21,7 @@ from .bands import Band, band_sampling
 from .calibrate import elm_coefficients
 from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
 from .optics import THESIS_SPECULAR, combined_brdf_cos, spectralon_brdf_cos
-from .raycast import GBuffer, Raycaster
+from .raycast import GBuffer, Raycaster, rowsum
 from .scene import Scene, TriMesh
 
 H_PLANCK = 6.62607015e-34
@@ -222,7 +222,7 @@ def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
     ns = gb.normal.reshape(-1, 3).index_select(0, idx)
     vs = gb.view.reshape(-1, 3).index_select(0, idx)
     ci = (sun_dirs @ ns.T).clamp_min(0)[..., None]
-    cr = (ns * vs).sum(-1)[None, :, None]
+    cr = rowsum(ns * vs)[None, :, None]
     c2b = (sun_dirs @ vs.T)[..., None]
     return ci, cr, c2b
 
