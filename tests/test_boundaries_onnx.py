@@ -45,6 +45,8 @@ def test_learned_boxes_are_calibrated_conditional_quantiles(trained):
 def test_checkpoint_round_trip(trained, tmp_path):
     X, _, res = trained
     Bd.save(res.model, tmp_path / "m.pt", {"note": "test"})
+    Bd.save(res.model, tmp_path / "m2.pt", {"note": "test"})
+    assert (tmp_path / "m.pt").read_bytes() == (tmp_path / "m2.pt").read_bytes()  # reproducible bytes
     back = Bd.load(tmp_path / "m.pt")
     torch.testing.assert_close(back(X[:50]), res.model(X[:50]))
 

@@ -299,12 +299,18 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
 
 
 def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
-    """A torch checkpoint: state, features and hidden size (+ metadata)."""
+    """A torch checkpoint: state, features and hidden size (+ metadata). Serialised through a buffer, so the
+    archive does not carry the temporary file's random name: the same model gives the same bytes."""
+    import io
+
     from .io import atomic_path
 
+    buf = io.BytesIO()
+    torch.save({"state_dict": model.state_dict(), "features": list(model.features),
+                "hidden": model.hidden, "meta": meta or {}}, buf)
     with atomic_path(path, suffix=".pt") as tmp:
-        torch.save({"state_dict": model.state_dict(), "features": list(model.features),
-                    "hidden": model.hidden, "meta": meta or {}}, tmp)
+        with open(tmp, "wb") as fh:
+            fh.write(buf.getvalue())
 
 
 def load(path) -> BoundaryModel:
