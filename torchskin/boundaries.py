@@ -101,17 +101,12 @@ class TrainResult:
 def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
     """Features (n, k) and (NDGRI, NDSI) (n, 2) of the skin pixels of a generated dataset (float32), from
     frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
-    import pyarrow.dataset as ds
+    from .dataset.files import read_valid
 
-    d = ds.dataset(str(data_dir), format="parquet")
-    has_valid = "elm_valid" in d.schema.names
-    cols = list(features) + ["ndgri", "ndsi", "label", "shadow"] + (["elm_valid"] if has_valid else [])
-    t = d.to_table(columns=cols)
+    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow"])
     keep = t.column("label").to_numpy(zero_copy_only=False).copy()
     if sunlit_only:
         keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
-    if has_valid:
-        keep &= t.column("elm_valid").to_numpy(zero_copy_only=False)
     X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
     Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False),
                   t.column("ndsi").to_numpy(zero_copy_only=False)], -1)[keep]
@@ -124,13 +119,12 @@ def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
 def domain_from_manifest(data_dir, features=FEATURES) -> list[tuple[float, float]] | None:
     """The training domain of each feature as declared by the dataset's configuration (``_manifest.json``):
     the ranges the configurations were drawn from, not the extremes of the draws. None without a manifest."""
-    import json
-    from pathlib import Path
+    from .dataset.files import manifest
 
-    man = Path(data_dir) / "_manifest.json"
-    if not man.is_file():
+    man = manifest(data_dir)
+    if man is None:
         return None
-    cfg = json.loads(man.read_text()).get("config", {})
+    cfg = man.get("config", {})
     declared = {"sun_zenith_deg": cfg.get("sun", {}).get("zenith_deg"),
                 "camera_zenith_deg": cfg.get("camera", {}).get("zenith_deg"),
                 "range_m": cfg.get("camera", {}).get("range_m"),

@@ -284,10 +284,8 @@ def cmd_dataset_verify(args) -> int:
 
 # ------------------------------------------------------------------------------------------------ boundaries
 def cmd_train(args) -> int:
-    import hashlib
-    from pathlib import Path
-
     from . import boundaries as Bd
+    from .dataset.files import manifest_sha256
 
     X, Y = Bd.load_skin_rows(args.data)
     opts = {"hidden": args.hidden, "steps": args.steps, "seed": args.seed}
@@ -298,9 +296,7 @@ def cmd_train(args) -> int:
         opts.update(margin=args.margin, width_cost=args.width_cost)
     model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain, **opts)
     info["options"].pop("domain", None)
-    man = Path(args.data) / "_manifest.json"
-    digest = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
-    info.update(training_manifest_sha256=digest, data=str(args.data))
+    info.update(training_manifest_sha256=manifest_sha256(args.data), data=str(args.data))
     Bd.save(model, args.out, info)
     if args.json:
         print(json.dumps({**info, "out": str(args.out)}))
@@ -333,24 +329,19 @@ def cmd_export(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    import hashlib
     from pathlib import Path
 
-    from .evaluate import evaluate, plots
+    from .dataset.files import manifest_sha256
+    from .evaluate import boxes_plot, evaluate, plots
     from .io import write_text
 
     res = evaluate(args.data, args.model)
-    man = Path(args.data) / "_manifest.json"
     res["data"] = str(args.data)
-    res["data_manifest_sha256"] = hashlib.sha256(man.read_bytes()).hexdigest() if man.is_file() else ""
+    res["data_manifest_sha256"] = manifest_sha256(args.data)
     res["model"] = str(args.model)
     if args.plots:
-        from pathlib import Path as _P
-
-        from .evaluate import boxes_plot
-
         plots(res, args.plots)
-        boxes_plot(args.data, args.model, _P(args.plots) / "boxes.png")
+        boxes_plot(args.data, args.model, Path(args.plots) / "boxes.png")
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))
     if args.json:

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from .boundaries import FEATURES, confuser_indices, false_alarm_rate
+from .dataset.files import read_valid
 from .detect import DEFAULT_BOX
 
 SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
@@ -38,19 +39,10 @@ ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
 
 def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
     """Pd / Pfa of the boxes of ``model_path`` and of the static box on the dataset at ``data_dir``."""
-    import pyarrow.dataset as ds
-
     features, boxes_of = box_function(model_path)
     cols = sorted(set(features) | {"sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri", "ndsi",
                                    "group", "sun", "skin"})
-    d = ds.dataset(str(data_dir), format="parquet")
-    has_valid = "elm_valid" in d.schema.names
-    t = d.to_table(columns=cols + (["elm_valid"] if has_valid else []))
-    excluded = 0
-    if has_valid:  # frames without sunlit panels have no physical ELM: no detector sees them
-        valid = t.column("elm_valid")
-        excluded = len(t) - int(np.count_nonzero(valid.to_numpy(zero_copy_only=False)))
-        t = t.filter(valid)
+    t, excluded = read_valid(data_dir, cols)  # frames without sunlit panels have no physical ELM
     if len(t) == 0:
         raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
     col = {c: torch.from_numpy(np.array(t.column(c).to_numpy(zero_copy_only=False))) for c in cols}
@@ -128,18 +120,13 @@ def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 
                max_points: int = 20000) -> None:
     """The picture behind the numbers: held-out sunlit skin pixels (colour: sun zenith), the earthlib test
     spectra, the static box and the learned box at a few configurations, on (NDGRI, NDSI)."""
-    import pyarrow.dataset as ds
     from matplotlib.patches import Rectangle
 
     from .plots import _plt, save_figure
 
     features, boxes_of = box_function(model_path)
-    d = ds.dataset(str(data_dir), format="parquet")
-    cols = ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"] + (["elm_valid"] if "elm_valid" in d.schema.names else [])
-    t = d.to_table(columns=cols)
+    t, _ = read_valid(data_dir, ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"])
     keep = t.column("label").to_numpy(zero_copy_only=False) & ~t.column("shadow").to_numpy(zero_copy_only=False)
-    if "elm_valid" in cols:
-        keep &= t.column("elm_valid").to_numpy(zero_copy_only=False)
     g, s, sz = (t.column(c).to_numpy(zero_copy_only=False)[keep] for c in ("ndgri", "ndsi", "sun_zenith_deg"))
     if len(g) > max_points:
         pick = np.random.default_rng(0).choice(len(g), max_points, replace=False)

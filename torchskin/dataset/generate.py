@@ -12,7 +12,6 @@ interrupted run resumes by regenerating the shards whose checksum does not match
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -24,12 +23,12 @@ import torch
 from .. import __version__
 from ..io import atomic_path, write_text
 from ..raycast import Raycaster
-from ..render import Sensor, build_meshes, render
+from ..render import Sensor, build_meshes, panel_pixels, render
 from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
 from .config import PoseGroup, sample_group
+from .files import MANIFEST, sha256_file
 
 SCHEMA_VERSION = 2  # 2: elm_valid column, level panels
-MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
 BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
@@ -148,8 +147,6 @@ def panels_sunlit(gb, panel_names: list[str], sun_dirs: torch.Tensor, min_fracti
     """Per sun (S,): whether every reference panel has at least ``min_fraction`` of its interior pixels
     sunlit (facing the sun and not in a cast shadow). Without sunlit panels the ELM gain is set by sky light
     alone and the frame's reflectance is meaningless."""
-    from ..render import panel_pixels
-
     ok = torch.ones(sun_dirs.shape[0], dtype=torch.bool)
     normal = gb.normal[0].reshape(-1, 3).float()
     shadow = gb.shadow[:, 0].reshape(sun_dirs.shape[0], -1)
@@ -243,14 +240,6 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
 
 
 # -------------------------------------------------------------------------------------------------- shards
-def sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def shard_name(k: int) -> str:
     return f"shard-{k:05d}.parquet"
 
