@@ -131,7 +131,7 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
                  "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"] > 100
     # the training domain is the dataset's declared ranges, not the extremes of its few draws
-    assert Bd.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 70.0], [0.0, 180.0]]
+    assert Bd.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
     assert main(["export", "--model", str(tmp_path / "m.pt"), "--out", str(tmp_path / "exports"), "--json"]) == 0
     paths = json.loads(capsys.readouterr().out)
     import onnx
@@ -153,6 +153,12 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     bad = subprocess.run([sys.executable, "-c", script.replace("'40'", "'40'").replace("'--camera-zenith', '30', ", "")],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--camera-zenith" in bad.stderr
+    cube[:, 0, :3] = -1e-4  # 3 dark pixels with noise below 0 in every band: refused, unless --clip-negative
+    np.save(tmp_path / "cube.npy", cube)
+    assert main(args) == 2 and "--clip-negative" in capsys.readouterr().err
+    assert main(args + ["--clip-negative"]) == 0
+    clipped = json.loads(capsys.readouterr().out)
+    assert clipped["clipped_values"] == [12] and clipped["skin_pixels"] == out["skin_pixels"] - 3  # 3 black pixels
 
 
 def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
@@ -311,3 +317,33 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
     late[1, 2, 90, 60] = -0.01
     with pytest.raises(ValueError, match="negative"):
         OnboardDetector(paths["detector"], threads=2, tile=1024)(late, cfg)
+
+
+@pytest.mark.parametrize("tile", [1024, 1 << 20])  # tiled on 2 workers (ragged last tile), and one call
+def test_onboard_clips_negative_noise_only_when_asked(trained, tmp_path, tile):
+    """negative="clip": the mask and score equal those of the cube with negatives set to 0, the count of
+    clipped values per frame comes back, the caller's cube is untouched and NaN is still refused."""
+    from torchskin.onboard import Detector as OnboardDetector
+
+    X, _, res = trained
+    paths = export(res.model, tmp_path)
+    rng = np.random.default_rng(5)
+    cube = (rng.random((2, 4, 96, 70)) * 0.7 - 0.05).astype(np.float32)  # ~7 % slightly negative values
+    cube[1, 3, :10] = -0.2
+    cfg = X[:2].numpy().astype(np.float64)
+    det = OnboardDetector(paths["detector"], threads=2, tile=tile)
+    with pytest.raises(ValueError, match="clip"):  # the error names the way out
+        det(cube, cfg)
+    before = cube.copy()
+    got = det(cube, cfg, negative="clip")
+    ref = det(np.maximum(cube, 0), cfg)
+    assert np.array_equal(cube, before)
+    assert np.array_equal(got["mask"], ref["mask"]) and np.array_equal(got["score"], ref["score"])
+    assert got["clipped_values"].tolist() == [int((cube[b] < 0).sum()) for b in range(2)]
+    assert "clipped_values" not in ref and got["mask"].any()
+    nan = cube.copy()
+    nan[1, 0, 95, 69] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        det(nan, cfg, negative="clip")
+    with pytest.raises(ValueError, match="negative must be"):
+        det(cube, cfg, negative="ignore")

@@ -17,7 +17,7 @@ def test_defaults_validate_and_cover_declared_ranges():
     ks = np.max(np.abs(np.arange(1, x.size + 1) / x.size - x))
     assert ks < 0.03
     cam = np.array([g.camera["zenith_deg"] for g in groups])
-    assert cam.min() >= 0.0 and cam.max() <= 70.0 and cam.max() - cam.min() > 60.0
+    assert cam.min() >= 0.0 and cam.max() <= 90.0 and cam.max() - cam.min() > 80.0
     rng_m = np.array([g.camera["range_m"] for g in groups])
     assert rng_m.min() >= 5.0 and rng_m.max() <= 100.0
     types = [s["type"] for g in groups for s in g.skins]

@@ -226,3 +226,42 @@ def test_elm_validity_follows_panel_sunlight(tmp_path, subject_obj):
     gb = Raycaster(meshes, names).gbuffer(sc.cameras, dirs)
     ok = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32))
     assert ok.tolist() == [True, True, False, False]
+
+
+@pytest.mark.parametrize("camera_zenith", [50.0, 80.0, 90.0])
+def test_panels_stay_visible_down_to_a_horizontal_camera(subject_obj, camera_zenith):
+    """Level panels up to a 70° camera zenith; below 20° camera elevation they turn towards the camera just
+    enough that it sees them 70° off their normal (a horizontal camera sees level panels edge-on), and the
+    frame's ELM then follows the sun: valid with the sun behind the camera, not with a low sun behind the
+    panels."""
+    import math
+
+    import numpy as np
+    import torch
+
+    from torchskin.dataset.config import sample_group
+    from torchskin.dataset.generate import PANEL_MAX_VIEW_DEG, group_scene, panel_tilt_deg, panels_sunlit
+    from torchskin.raycast import Raycaster
+    from torchskin.render import build_meshes, panel_pixels
+
+    g = sample_group(small_cfg(subject_obj, camera={"zenith_deg": [camera_zenith] * 2, "range_m": [60.0, 60.0],
+                                                    "width": 96, "height": 96}), 0, 0)
+    sc = group_scene(g)
+    az = math.radians(g.camera["azimuth_deg"])
+    to_cam = np.array([math.cos(az), math.sin(az)])
+    behind_camera = [*(math.sin(math.radians(40.0)) * to_cam), math.cos(math.radians(40.0))]
+    low_behind_panels = [*(-math.sin(math.radians(85.0)) * to_cam), math.cos(math.radians(85.0))]
+    dirs = np.array([behind_camera, low_behind_panels])
+    meshes, names = build_meshes(sc)
+    gb = Raycaster(meshes, names).gbuffer(sc.cameras, dirs)
+    view_deg = []
+    for per_cam in panel_pixels(gb, list(sc.panels)):
+        ix = per_cam[0]
+        assert ix.numel() >= 20
+        cos = (gb.normal.reshape(-1, 3)[ix] * gb.view.reshape(-1, 3)[ix]).sum(-1)
+        view_deg.append(math.degrees(math.acos(float(cos.mean()))))
+    expected = min(camera_zenith, PANEL_MAX_VIEW_DEG)
+    assert panel_tilt_deg(camera_zenith) == 90.0 - max(0.0, camera_zenith - PANEL_MAX_VIEW_DEG)
+    assert view_deg == pytest.approx([expected] * 2, abs=1.5)  # a 60 m range: nearly parallel rays
+    ok = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32)).tolist()
+    assert ok == [True, camera_zenith <= PANEL_MAX_VIEW_DEG]  # a level panel is lit by any sun above the horizon

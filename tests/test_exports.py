@@ -57,7 +57,7 @@ def test_committed_metadata_and_cards(committed, tmp_path):
         meta = {p.key: p.value for p in m.metadata_props}
         assert m.opset_import[0].version >= 17
         assert json.loads(meta["features"]) == list(model.features)
-        assert json.loads(meta["feature_domain"]) == model.domain.tolist() == [[0.0, 89.0], [0.0, 70.0], [0.0, 180.0]]
+        assert json.loads(meta["feature_domain"]) == model.domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
         assert json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0] and len(meta["training_manifest_sha256"]) == 64
         card = (EXPORTS / f"{name}.md").read_text()
         for section in ("## Intended use", "## Training data", "## Evaluation", "## Limits"):

@@ -104,7 +104,10 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               "- Sunlit skin drove the boxes; shadowed skin is reported but was not optimised for. Glints that push "
               "NDGRI towards 0 are missed by design (they overlap vegetation and soils).",
               "- The four band centres and widths must match the training sensor (Gaussian bands, see metadata).",
-              "- Configurations outside the feature domain above are flagged, never silently extrapolated.", ""]
+              "- Configurations outside the feature domain above are flagged, never silently extrapolated.",
+              "- Reflectance must be finite and non-negative: the onboard runtime refuses NaN always and negative "
+              "values unless asked to clip them to 0 (`negative=\"clip\"`, `torchskin detect --clip-negative`), as "
+              "ELM leaves noise around 0 on dark pixels such as sky.", ""]
     return "\n".join(lines)
 
 

@@ -9,6 +9,9 @@ see ``torchskin.export.Detector``).
 
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance raise ``ValueError``;
 configurations outside the training domain are flagged per frame in ``out_of_domain`` (never silently used).
+Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative reflectance from sensor noise:
+``det(cube, config, negative="clip")`` sets those values to 0 instead and counts them per frame in
+``clipped_values`` (a pixel whose band pairs sum to 0 is never skin).
 """
 
 from __future__ import annotations
@@ -78,9 +81,9 @@ class Detector(_Model):
         self.tile = int(tile)
         self._buffers: dict[int, np.ndarray] = {}
 
-    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0) -> float:
+    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0, clipped=None) -> float:
         """Run ``jobs`` (frame, first, last pixel) with tile buffer ``slot``; return the smallest reflectance
-        seen (NaN if any)."""
+        seen (NaN if any). ``clipped`` (per-frame counts): set negative values to 0 and count them."""
         io = self.session.io_binding()
         buf = self._buffers.get(slot)
         if buf is None:  # kept between calls: no fresh pages to fault in per frame
@@ -95,6 +98,9 @@ class Detector(_Model):
             else:
                 t = buf
             t[0, :, 0, :] = flat[b, :, lo:hi]
+            if clipped is not None:
+                clipped[b] += np.count_nonzero(t < 0)
+                np.maximum(t, 0, out=t)  # NaN stays NaN
             low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
             if b != frame:
                 io.bind_cpu_input("config", c[b:b + 1])
@@ -111,11 +117,16 @@ class Detector(_Model):
         if np.isnan(low):
             raise ValueError("cube holds NaN reflectance")
         if low < 0:
-            raise ValueError("cube holds negative reflectance")
+            raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
+                             "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
-    def __call__(self, cube, config, out=None) -> dict:
+    def __call__(self, cube, config, out=None, negative: str = "error") -> dict:
         """``out``: optional preallocated (mask, score) arrays, (B, H, W) bool and float32, C-contiguous, that
-        receive the result (an onboard loop reuses them; their content is undefined if the call raises)."""
+        receive the result (an onboard loop reuses them; their content is undefined if the call raises).
+        ``negative``: "error" (default) raises on negative reflectance; "clip" sets it to 0 (the caller's
+        cube is not modified) and reports the count per frame as ``clipped_values``."""
+        if negative not in ("error", "clip"):
+            raise ValueError(f"negative must be 'error' or 'clip', got {negative!r}")
         x = np.asarray(cube)
         if x.ndim != 4:
             raise ValueError(f"cube must have rank 4 (B, bands, H, W), got shape {x.shape}")
@@ -139,13 +150,18 @@ class Detector(_Model):
                 if a.shape != (B, H, W) or a.dtype != dt or not a.flags.c_contiguous or not a.flags.writeable:
                     raise ValueError(f"out {name} must be a writeable C-contiguous {np.dtype(dt).name} array of shape "
                                      f"{(B, H, W)}, got {a.dtype} {a.shape}")
+        clipped = np.zeros(B, dtype=np.int64) if negative == "clip" else None
+        extra = {} if clipped is None else {"clipped_values": clipped}
         if B * n <= self.tile:  # small frames: one call
+            if clipped is not None:
+                clipped += np.count_nonzero(x < 0, axis=(1, 2, 3))
+                x = np.maximum(x, 0)
             self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
             if out is not None:
                 out[0][...], out[1][...] = mask, score
                 mask, score = out
-            return {"mask": mask.astype(bool, copy=False), "score": score, "out_of_domain": ood}
+            return {"mask": mask.astype(bool, copy=False), "score": score, "out_of_domain": ood, **extra}
         flat = x.reshape(B, 4, n)
         if out is not None:
             mask, score = out[0].reshape(B, n), out[1].reshape(B, n)
@@ -153,19 +169,23 @@ class Detector(_Model):
             mask, score = np.empty((B, n), dtype=bool), np.empty((B, n), dtype=np.float32)
         jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
         k = min(self.threads, len(jobs))
+        counts = None if clipped is None else [np.zeros(B, dtype=np.int64) for _ in range(k)]  # one per worker
         if k == 1:
-            low = self._run_tiles(flat, c, mask, score, jobs)
+            low = self._run_tiles(flat, c, mask, score, jobs, 0, None if counts is None else counts[0])
         else:
             if self._pool is None:
                 from concurrent.futures import ThreadPoolExecutor
 
                 self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="torchskin-detect")
-            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k], i) for i in range(k)]
+            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k], i,
+                                         None if counts is None else counts[i]) for i in range(k)]
             low = np.min([f.result() for f in futures])  # NaN propagates
         self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
+        if counts is not None:
+            clipped += np.sum(counts, axis=0)
         if out is not None:
-            return {"mask": out[0], "score": out[1], "out_of_domain": ood}
-        return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood}
+            return {"mask": out[0], "score": out[1], "out_of_domain": ood, **extra}
+        return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood, **extra}
 
 
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
@@ -217,6 +237,9 @@ def cli_detect(argv: list[str]) -> int:
     ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
     ap.add_argument("--range", type=float, help="metres (if the model uses it)")
     ap.add_argument("--out", help="mask PNG (first frame)")
+    ap.add_argument("--clip-negative", action="store_true",
+                    help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
+                         "clipped, instead of refusing the cube")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     try:
@@ -233,16 +256,22 @@ def cli_detect(argv: list[str]) -> int:
             if v is None:
                 raise ValueError(f"the model needs --{FLAG_FOR_FEATURE.get(f, f).replace('_', '-')} ({f})")
             values.append(v)
-        out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)))
+        out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
+                  negative="clip" if args.clip_negative else "error")
         if args.out:
             write_png(args.out, out["mask"][0])
         frac = float(out["mask"].mean())
+        clipped = out.get("clipped_values")
         if args.json:
-            print(json.dumps({"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
-                              "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}))
+            res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
+                   "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
+            if clipped is not None:
+                res["clipped_values"] = clipped.tolist()
+            print(json.dumps(res))
         else:
             flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
-            print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}")
+            clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
+            print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
         return 0
     except ValueError as e:
         print(f"torchskin detect: error: {e}", file=sys.stderr)

@@ -28,7 +28,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "per_pose": (16, "int>=1"),
     },
     "camera": {
-        "zenith_deg": ([0.0, 70.0], (0.0, 89.0)),
+        "zenith_deg": ([0.0, 90.0], (0.0, 90.0)),  # 90: a horizontal, ground-level camera (the thesis)
         "azimuth_deg": ([0.0, 360.0], (0.0, 360.0)),
         "range_m": ([5.0, 100.0], (0.5, 10000.0)),
         "width": (256, "int>=16"),

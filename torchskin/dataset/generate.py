@@ -28,7 +28,7 @@ from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
 from .config import PoseGroup, sample_group
 from .files import MANIFEST, sha256_file
 
-SCHEMA_VERSION = 2  # 2: elm_valid column, level panels
+SCHEMA_VERSION = 2  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg)
 BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
@@ -89,11 +89,23 @@ def _arrow_schema():
     return pa.schema([(k, types.get(v[0]) or getattr(pa, v[0])()) for k, v in COLUMNS.items()])
 
 
+#: the steepest view onto a reference panel, degrees from its normal (level panels up to this camera zenith)
+PANEL_MAX_VIEW_DEG = 70.0
+
+
+def panel_tilt_deg(camera_zenith_deg: float) -> float:
+    """``MeshSpec.tilt_deg`` of the reference panels (90: level; smaller: turned towards the camera). Level
+    while the camera sees them at most ``PANEL_MAX_VIEW_DEG`` from their normal; beyond, tilted just enough to
+    keep that view angle (a horizontal camera sees level panels edge-on: no ELM), so a sun lower than
+    90° - PANEL_MAX_VIEW_DEG behind them may leave them unlit (``elm_valid`` false)."""
+    return 90.0 - max(0.0, float(camera_zenith_deg) - PANEL_MAX_VIEW_DEG)
+
+
 def group_scene(g: PoseGroup) -> Scene:
-    """The scene of a pose group: subject at the origin (yawed), two level reference panels beside it (on
-    0.8 m stands, as panels are laid out for ELM in the field: every sun above the horizon lights them unless
-    the subject shadows them), a ground plane, the group's camera and suns. The skin material is set per skin
-    later."""
+    """The scene of a pose group: subject at the origin (yawed), two reference panels beside it on 0.8 m
+    stands, level as panels are laid out for ELM in the field (every sun above the horizon lights them unless
+    the subject shadows them) and tilted towards cameras lower than 20° elevation (``panel_tilt_deg``), a
+    ground plane, the group's camera and suns. The skin material is set per skin later."""
     cam = Camera(width=g.camera["width"], height=g.camera["height"], zenith_deg=g.camera["zenith_deg"],
                  azimuth_deg=g.camera["azimuth_deg"], range_m=g.camera["range_m"],
                  target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=g.camera["fov_deg"])
@@ -108,7 +120,7 @@ def group_scene(g: PoseGroup) -> Scene:
         body = MeshSpec("subject", "file", "skin", params={"path": g.subject["path"]}, yaw_deg=g.subject["yaw_deg"])
     az = math.radians(g.camera["azimuth_deg"])
     side = np.array([-math.sin(az), math.cos(az), 0.0])
-    tilt = 90.0  # level panels
+    tilt = panel_tilt_deg(g.camera["zenith_deg"])
     panels = [MeshSpec(name, "plane", mat, params={"width": 0.5, "height": 0.5},
                        position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
                        tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
