@@ -347,3 +347,11 @@ def test_onboard_clips_negative_noise_only_when_asked(trained, tmp_path, tile):
         det(nan, cfg, negative="clip")
     with pytest.raises(ValueError, match="negative must be"):
         det(cube, cfg, negative="ignore")
+    # a brightness floor: pixels at the noise floor (mean reflectance <= 0.2 here) are never skin
+    dark = np.maximum(cube, 0)
+    gated = det(dark, cfg, min_reflectance=0.2)
+    bright = dark.mean(1) > 0.2
+    assert np.array_equal(gated["mask"], ref["mask"] & bright) and 0 < (ref["mask"] & ~bright).sum()
+    assert np.array_equal(gated["score"], ref["score"])  # the score stays the rules' margin
+    with pytest.raises(ValueError, match="min_reflectance"):
+        det(dark, cfg, min_reflectance=-0.1)

@@ -513,6 +513,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("detect", help="skin mask of a cube with detector.onnx (numpy + onnxruntime only; "
                                   "see torchskin detect --help)")
+    sub.add_parser("calibrate", help="signals to reflectance with ELM through panel regions (numpy only; "
+                                     "see torchskin calibrate --help)")
 
     bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
     bp.add_argument("--json", action="store_true")

@@ -107,7 +107,8 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               "- Configurations outside the feature domain above are flagged, never silently extrapolated.",
               "- Reflectance must be finite and non-negative: the onboard runtime refuses NaN always and negative "
               "values unless asked to clip them to 0 (`negative=\"clip\"`, `torchskin detect --clip-negative`), as "
-              "ELM leaves noise around 0 on dark pixels such as sky.", ""]
+              "ELM leaves noise around 0 on dark pixels such as sky. The indices of such pixels are ratios of noise: "
+              "`min_reflectance` (`--min-reflectance`) rejects pixels whose mean reflectance is below a floor.", ""]
     return "\n".join(lines)
 
 

@@ -81,9 +81,10 @@ class Detector(_Model):
         self.tile = int(tile)
         self._buffers: dict[int, np.ndarray] = {}
 
-    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0, clipped=None) -> float:
+    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0, clipped=None, floor: float = 0.0) -> float:
         """Run ``jobs`` (frame, first, last pixel) with tile buffer ``slot``; return the smallest reflectance
-        seen (NaN if any). ``clipped`` (per-frame counts): set negative values to 0 and count them."""
+        seen (NaN if any). ``clipped`` (per-frame counts): set negative values to 0 and count them. ``floor``:
+        pixels whose band sum is not above it are not skin."""
         io = self.session.io_binding()
         buf = self._buffers.get(slot)
         if buf is None:  # kept between calls: no fresh pages to fault in per frame
@@ -108,6 +109,8 @@ class Detector(_Model):
             io.bind_output("mask", "cpu", 0, np.bool_, (1, 1, n), mask[b, lo:hi].ctypes.data)
             io.bind_output("score", "cpu", 0, np.float32, (1, 1, n), score[b, lo:hi].ctypes.data)
             self.session.run_with_iobinding(io)
+            if floor > 0:
+                mask[b, lo:hi] &= t[0, :, 0, :].sum(0) > floor
             if t is not buf:
                 io.bind_cpu_input("cube", buf)
         return low
@@ -120,13 +123,17 @@ class Detector(_Model):
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
-    def __call__(self, cube, config, out=None, negative: str = "error") -> dict:
+    def __call__(self, cube, config, out=None, negative: str = "error", min_reflectance: float = 0.0) -> dict:
         """``out``: optional preallocated (mask, score) arrays, (B, H, W) bool and float32, C-contiguous, that
         receive the result (an onboard loop reuses them; their content is undefined if the call raises).
         ``negative``: "error" (default) raises on negative reflectance; "clip" sets it to 0 (the caller's
-        cube is not modified) and reports the count per frame as ``clipped_values``."""
+        cube is not modified) and reports the count per frame as ``clipped_values``. ``min_reflectance`` > 0:
+        pixels whose mean reflectance over the bands is not above it are never skin (at the noise floor the
+        indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 (default) keeps the rules alone."""
         if negative not in ("error", "clip"):
             raise ValueError(f"negative must be 'error' or 'clip', got {negative!r}")
+        if not (0.0 <= float(min_reflectance) < 1.0):
+            raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
         x = np.asarray(cube)
         if x.ndim != 4:
             raise ValueError(f"cube must have rank 4 (B, bands, H, W), got shape {x.shape}")
@@ -158,6 +165,8 @@ class Detector(_Model):
                 x = np.maximum(x, 0)
             self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
+            if min_reflectance > 0:
+                mask &= x.sum(1) > x.shape[1] * float(min_reflectance)
             if out is not None:
                 out[0][...], out[1][...] = mask, score
                 mask, score = out
@@ -170,15 +179,16 @@ class Detector(_Model):
         jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
         k = min(self.threads, len(jobs))
         counts = None if clipped is None else [np.zeros(B, dtype=np.int64) for _ in range(k)]  # one per worker
+        floor = x.shape[1] * float(min_reflectance)
         if k == 1:
-            low = self._run_tiles(flat, c, mask, score, jobs, 0, None if counts is None else counts[0])
+            low = self._run_tiles(flat, c, mask, score, jobs, 0, None if counts is None else counts[0], floor)
         else:
             if self._pool is None:
                 from concurrent.futures import ThreadPoolExecutor
 
                 self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="torchskin-detect")
             futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k], i,
-                                         None if counts is None else counts[i]) for i in range(k)]
+                                         None if counts is None else counts[i], floor) for i in range(k)]
             low = np.min([f.result() for f in futures])  # NaN propagates
         self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
         if counts is not None:
@@ -186,6 +196,166 @@ class Detector(_Model):
         if out is not None:
             return {"mask": out[0], "score": out[1], "out_of_domain": ood, **extra}
         return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood, **extra}
+
+
+# ------------------------------------------------------------------------- ELM for camera frames (numpy only)
+def parse_roi(text: str) -> tuple[int, int, int, int]:
+    """``"Y0:Y1:X0:X1"`` (rows Y0..Y1-1, columns X0..X1-1) -> a tuple of ints."""
+    parts = str(text).split(":")
+    try:
+        roi = tuple(int(p) for p in parts)
+    except ValueError:
+        roi = ()
+    if len(roi) != 4:
+        raise ValueError(f"a panel region must be Y0:Y1:X0:X1 (integers), got {text!r}")
+    return roi
+
+
+def panel_signal(frame, roi, erode: int = 1) -> np.ndarray:
+    """Per-band median of ``frame`` (bands, H, W) over the region ``roi`` = (y0, y1, x0, x1) shrunk by ``erode``
+    pixels on every side (the panel's edges mix with the background)."""
+    f = np.asarray(frame)
+    if f.ndim != 3:
+        raise ValueError(f"frame must be (bands, H, W), got shape {f.shape}")
+    if int(erode) < 0:
+        raise ValueError(f"erode must be >= 0 pixels, got {erode}")
+    y0, y1, x0, x1 = (int(v) for v in roi)
+    H, W = f.shape[1:]
+    if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
+        raise ValueError(f"panel region {y0}:{y1}:{x0}:{x1} must satisfy 0 <= Y0 < Y1 <= {H} and 0 <= X0 < X1 <= {W}")
+    e = int(erode)
+    if y1 - y0 <= 2 * e or x1 - x0 <= 2 * e:
+        raise ValueError(f"panel region {y0}:{y1}:{x0}:{x1} has no interior pixel after eroding {e} px per side")
+    v = f[:, y0 + e:y1 - e, x0 + e:x1 - e].reshape(f.shape[0], -1).astype(np.float64)
+    if not np.isfinite(v).all():
+        raise ValueError(f"panel region {y0}:{y1}:{x0}:{x1} holds NaN or infinite values")
+    return np.median(v, axis=1)
+
+
+def elm_fit(frame, panels, erode: int = 1) -> dict:
+    """Empirical line L = gain·ρ + offset per band (eqs 2.5.5-2.5.6) from reference panels in ``frame``
+    (bands, H, W): ``panels`` is a sequence of (roi, reflectance), the reflectance a scalar or one value per
+    band in (0, 1]. Two panels give the exact line through them; more give the least-squares line, whose RMS
+    residual (reflectance units) is reported per band."""
+    f = np.asarray(frame)
+    if f.ndim != 3:
+        raise ValueError(f"frame must be (bands, H, W), got shape {f.shape}")
+    if len(panels) < 2:
+        raise ValueError(f"ELM needs at least 2 reference panels, got {len(panels)}")
+    nb = f.shape[0]
+    refs, sig = [], []
+    for roi, rho in panels:
+        r = np.broadcast_to(np.asarray(rho, dtype=np.float64), (nb,)) if np.ndim(rho) == 0 else np.asarray(rho, np.float64)
+        if r.shape != (nb,):
+            raise ValueError(f"panel reflectance must be one value or {nb} (one per band), got {np.shape(rho)}")
+        if not (np.all(r > 0) and np.all(r <= 1)):
+            raise ValueError(f"panel reflectance must lie in (0, 1], got {r.tolist()}")
+        refs.append(r)
+        sig.append(panel_signal(f, roi, erode))
+    R, L = np.stack(refs), np.stack(sig)  # (P, bands)
+    dR = R - R.mean(0)
+    var = (dR ** 2).sum(0)
+    if np.any(var < 1e-12):
+        bad = np.flatnonzero(var < 1e-12).tolist()
+        raise ValueError(f"panel reflectances must differ in every band (band(s) {bad} have equal references)")
+    gain = (dR * (L - L.mean(0))).sum(0) / var
+    if np.any(gain <= 0):
+        bad = np.flatnonzero(gain <= 0).tolist()
+        raise ValueError(f"panel signals do not grow with reflectance in band(s) {bad}: regions or reflectances "
+                         "swapped, or a panel saturated or in shadow?")
+    offset = L.mean(0) - gain * R.mean(0)
+    resid = np.sqrt((((L - offset) / gain - R) ** 2).mean(0))
+    return {"gain": gain, "offset": offset, "signals": L, "references": R, "residual": resid}
+
+
+def elm_apply(cube, gain, offset) -> np.ndarray:
+    """Reflectance (float32) of signals ``cube`` (bands, H, W) or (B, bands, H, W): (L - offset) / gain."""
+    x = np.asarray(cube)
+    g, o = np.asarray(gain, np.float64), np.asarray(offset, np.float64)
+    if x.ndim not in (3, 4) or g.shape != (x.shape[-3],) or o.shape != g.shape:
+        raise ValueError(f"cube must be (bands, H, W) or (B, bands, H, W) with one gain and offset per band; got "
+                         f"cube {x.shape}, gain {g.shape}, offset {o.shape}")
+    if not np.all(np.isfinite(g)) or np.any(g <= 0) or not np.all(np.isfinite(o)):
+        raise ValueError("gain must be finite and > 0 and offset finite in every band")
+    inv = (1.0 / g)[:, None, None]
+    return ((x - o[:, None, None]) * inv).astype(np.float32)
+
+
+def cli_calibrate(argv: list[str]) -> int:
+    """``torchskin calibrate --cube DN.npy (--panel Y0:Y1:X0:X1=REFL ... | --coefficients ELM.json) --out
+    REFL.npy [--save-coefficients ELM.json] [--erode PX] [--json]`` (numpy only)."""
+    import argparse
+    import sys
+
+    from .io import atomic_path, write_text
+
+    ap = argparse.ArgumentParser(prog="torchskin calibrate", description="Signals (DN or radiance) to reflectance "
+                                 "with the empirical line through reference panels in the frame (numpy only).")
+    ap.add_argument("--cube", required=True, help=".npy signal cube (bands, H, W), or (B, bands, H, W) with "
+                    "--coefficients")
+    ap.add_argument("--panel", action="append", default=[], metavar="Y0:Y1:X0:X1=REFL",
+                    help="a reference panel: pixel region and reflectance (one value, or one per band separated by "
+                         "commas); repeat for each panel (at least 2)")
+    ap.add_argument("--coefficients", help="apply a saved gain/offset JSON instead of fitting panels")
+    ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
+    ap.add_argument("--out", required=True, help="reflectance cube .npy (float32)")
+    ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    try:
+        if bool(args.panel) == bool(args.coefficients):
+            raise ValueError("give either --panel (at least twice) or --coefficients")
+        try:
+            cube = np.load(args.cube)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"cannot read cube {args.cube!r}: {e}") from None
+        if not np.issubdtype(cube.dtype, np.number):
+            raise ValueError(f"cube must be numeric, got {cube.dtype}")
+        if args.coefficients:
+            try:
+                doc = json.loads(open(args.coefficients).read())
+                gain, offset = np.asarray(doc["gain"], np.float64), np.asarray(doc["offset"], np.float64)
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                raise ValueError(f"cannot read coefficients {args.coefficients!r}: {e}") from None
+            fit = None
+        else:
+            panels = []
+            for p in args.panel:
+                roi, sep, rho = p.partition("=")
+                try:
+                    vals = [float(v) for v in rho.split(",")] if sep else []
+                except ValueError:
+                    vals = []
+                if not vals:
+                    raise ValueError(f"--panel must be Y0:Y1:X0:X1=REFL[,REFL...], got {p!r}")
+                panels.append((parse_roi(roi), vals[0] if len(vals) == 1 else vals))
+            if cube.ndim != 3:
+                raise ValueError(f"fitting panels needs one frame (bands, H, W), got shape {cube.shape}")
+            fit = elm_fit(cube, panels, args.erode)
+            gain, offset = fit["gain"], fit["offset"]
+        refl = elm_apply(cube, gain, offset)
+        coef = {"gain": gain.tolist(), "offset": offset.tolist()}
+        if fit is not None:
+            coef["panels"] = [{"region": list(parse_roi(p.partition("=")[0])), "reflectance": r.tolist(),
+                               "signal": s.tolist()} for p, r, s in zip(args.panel, fit["references"], fit["signals"])]
+            coef["residual"] = fit["residual"].tolist()
+        with atomic_path(args.out, suffix=".npy") as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, refl)
+        if args.save_coefficients:
+            write_text(args.save_coefficients, json.dumps(coef, indent=1))
+        res = {**coef, "out": args.out, "shape": list(refl.shape),
+               "reflectance_range": [float(np.nanmin(refl)), float(np.nanmax(refl))]}
+        if args.json:
+            print(json.dumps(res))
+        else:
+            print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
+                  f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
+                  + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
+        return 0
+    except ValueError as e:
+        print(f"torchskin calibrate: error: {e}", file=sys.stderr)
+        return 2
 
 
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
@@ -240,6 +410,9 @@ def cli_detect(argv: list[str]) -> int:
     ap.add_argument("--clip-negative", action="store_true",
                     help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
                          "clipped, instead of refusing the cube")
+    ap.add_argument("--min-reflectance", type=float, default=0.0,
+                    help="pixels whose mean reflectance over the bands is not above this are never skin (their "
+                         "indices are noise); default 0: the rules alone")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     try:
@@ -257,7 +430,7 @@ def cli_detect(argv: list[str]) -> int:
                 raise ValueError(f"the model needs --{FLAG_FOR_FEATURE.get(f, f).replace('_', '-')} ({f})")
             values.append(v)
         out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
-                  negative="clip" if args.clip_negative else "error")
+                  negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
         if args.out:
             write_png(args.out, out["mask"][0])
         frac = float(out["mask"].mean())

@@ -310,6 +310,27 @@ def panel_pixels(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> list
     return out
 
 
+def panel_regions(gb: GBuffer, panel_names: list[str], erode_px: int = 1, camera: int = 0) -> dict[str, list[int]]:
+    """An axis-aligned rectangle [y0, y1, x0, x1] (rows y0..y1-1, columns x0..x1-1) of each panel's interior
+    pixels in one camera's image: the bounding box of the interior, shrunk from its emptiest side until every
+    pixel inside is interior (for ELM from pixel regions, e.g. ``torchskin calibrate``)."""
+    H, W = gb.hit.shape[-2:]
+    out = {}
+    for name, per_cam in zip(panel_names, panel_pixels(gb, panel_names, erode_px)):
+        m = np.zeros(H * W, dtype=bool)
+        m[per_cam[camera].cpu().numpy()] = True
+        m = m.reshape(H, W)
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        while y1 > y0 and x1 > x0 and not m[y0:y1, x0:x1].all():
+            sub = m[y0:y1, x0:x1]
+            empty = [(~sub[0]).mean(), (~sub[-1]).mean(), (~sub[:, 0]).mean(), (~sub[:, -1]).mean()]
+            k = int(np.argmax(empty))
+            y0, y1, x0, x1 = y0 + (k == 0), y1 - (k == 1), x0 + (k == 2), x1 - (k == 3)
+        out[name] = [y0, y1, x0, x1]
+    return out
+
+
 def panel_values(x: torch.Tensor, pixels: list[list[torch.Tensor]]) -> torch.Tensor:
     """Median of ``x`` (S, C, H, W, B) over each panel's interior pixels: (S, C, P, B)."""
     flat = x.flatten(2, 3)  # (S, C, H*W, B)
@@ -530,7 +551,8 @@ def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
 
 def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: int = 0) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
-    detector mask PNG and ``render.json`` (scene, timing, panels, detections). Returns the summary."""
+    sensor signal cube before ELM (``signal.npy``, digital numbers), the detector mask PNG and ``render.json``
+    (scene, timing, panels with their pixel regions, detections). Returns the summary."""
     from pathlib import Path
 
     from .io import atomic_path, write_text
@@ -539,9 +561,11 @@ def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: in
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cube = result.reflectance[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
-    with atomic_path(out / "reflectance.npy", suffix=".npy") as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, cube)
+    signal = result.signal[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
+    for name, arr in (("reflectance.npy", cube), ("signal.npy", signal)):
+        with atomic_path(out / name, suffix=".npy") as tmp:
+            with open(tmp, "wb") as fh:
+                np.save(fh, arr)
     for k, b in enumerate(result.bands):
         band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")
@@ -551,7 +575,9 @@ def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: in
     dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
     import json
 
-    doc = {"summary": info, "timing_s": result.timing, "panels": result.panels, "detections": dets,
+    regions = panel_regions(result.gbuffer, list(scene.panels), camera=c)
+    panels = {p: {**v, "region": regions[p]} for p, v in result.panels.items()}
+    doc = {"summary": info, "timing_s": result.timing, "panels": panels, "detections": dets,
            "scene": scene.to_dict(), "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands]}
     write_text(out / "render.json", json.dumps(doc, indent=1))
     return info
