@@ -350,3 +350,33 @@ def test_band_max_equals_amax(shape):
     x = torch.rand(shape, generator=torch.Generator().manual_seed(sum(shape)))
     assert torch.equal(band_max(x), x.amax(dim=2))
     assert torch.equal(band_max(x.transpose(0, 1).contiguous().transpose(0, 1)), x.amax(dim=2))  # strided input
+
+
+@pytest.mark.parametrize("skins", [None, ["I-II", {"melanosome": 0.3, "blood": 1.2}]])
+def test_dense_shading_equals_gathered_shading(skins):
+    """The sync-free shading of accelerators (BRDFs evaluated on every pixel, then selected) gives the CPU's
+    gathered result: skin glints and Spectralon-BRDF panels under several suns, one or several skins."""
+    from torchskin.raycast import Raycaster
+    from torchskin.render import build_meshes, material_tables, shade, skin_batched_tables
+
+    sc = panel_scene(sun_az=25.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    sc.materials["white"] = Material("spectralon", panel="white", brdf=True)
+    sc.suns = [Sun(zenith_deg=z, azimuth_deg=a, sky_fraction=0.1) for z, a in ((90.0, 10.0), (50.0, -40.0), (20.0, 70.0))]
+    meshes, names = build_meshes(sc)
+    gb = Raycaster(meshes, names).gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
+    reps = 1 if skins is None else len(skins)
+    tables = (material_tables(sc, gb.material_names, torch.float64, "cpu") if skins is None
+              else skin_batched_tables(sc, gb.material_names, skins, torch.float64, "cpu"))
+    assert tables.skin_ids == (gb.material_names.index("skin"),)
+    assert tables.panel_brdf_ids == (gb.material_names.index("white"),)
+    gb = gb.to(dtype=torch.float64)
+    if skins is not None:
+        gb.shadow = gb.shadow.repeat(reps, 1, 1, 1)
+    dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float64).repeat(reps, 1)
+    sky = torch.full((len(dirs),), 0.1, dtype=torch.float64)
+    gathered, dense = shade(gb, tables, dirs, sky, dense=False), shade(gb, tables, dirs, sky, dense=True)
+    torch.testing.assert_close(dense["radiance"], gathered["radiance"], rtol=1e-12, atol=0)
+    assert torch.equal(dense["lit"], gathered["lit"])
+    ball = (gb.mesh[0] == gb.mesh_names.index("ball")).flatten()
+    assert ball.sum() > 50 and bool((gathered["radiance"][:, 0].flatten(1, 2)[:, ball] > 0).any())

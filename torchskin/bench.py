@@ -146,7 +146,8 @@ def _band_slice(tables, b: int):
     out = {}
     for f in dataclasses.fields(tables):
         v = getattr(tables, f.name)
-        out[f.name] = v[..., b:b + 1] if (v.is_floating_point() and v.shape[-1] == tables.sigma2.shape[0]) else v
+        keep = not isinstance(v, torch.Tensor) or not v.is_floating_point() or v.shape[-1] != tables.sigma2.shape[0]
+        out[f.name] = v if keep else v[..., b:b + 1]
     return type(tables)(**out)
 
 

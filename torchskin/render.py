@@ -155,6 +155,8 @@ class MaterialTables:
     panel_brdf: torch.Tensor  # (M,) bool: Spectralon-like BRDF (optics.spectralon_brdf_cos)
     dhr: torch.Tensor  # (M, B) hemispherical reflectance of lambertian / spectralon materials
     wavelengths: torch.Tensor  # (B,) band centres, nm
+    skin_ids: tuple = ()  # host copies of the flags above: which materials need each BRDF (no device sync)
+    panel_brdf_ids: tuple = ()
 
 
 _TABLE_CACHE: dict = {}
@@ -214,7 +216,8 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
         return x.to(device=device, dtype=dtype) if x.is_floating_point() else x.to(device)
 
     return MaterialTables(dev(lam), dev(alb), dev(skin), dev(rsub), dev(sig), dev(rho0), dev(e_band), dev(pbrdf),
-                          dev(dhr), dev(wl))
+                          dev(dhr), dev(wl), tuple(skin.nonzero().flatten().tolist()),
+                          tuple(pbrdf.nonzero().flatten().tolist()))
 
 
 def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
@@ -239,12 +242,15 @@ def _panel_brdf(ci, cr, c2b, mat, tables):
     return spectralon_brdf_cos(ci, cr, c2b, tables.dhr.index_select(0, mat), tables.wavelengths)
 
 
-def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor) -> dict:
+def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor,
+          dense: bool | None = None) -> dict:
     """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, and the sunlit mask (S, C, H, W).
 
     Sunlit: L = f(θi, θr, Δφ) E cos θi, with f the combined skin BRDF (eq 3.1.1, ρ_d from the exact closed
     form in R0 = Schlick(ρ0, θi)) on skin pixels and ρ/π elsewhere; plus a uniform sky on every hit pixel,
-    ρ_hemi/π · E_sky · (1 + n_z)/2. The skin BRDF is evaluated on the skin pixels only (gathered).
+    ρ_hemi/π · E_sky · (1 + n_z)/2. On the CPU the skin (and panel) BRDF is evaluated on its pixels only
+    (gathered); with ``dense`` (the default on accelerators) on every pixel and selected, so that shading
+    waits for no data-dependent pixel count (no host round trip).
     """
     shp = gb.hit.shape  # (C, H, W)
     S = sun_dirs.shape[0]
@@ -257,8 +263,19 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     E = tables.irradiance[:, None, :]  # (S, 1, B)
     sky = (tables.albedo.index_select(-2, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # ([S,] N, B)
     L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(-2, mat) * E)
-    for flag, brdf in ((tables.is_skin, _skin_brdf), (tables.panel_brdf, _panel_brdf)):
-        if not bool(flag.any()):
+    if dense is None:
+        dense = n.device.type != "cpu"
+    for flag, brdf, ids in ((tables.is_skin, _skin_brdf, tables.skin_ids),
+                            (tables.panel_brdf, _panel_brdf, tables.panel_brdf_ids)):
+        if not ids:
+            continue
+        if dense:
+            ci = cos_i.clamp_min(0)[..., None]
+            v = gb.view.reshape(-1, 3)
+            cr, c2b = rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
+            f = brdf(ci, cr, c2b, mat, tables)  # (S, N, B)
+            lam_part = w[..., None] * E * tables.lambert_f.index_select(-2, mat)
+            L = torch.where((hit & flag[mat])[:, None], torch.addcmul(L - lam_part, w[..., None] * E, f), L)
             continue
         idx = (hit & flag[mat]).nonzero().flatten()
         if idx.numel():
@@ -393,7 +410,7 @@ def panel_references(scene: Scene, gb: GBuffer, tables: MaterialTables, sun_dirs
     for k, name in enumerate(scene.panels):
         m = gb.material_names.index(scene.mesh(name).material)
         ref = tables.dhr[m].expand(S, C, -1)
-        if elm == "brdf" and bool(tables.panel_brdf[m]):
+        if elm == "brdf" and m in tables.panel_brdf_ids:
             per_cam = []
             for c, ix in enumerate(pix[k]):
                 ci, cr, c2b = local_cosines(gb, ix + c * HW, sun_dirs)
