@@ -86,7 +86,8 @@ def _to_onnx(module, args, input_names, output_names, dynamic_axes, meta: dict, 
 
 def _detector_graph(boundaries_model, meta: dict):
     """``detector.onnx`` from the exported ``boundaries.onnx`` graph plus a hand-written head: the edge
-    matrices from the boxes (MatMul, Add, Reshape), then per pixel MatMul -> Split -> Min -> Greater."""
+    matrices from the boxes (MatMul, Add, Reshape), then per pixel four one-row MatMuls (one per edge form,
+    viewed as (B, H, W)) -> Min -> Greater."""
     import numpy as np
     import onnx
     from onnx import TensorProto, helper, numpy_helper
@@ -106,14 +107,15 @@ def _detector_graph(boundaries_model, meta: dict):
         helper.make_node("Add", ["det_wm", "det_edge_C"], ["det_wflat"]),
         helper.make_node("Reshape", ["det_wflat", "det_w_shape"], ["det_w"]),
         helper.make_node("Shape", ["cube"], ["det_cube_shape"]),
-        helper.make_node("Reshape", ["cube", "det_flat_shape"], ["det_flat"]),
-        helper.make_node("MatMul", ["det_w", "det_flat"], ["det_edges"]),
-        helper.make_node("Split", ["det_edges"], ["det_l1", "det_l2", "det_l3", "det_l4"], axis=1),
-        helper.make_node("Min", ["det_l1", "det_l2", "det_l3", "det_l4"], ["det_min"]),
         helper.make_node("Gather", ["det_cube_shape", "det_bhw_index"], ["det_bhw"]),
-        helper.make_node("Reshape", ["det_min", "det_bhw"], ["score"]),
-        helper.make_node("Greater", ["score", "det_zero"], ["mask"]),
+        helper.make_node("Reshape", ["cube", "det_flat_shape"], ["det_flat"]),
+        helper.make_node("Split", ["det_w"], [f"det_w{k}" for k in range(4)], axis=1),
     ]
+    for k in range(4):  # one edge form per MatMul, viewed as (B, H, W): no (B, 4, HW) intermediate to split
+        head += [helper.make_node("MatMul", [f"det_w{k}", "det_flat"], [f"det_e{k}"]),
+                 helper.make_node("Reshape", [f"det_e{k}", "det_bhw"], [f"det_l{k}"])]
+    head += [helper.make_node("Min", [f"det_l{k}" for k in range(4)], ["score"]),
+             helper.make_node("Greater", ["score", "det_zero"], ["mask"])]
     cube = helper.make_tensor_value_info("cube", TensorProto.FLOAT, ["B", 4, "H", "W"])
     outputs = [helper.make_tensor_value_info("mask", TensorProto.BOOL, ["B", "H", "W"]),
                helper.make_tensor_value_info("score", TensorProto.FLOAT, ["B", "H", "W"])]

@@ -17,6 +17,7 @@ Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative refl
 from __future__ import annotations
 
 import json
+import threading
 
 import numpy as np
 
@@ -70,9 +71,10 @@ class Boundaries(_Model):
 class Detector(_Model):
     """``detector.onnx``: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and score.
 
-    Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that run on
-    ``threads`` workers (one onnxruntime session, one intra-op thread each, outputs bound straight into the
-    result arrays), so the intermediates stay in cache: the frame is read from memory about once."""
+    Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that
+    ``threads`` workers (the calling thread and a pool; one onnxruntime session, one intra-op thread each)
+    pull from a shared queue, outputs bound straight into the result arrays, so the intermediates stay in
+    cache: the frame is read from memory about once."""
 
     def __init__(self, path, threads: int | None = None, tile: int = 65536):
         super().__init__(path, threads)
@@ -81,17 +83,19 @@ class Detector(_Model):
         self.tile = int(tile)
         self._buffers: dict[int, np.ndarray] = {}
 
-    def _run_tiles(self, flat, c, mask, score, jobs, slot: int = 0, clipped=None, floor: float = 0.0) -> float:
-        """Run ``jobs`` (frame, first, last pixel) with tile buffer ``slot``; return the smallest reflectance
-        seen (NaN if any). ``clipped`` (per-frame counts): set negative values to 0 and count them. ``floor``:
-        pixels whose band sum is not above it are not skin."""
+    def _run_tiles(self, flat, c, mask, score, take, slot: int = 0, clipped=None, floor: float = 0.0) -> float:
+        """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffer
+        ``slot``; return the smallest reflectance seen (NaN if any). ``clipped`` (per-frame counts): set
+        negative values to 0 and count them. ``floor``: pixels whose band sum is not above it are not skin."""
+        from onnxruntime import OrtValue
+
         io = self.session.io_binding()
         buf = self._buffers.get(slot)
         if buf is None:  # kept between calls: no fresh pages to fault in per frame
             buf = self._buffers[slot] = np.empty((1, 4, 1, self.tile), dtype=np.float32)
         io.bind_cpu_input("cube", buf)  # the tile buffer is bound once and refilled
         low, frame = np.inf, -1
-        for b, lo, hi in jobs:
+        for b, lo, hi in iter(take, None):
             n = hi - lo
             if n != self.tile:  # the ragged last tile of a frame
                 t = np.empty((1, 4, 1, n), dtype=np.float32)
@@ -106,8 +110,9 @@ class Detector(_Model):
             if b != frame:
                 io.bind_cpu_input("config", c[b:b + 1])
                 frame = b
-            io.bind_output("mask", "cpu", 0, np.bool_, (1, 1, n), mask[b, lo:hi].ctypes.data)
-            io.bind_output("score", "cpu", 0, np.float32, (1, 1, n), score[b, lo:hi].ctypes.data)
+            # outputs written in place (an OrtValue over the result arrays binds faster than bind_output)
+            io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(mask[b, lo:hi].reshape(1, 1, n)))
+            io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(score[b, lo:hi].reshape(1, 1, n)))
             self.session.run_with_iobinding(io)
             if floor > 0:
                 mask[b, lo:hi] &= t[0, :, 0, :].sum(0) > floor
@@ -178,20 +183,28 @@ class Detector(_Model):
             mask, score = np.empty((B, n), dtype=bool), np.empty((B, n), dtype=np.float32)
         jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
         k = min(self.threads, len(jobs))
-        counts = None if clipped is None else [np.zeros(B, dtype=np.int64) for _ in range(k)]  # one per worker
+        counts = [np.zeros(B, dtype=np.int64) if clipped is not None else None for _ in range(k)]  # per worker
         floor = x.shape[1] * float(min_reflectance)
-        if k == 1:
-            low = self._run_tiles(flat, c, mask, score, jobs, 0, None if counts is None else counts[0], floor)
-        else:
-            if self._pool is None:
-                from concurrent.futures import ThreadPoolExecutor
+        queue, lock = iter(jobs), threading.Lock()
 
-                self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="torchskin-detect")
-            futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, jobs[i::k], i,
-                                         None if counts is None else counts[i], floor) for i in range(k)]
-            low = np.min([f.result() for f in futures])  # NaN propagates
+        def take():  # workers pull the next tile: a worker that starts late simply takes fewer
+            with lock:
+                return next(queue, None)
+
+        if k > 1 and self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="torchskin-detect")
+        futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, take, i, counts[i], floor)
+                   for i in range(1, k)]
+        lows = []
+        try:  # the calling thread is worker 0
+            lows.append(self._run_tiles(flat, c, mask, score, take, 0, counts[0], floor))
+        finally:  # never return (or raise) while a worker still writes into the outputs
+            lows += [f.result() for f in futures]
+        low = np.min(lows)  # NaN propagates
         self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
-        if counts is not None:
+        if clipped is not None:
             clipped += np.sum(counts, axis=0)
         if out is not None:
             return {"mask": out[0], "score": out[1], "out_of_domain": ood, **extra}
