@@ -5,8 +5,9 @@
 
 Checks: onnx.checker; metadata (bands, features, domain, manifest hash, version); boundaries.onnx equals the
 checkpoint to 1e-5 over the training domain; detector.onnx run by the torch-free onboard runtime equals the
-torch reference (scores to 1e-5, masks except on a boundary) on a rendered-like cube; the model cards exist
-and quote the evaluation. Exit status 1 on any failure."""
+torch reference (scores to 1e-5, masks except on a boundary) on a rendered-like cube; on the thesis geometry
+(render, onboard ELM from the panels, detector) the learned boundaries keep > 90 % of the sunlit skin; the
+model cards exist and quote the evaluation. Exit status 1 on any failure."""
 
 import argparse
 import json
@@ -69,6 +70,13 @@ def run(argv=None) -> int:
           f"detector.onnx (onboard runtime) vs torch: max |score diff| {serr:.1e}, {int(differ.sum())} mask pixels differ")
     frac = float(res["mask"][:, 64:192, 64:192].mean())
     check(frac > 0.9, f"detector.onnx finds the skin-like square: {frac:.3f} of it")
+    from torchskin.evaluate import thesis_frame
+
+    t = thesis_frame(out / "detector.onnx")
+    check(t["pd_sunlit_learned"] > 0.9 and not t["out_of_domain"],
+          f"thesis geometry (horizontal camera, sun 45°, ELM from the frame's panels): learned boundaries keep "
+          f"{t['pd_sunlit_learned']:.3f} of {t['sunlit_skin_pixels']} sunlit skin pixels (static box "
+          f"{t['pd_sunlit_static']:.3f}), {t['false_alarms_learned']} false alarms")
     ev = json.loads((out / "evaluation.json").read_text())
     card = (out / "detector.md").read_text()
     check(f"{ev['learned']['pd_sunlit']:.3f}" in card and (out / "boundaries.md").is_file(),

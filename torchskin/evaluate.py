@@ -116,6 +116,39 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
     return out
 
 
+def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, sun_azimuth_deg: float = 20.0,
+                 min_reflectance: float = 0.005) -> dict:
+    """The shipped detector on the thesis geometry, end to end: ``render``'s default scene (horizontal camera at
+    9.449 m, Type I/II subject between a 0.97 and a 0.03 panel, sensor noise on) at ``size`` x ``size`` under
+    the given sun, its signal frame calibrated by the onboard ELM through the panels' pixel regions, then
+    ``detector.onnx`` through the onboard runtime (negative noise clipped, brightness floor). Returns the
+    sunlit-skin detection of the learned boundaries and of the static box, the learned false alarms and the
+    largest difference between the onboard and the renderer's ELM reflectance."""
+    from .onboard import Detector, elm_apply, elm_fit
+    from .render import Sensor, panel_regions, render
+    from .scene import Camera, Sun, default_scene
+
+    sc = default_scene(camera=Camera(width=size, height=size),
+                       sun=Sun(zenith_deg=sun_zenith_deg, azimuth_deg=sun_azimuth_deg, sky_fraction=0.1))
+    res = render(sc, sensor=Sensor())
+    signal = res.signal[0, 0].permute(2, 0, 1).cpu().numpy()
+    regions = panel_regions(res.gbuffer, list(sc.panels))
+    refs = {p: sc.materials[sc.mesh(p).material].band_reflectance(sc.band_list) for p in sc.panels}
+    fit = elm_fit(signal, [(regions[p], refs[p]) for p in sc.panels])
+    cube = elm_apply(signal, fit["gain"], fit["offset"])[None]
+    rel = abs((sun_azimuth_deg - sc.cameras[0].azimuth_deg + 180.0) % 360.0 - 180.0)
+    out = Detector(detector_path)(cube, [[sun_zenith_deg, sc.cameras[0].zenith_deg, rel]], negative="clip",
+                                  min_reflectance=min_reflectance)
+    skin, lit = res.skin[0].cpu().numpy(), res.lit[0, 0].cpu().numpy()
+    sunlit = skin & lit
+    learned, static = out["mask"][0], res.mask[0, 0].cpu().numpy()
+    n = max(int(sunlit.sum()), 1)
+    return {"sunlit_skin_pixels": int(sunlit.sum()), "pd_sunlit_learned": float((learned & sunlit).sum() / n),
+            "pd_sunlit_static": float((static & sunlit).sum() / n), "false_alarms_learned": int((learned & ~skin).sum()),
+            "out_of_domain": bool(out["out_of_domain"].any()),
+            "elm_max_diff": float(np.abs(cube[0] - res.reflectance[0, 0].permute(2, 0, 1).cpu().numpy()).max())}
+
+
 def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 40.0, 90.0), (80.0, 60.0, 10.0)),
                max_points: int = 20000) -> None:
     """The picture behind the numbers: held-out sunlit skin pixels (colour: sun zenith), the earthlib test
