@@ -74,7 +74,8 @@ class Detector(_Model):
     Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that
     ``threads`` workers (the calling thread and a pool; one onnxruntime session, one intra-op thread each)
     pull from a shared queue, outputs bound straight into the result arrays, so the intermediates stay in
-    cache: the frame is read from memory about once."""
+    cache: the frame is read from memory about once. A Detector keeps its tile buffers and pool between
+    calls: create it once, and use one per calling thread (calls on one object must not overlap)."""
 
     def __init__(self, path, threads: int | None = None, tile: int = 65536):
         super().__init__(path, threads)
