@@ -154,9 +154,12 @@ class Raycaster:
         flat = hit.flatten().nonzero().flatten()
         shadow = torch.zeros((len(sun), hit.numel()), dtype=torch.bool)
         if flat.numel():
-            org = torch.addcmul(pos.reshape(-1, 3)[flat], ng.reshape(-1, 3)[flat], torch.tensor(SHADOW_OFFSET_M))
-            srays = torch.cat([org.expand(len(sun), -1, -1), sun[:, None, :].expand(-1, len(flat), -1)], -1)
-            shadow[:, flat] = self.occluded(srays)
+            srays = torch.empty((len(sun), len(flat), 6), dtype=pos.dtype)  # (origin, direction) per sun and hit
+            torch.addcmul(pos.reshape(-1, 3).index_select(0, flat), ng.reshape(-1, 3).index_select(0, flat),
+                          torch.tensor(SHADOW_OFFSET_M), out=srays[0, :, :3])
+            srays[1:, :, :3] = srays[0, :, :3]
+            srays[:, :, 3:] = sun[:, None, :]
+            shadow.index_copy_(1, flat, self.occluded(srays))
         return GBuffer(hit=hit, t=t, position=pos, normal=n, geometric_normal=ng, view=view, material=mat,
                        mesh=mesh, shadow=shadow.reshape((len(sun),) + hit.shape),
                        material_names=self.material_names, mesh_names=self.mesh_names)

@@ -134,7 +134,7 @@ def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands, focal_px
     dn = L * (k * g)
     if sensor.noise:
         z = torch.randn(dn.shape, generator=generator, dtype=dn.dtype, device=dn.device)
-        dn = torch.addcmul(dn, torch.sqrt(dn.clamp_min(0) * g + (sensor.read_noise_e * g) ** 2), z)
+        dn = dn.addcmul(dn.clamp_min(0).mul_(g).add_((sensor.read_noise_e * g) ** 2).sqrt_(), z)
     if sensor.quantize:
         return torch.round(dn).clamp_(0, levels - 1)
     return dn.clamp(0, levels * 1.0)
