@@ -293,7 +293,7 @@ def cmd_train(args) -> int:
     if args.method == "quantiles":
         opts["q"] = args.q
     else:
-        opts.update(margin=args.margin, width_cost=args.width_cost)
+        opts.update(margin=args.margin, width_cost=args.width_cost, spread_cost=args.spread_cost)
     model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain, **opts)
     info["options"].pop("domain", None)
     info.update(training_manifest_sha256=manifest_sha256(args.data), data=str(args.data))
@@ -487,6 +487,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="boxes: distance (index units) kept from every earthlib train spectrum (default 0.03)")
     tp.add_argument("--width-cost", type=float, default=0.05,
                     help="boxes: cost per unit of box width, keeps the box tight (default 0.05)")
+    tp.add_argument("--spread-cost", type=float, default=0.1,
+                    help="boxes: cost of the boxes' spread over configurations (squared distance to their mean): "
+                         "the box moves with the configuration only where the data pay for it (default 0.1)")
     tp.add_argument("--q", type=float, default=0.15, help="quantiles: quantile of the box edges (default 0.15)")
     tp.add_argument("--steps", type=int, default=1500)
     tp.add_argument("--hidden", type=int, default=32, help="MLP width (0: one constant box; default 32)")
