@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """Pipeline step 4/5: export WORK/boundaries.pt to EXPORTS (boundaries.onnx, detector.onnx, model cards with
-the evaluation), and keep the checkpoint, the evaluation and its plots beside them.
+the evaluation), and keep the checkpoint, the evaluation and its plots beside them, with thesis_frame.png (the
+exported detector on the thesis geometry, against the static box).
 
     python scripts/pipeline_export.py [--work out/pipeline] [--exports exports]"""
 
@@ -30,6 +31,9 @@ def run(argv=None) -> int:
         tmp = dst.with_name("." + dst.name + ".tmp")
         shutil.copyfile(src, tmp)
         tmp.replace(dst)
+    from torchskin.evaluate import thesis_frame
+
+    thesis_frame(out / "detector.onnx", plot=out / "thesis_frame.png")  # the shipped detector on the thesis geometry
     return 0
 
 

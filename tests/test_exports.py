@@ -86,7 +86,7 @@ def test_committed_model_meets_its_held_out_claims(committed):
     assert float(pfa.max()) <= 1e-3
 
 
-def test_shipped_detector_finds_sunlit_skin_in_the_thesis_geometry():
+def test_shipped_detector_finds_sunlit_skin_in_the_thesis_geometry(tmp_path):
     """The flagship case end to end: the thesis geometry (horizontal camera at 9.449 m, Type I/II subject,
     panels beside it, sun 45° up and 20° round), rendered with sensor noise, calibrated from the signal frame
     with the onboard ELM through the panels' pixel regions, then the shipped detector.onnx. The static box
@@ -94,7 +94,8 @@ def test_shipped_detector_finds_sunlit_skin_in_the_thesis_geometry():
     nearly all of it, and with a brightness floor no pixel off the subject passes."""
     from torchskin.evaluate import thesis_frame
 
-    r = thesis_frame(EXPORTS / "detector.onnx")
+    r = thesis_frame(EXPORTS / "detector.onnx", plot=tmp_path / "thesis.png")
+    assert (tmp_path / "thesis.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert r["sunlit_skin_pixels"] > 100 and not r["out_of_domain"] and r["elm_max_diff"] < 1e-3
     assert r["pd_sunlit_learned"] > 0.9 > 0.3 > r["pd_sunlit_static"]
     assert r["false_alarms_learned"] == 0

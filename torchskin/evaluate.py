@@ -117,13 +117,14 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
 
 
 def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, sun_azimuth_deg: float = 20.0,
-                 min_reflectance: float = 0.005) -> dict:
+                 min_reflectance: float = 0.005, plot=None) -> dict:
     """The shipped detector on the thesis geometry, end to end: ``render``'s default scene (horizontal camera at
     9.449 m, Type I/II subject between a 0.97 and a 0.03 panel, sensor noise on) at ``size`` x ``size`` under
     the given sun, its signal frame calibrated by the onboard ELM through the panels' pixel regions, then
     ``detector.onnx`` through the onboard runtime (negative noise clipped, brightness floor). Returns the
     sunlit-skin detection of the learned boundaries and of the static box, the learned false alarms and the
-    largest difference between the onboard and the renderer's ELM reflectance."""
+    largest difference between the onboard and the renderer's ELM reflectance. ``plot``: a PNG of the 1080 nm
+    reflectance beside both masks."""
     from .onboard import Detector, elm_apply, elm_fit
     from .render import Sensor, panel_regions, render
     from .scene import Camera, Sun, default_scene
@@ -143,6 +144,13 @@ def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, s
     sunlit = skin & lit
     learned, static = out["mask"][0], res.mask[0, 0].cpu().numpy()
     n = max(int(sunlit.sum()), 1)
+    if plot is not None:
+        from .plots import mask_comparison
+
+        rate = lambda m: f"{(m & sunlit).sum() / n:.2f} of sunlit skin, {int((m & ~skin).sum())} false alarms"  # noqa: E731
+        mask_comparison(plot, cube[0, 2], {f"static box (thesis)\n{rate(static)}": static,
+                                            f"learned boundaries (detector.onnx)\n{rate(learned)}": learned}, skin,
+                        f"1080 nm reflectance (onboard ELM)\nsun zenith {sun_zenith_deg:g}°, camera horizontal")
     return {"sunlit_skin_pixels": int(sunlit.sum()), "pd_sunlit_learned": float((learned & sunlit).sum() / n),
             "pd_sunlit_static": float((static & sunlit).sum() / n), "false_alarms_learned": int((learned & ~skin).sum()),
             "out_of_domain": bool(out["out_of_domain"].any()),

@@ -107,25 +107,65 @@ def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: f
     save_figure(fig, path)
 
 
-def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, title: str = "rules detector") -> None:
-    """Detector mask: detected skin (green), missed skin (red), false alarms (yellow)."""
+def _numpy(x):
     import numpy as np
 
-    plt = _plt()
-    m = mask.detach().cpu().numpy().astype(bool)
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def _mask_rgb(mask, truth=None):
+    """RGB of a detector mask: detected skin green, missed skin red, false alarms yellow (white without truth)."""
+    import numpy as np
+
+    m = _numpy(mask).astype(bool)
     rgb = np.zeros(m.shape + (3,))
     if truth is None:
         rgb[m] = (1, 1, 1)
     else:
-        t = truth.detach().cpu().numpy().astype(bool)
+        t = _numpy(truth).astype(bool)
         rgb[m & t] = (0.1, 0.85, 0.2)
         rgb[~m & t] = (0.9, 0.15, 0.1)
         rgb[m & ~t] = (1.0, 0.9, 0.1)
-    h, w = m.shape
+    return rgb
+
+
+def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, title: str = "rules detector") -> None:
+    """Detector mask: detected skin (green), missed skin (red), false alarms (yellow)."""
+    plt = _plt()
+    rgb = _mask_rgb(mask, truth)
+    h, w = rgb.shape[:2]
     fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w))
     ax.imshow(rgb, interpolation="nearest")
     ax.set_title(title)
     ax.axis("off")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def mask_comparison(path, image, masks: dict, truth, image_title: str = "reflectance", crop: float = 0.25) -> None:
+    """One reflectance band of a frame beside several detectors' masks of it (green: detected skin, red: missed
+    skin, yellow: false alarm); ``masks`` maps a title to an (H, W) mask. The masks are shown around the skin
+    pixels (their bounding box widened by ``crop`` of its size on every side)."""
+    import numpy as np
+
+    plt = _plt()
+    img = _numpy(image)
+    t = _numpy(truth).astype(bool)
+    rows, cols = np.flatnonzero(t.any(1)), np.flatnonzero(t.any(0))
+    if len(rows):
+        dy, dx = crop * (rows[-1] - rows[0] + 1), crop * (cols[-1] - cols[0] + 1)
+        ys = slice(max(0, int(rows[0] - dy)), min(t.shape[0], int(rows[-1] + 1 + dy)))
+        xs = slice(max(0, int(cols[0] - dx)), min(t.shape[1], int(cols[-1] + 1 + dx)))
+    else:
+        ys, xs = slice(None), slice(None)
+    fig, axes = plt.subplots(1, 1 + len(masks), figsize=(3.6 * (1 + len(masks)), 4.2))
+    axes[0].imshow(img, cmap="gray", vmin=0.0, vmax=max(float(img.max()), 1e-6), interpolation="nearest")
+    axes[0].set_title(image_title, fontsize=9)
+    for ax, (title, m) in zip(axes[1:], masks.items()):
+        ax.imshow(_mask_rgb(_numpy(m)[ys, xs], t[ys, xs]), interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+    for ax in axes:
+        ax.axis("off")
     fig.tight_layout()
     save_figure(fig, path)
 
