@@ -380,3 +380,28 @@ def test_dense_shading_equals_gathered_shading(skins):
     assert torch.equal(dense["lit"], gathered["lit"])
     ball = (gb.mesh[0] == gb.mesh_names.index("ball")).flatten()
     assert ball.sum() > 50 and bool((gathered["radiance"][:, 0].flatten(1, 2)[:, ball] > 0).any())
+
+
+def test_sky_background_reads_the_sky_through_elm():
+    """With background="sky", rays that escape above the horizon see the uniform sky dome, radiance
+    f·E/π; through ELM on camera-facing Lambertian panels (normal n, lit by the sun s and half the dome) that
+    reads f / (n·s + f (1 + n_z) / 2) in every band. Rays escaping below the horizon stay black, and the default
+    "void" background leaves every missed pixel without radiance."""
+    f, zen = 0.2, 60.0
+    sc = panel_scene(sun_zen=zen, sky=f)
+    sc.background = "sky"
+    assert Scene.from_json(sc.to_json()).background == "sky"
+    res = render(sc, sensor=None, dtype=torch.float64)
+    gb = res.gbuffer
+    miss = ~gb.hit[0]
+    up, down = miss & (gb.view[0, ..., 2] < 0), miss & (gb.view[0, ..., 2] > 0)
+    assert up.sum() > 100 and down.sum() > 100
+    n_dot_s = math.sin(zen * DEG)  # panel normal +x (towards the camera), sun at azimuth 0
+    expected = f / (n_dot_s + f / 2)
+    torch.testing.assert_close(res.reflectance[0, 0][up], torch.full_like(res.reflectance[0, 0][up], expected))
+    assert float(res.radiance[0, 0][down].abs().max()) == 0.0
+    sc.background = "void"
+    assert float(render(sc, sensor=None).radiance[0, 0][miss].abs().max()) == 0.0
+    with pytest.raises(ValueError, match="background"):
+        sc.background = "stars"
+        sc.__post_init__()

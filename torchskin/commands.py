@@ -140,6 +140,8 @@ def _scene_from_args(args):
                        panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground)
     if args.bands:
         sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
+    if args.sky_background:
+        sc.background = "sky"
     return sc
 
 
@@ -407,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--source-zenith", type=float, default=45.0, help="sun zenith, degrees (default 45)")
     rp.add_argument("--source-azimuth", type=float, default=20.0, help="sun azimuth from +x, degrees (default 20)")
     rp.add_argument("--sky", type=float, default=0.1, help="sky irradiance / sun irradiance (default 0.1)")
+    rp.add_argument("--sky-background", action="store_true",
+                    help="rays that hit nothing above the horizon see the sky (radiance sky * E / pi) instead of "
+                         "a black void")
     rp.add_argument("--camera-zenith", type=float, default=90.0, help="camera zenith, degrees (default 90)")
     rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
     rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")

@@ -243,14 +243,16 @@ def _panel_brdf(ci, cr, c2b, mat, tables):
 
 
 def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor,
-          dense: bool | None = None) -> dict:
+          dense: bool | None = None, sky_background: bool = False) -> dict:
     """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, and the sunlit mask (S, C, H, W).
 
     Sunlit: L = f(θi, θr, Δφ) E cos θi, with f the combined skin BRDF (eq 3.1.1, ρ_d from the exact closed
     form in R0 = Schlick(ρ0, θi)) on skin pixels and ρ/π elsewhere; plus a uniform sky on every hit pixel,
     ρ_hemi/π · E_sky · (1 + n_z)/2. On the CPU the skin (and panel) BRDF is evaluated on its pixels only
     (gathered); with ``dense`` (the default on accelerators) on every pixel and selected, so that shading
-    waits for no data-dependent pixel count (no host round trip).
+    waits for no data-dependent pixel count (no host round trip). ``sky_background``: rays that hit nothing
+    and point above the horizon see the uniform sky itself, radiance sky_fraction · E / π (the dome whose
+    irradiance on a horizontal surface is sky_fraction · E); otherwise missed rays carry no radiance.
     """
     shp = gb.hit.shape  # (C, H, W)
     S = sun_dirs.shape[0]
@@ -284,6 +286,9 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
             lam_part = w.index_select(1, idx)[..., None] * E * tables.lambert_f.index_select(-2, mat.index_select(0, idx))
             Ls = torch.addcmul(L.index_select(1, idx) - lam_part, w.index_select(1, idx)[..., None] * E, f)
             L = L.index_copy(1, idx, Ls)
+    if sky_background:
+        up = ~hit & (gb.view.reshape(-1, 3)[:, 2] < 0)  # the ray (-view) climbs
+        L = torch.where(up[:, None], sky_fraction[:, None, None] * E * (1 / math.pi), L)
     B = L.shape[-1]
     return {"radiance": L.reshape(S, *shp, B), "lit": lit.reshape(S, *shp)}
 
@@ -514,7 +519,7 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
     bands = scene.band_list
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
     sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
-    sh = shade(gb, tables, sun_dirs, sky)
+    sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky")
     _sync(device)
     timing["shade_s"] = time.perf_counter() - t2
     t3 = time.perf_counter()

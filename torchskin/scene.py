@@ -497,11 +497,16 @@ class Sun:
 
 
 # ---------------------------------------------------------------------------------------------------- scene
+BACKGROUNDS = ("void", "sky")
+
+
 @dataclass
 class Scene:
     """Materials (by name), meshes, cameras and suns; ``bands`` as (centre, fwhm) pairs in nm.
 
-    ``panels`` names the two reference-panel meshes used for ELM (bright first).
+    ``panels`` names the two reference-panel meshes used for ELM (bright first). ``background``: what a camera
+    ray that hits nothing sees: "void" (no radiance, the default) or "sky" (above the horizon, the uniform sky
+    of each sun, radiance sky_fraction · E / π; below it still void).
     """
 
     materials: dict[str, Material]
@@ -510,8 +515,11 @@ class Scene:
     suns: list[Sun]
     bands: list[list[float]] = field(default_factory=lambda: [[b.center_nm, b.fwhm_nm] for b in DEFAULT_BANDS])
     panels: list[str] = field(default_factory=lambda: ["panel_white", "panel_dark"])
+    background: str = "void"
 
     def __post_init__(self):
+        if self.background not in BACKGROUNDS:
+            raise ValueError(f"background must be one of {BACKGROUNDS}, got {self.background!r}")
         names = [m.name for m in self.meshes]
         if len(set(names)) != len(names):
             raise ValueError(f"mesh names must be unique, got {names}")
@@ -556,6 +564,7 @@ class Scene:
             suns=[Sun(**s) for s in d["suns"]],
             bands=[list(b) for b in d.get("bands", [[b.center_nm, b.fwhm_nm] for b in DEFAULT_BANDS])],
             panels=list(d.get("panels", ["panel_white", "panel_dark"])),
+            background=d.get("background", "void"),
         )
 
     @classmethod
@@ -614,5 +623,5 @@ def default_scene(
         MeshSpec("panel_dark", "plane", "dark", params={"width": 0.6, "height": 0.6}, position=[0.0, -0.9, 0.9]),
     ]
     if ground:
-        meshes.append(MeshSpec("ground", "ground", "ground", params={"size": 30.0}))
+        meshes.append(MeshSpec("ground", "ground", "ground", params={"size": 4000.0}))
     return Scene(mats, meshes, [camera or Camera()], [sun or Sun()])
