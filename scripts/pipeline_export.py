@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.io import atomic_path
 
 
 def run(argv=None) -> int:
@@ -28,9 +29,8 @@ def run(argv=None) -> int:
     for src, dst in ((work / "boundaries.pt", out / "boundaries.pt"), (work / "evaluation.json", out / "evaluation.json"),
                      (work / "plots" / "roc.png", out / "roc.png"), (work / "plots" / "pd_heatmap.png", out / "pd_heatmap.png"),
                      (work / "plots" / "boxes.png", out / "boxes.png")):
-        tmp = dst.with_name("." + dst.name + ".tmp")
-        shutil.copyfile(src, tmp)
-        tmp.replace(dst)
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
     from torchskin.evaluate import thesis_frame
 
     thesis_frame(out / "detector.onnx", plot=out / "thesis_frame.png")  # the shipped detector on the thesis geometry

@@ -276,7 +276,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
 def calibration_configs(model: BoundaryModel, X: torch.Tensor, grid: int = 10) -> torch.Tensor:
     """The configurations the false-alarm budget is enforced on: every distinct training configuration in
     ``X`` and a ``grid``^k lattice over the model's training domain."""
-    uniq = torch.from_numpy(np.unique(X.numpy(), axis=0)).float()
+    uniq = distinct_configs(X)[0].float()
     axes = [torch.linspace(float(lo), float(hi), grid) for lo, hi in model.domain]
     lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
     return torch.cat([uniq, lattice])
@@ -325,10 +325,7 @@ def distinct_configs(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def train_coverage(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor) -> float:
     """Fraction of the training skin pixels ``Y`` (n, 2) inside the hard box of their configuration ``X``."""
     uniq, inv = distinct_configs(X)
-    boxes = model(uniq).index_select(0, inv)
-    g, s = Y[:, 0], Y[:, 1]
-    inside = (g > boxes[:, 0]) & (g < boxes[:, 1]) & (s > boxes[:, 2]) & (s < boxes[:, 3])
-    return float(inside.float().mean())
+    return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1]).float().mean())
 
 
 def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
@@ -367,12 +364,14 @@ def confuser_indices(part: str = "train") -> torch.Tensor:
     return pts[torch.isfinite(pts).all(-1)]
 
 
+def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Whether (NDGRI, NDSI) = (``g``, ``s``) lies in ``boxes`` (N, 4, ...) (edges included; broadcasting)."""
+    return (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
+
+
 def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Per box (N, 4): the fraction of ``points`` (n, 2) inside it."""
-    g, s = points[:, 0][None], points[:, 1][None]
-    b = boxes[:, :, None]
-    inside = (g >= b[:, 0]) & (g <= b[:, 1]) & (s >= b[:, 2]) & (s <= b[:, 3])
-    return inside.float().mean(-1)
+    return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None]).float().mean(-1)
 
 
 def calibrate_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .boundaries import FEATURES, confuser_indices, false_alarm_rate
+from .boundaries import FEATURES, confuser_indices, false_alarm_rate, inside_box
 from .dataset.files import read_valid
 from .detect import DEFAULT_BOX
 
@@ -28,10 +28,6 @@ def box_function(model_path):
 
     m = load(p)
     return list(m.features), lambda x: m(torch.as_tensor(x, dtype=torch.float32)).detach()
-
-
-def _inside(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-    return (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
 
 
 ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
@@ -56,7 +52,7 @@ def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
 
     def summary(boxes, mask=None):
         m = torch.ones_like(label) if mask is None else mask
-        hit = _inside(boxes, g, s)
+        hit = inside_box(boxes, g, s)
         sk, lit = label & m, label & m & ~shadow
         # Pfa on the earthlib test partition: each configuration's box (its first row) against every test spectrum
         pos = m.nonzero().flatten()

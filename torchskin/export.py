@@ -41,7 +41,7 @@ class Detector(nn.Module):
     ``score`` = min(L1..L4): the smallest index margin to a box edge, weighted by the band-pair sum (g + r
     or n + s), in reflectance units; positive inside. ``mask`` = score > 0 (a pixel with g + r = 0 or
     n + s = 0 has undefined indices and is never skin). This module is the reference; ``export`` writes the
-    same arithmetic as a short ONNX graph (MatMul, Split, Min, Greater)."""
+    same arithmetic as a short ONNX graph (four one-row MatMuls, Min, Greater)."""
 
     def __init__(self, boundaries: BoundaryModel):
         super().__init__()

@@ -42,3 +42,17 @@ def _umask() -> int:
 def write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(data)
+
+
+def save_npy(path: str | os.PathLike, array, suffix: str = ".npy") -> None:
+    """``numpy.save`` to ``path`` exactly (no ``.npy`` appended), written atomically."""
+    import numpy as np
+
+    with atomic_path(path, suffix=suffix) as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, array)

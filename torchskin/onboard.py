@@ -165,14 +165,15 @@ class Detector(_Model):
                                      f"{(B, H, W)}, got {a.dtype} {a.shape}")
         clipped = np.zeros(B, dtype=np.int64) if negative == "clip" else None
         extra = {} if clipped is None else {"clipped_values": clipped}
+        floor = x.shape[1] * float(min_reflectance)  # on the band sum
         if B * n <= self.tile:  # small frames: one call
             if clipped is not None:
                 clipped += np.count_nonzero(x < 0, axis=(1, 2, 3))
                 x = np.maximum(x, 0)
             self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
-            if min_reflectance > 0:
-                mask &= x.sum(1) > x.shape[1] * float(min_reflectance)
+            if floor > 0:
+                mask &= x.sum(1) > floor
             if out is not None:
                 out[0][...], out[1][...] = mask, score
                 mask, score = out
@@ -185,7 +186,6 @@ class Detector(_Model):
         jobs = [(b, s, min(s + self.tile, n)) for b in range(B) for s in range(0, n, self.tile)]
         k = min(self.threads, len(jobs))
         counts = [np.zeros(B, dtype=np.int64) if clipped is not None else None for _ in range(k)]  # per worker
-        floor = x.shape[1] * float(min_reflectance)
         queue, lock = iter(jobs), threading.Lock()
 
         def take():  # workers pull the next tile: a worker that starts late simply takes fewer
@@ -301,7 +301,7 @@ def cli_calibrate(argv: list[str]) -> int:
     import argparse
     import sys
 
-    from .io import atomic_path, write_text
+    from .io import save_npy, write_text
 
     ap = argparse.ArgumentParser(prog="torchskin calibrate", description="Signals (DN or radiance) to reflectance "
                                  "with the empirical line through reference panels in the frame (numpy only).")
@@ -333,7 +333,7 @@ def cli_calibrate(argv: list[str]) -> int:
                 raise ValueError(f"cannot read coefficients {args.coefficients!r}: {e}") from None
             fit = None
         else:
-            panels = []
+            panels = []  # (region, reflectance)
             for p in args.panel:
                 roi, sep, rho = p.partition("=")
                 try:
@@ -350,12 +350,10 @@ def cli_calibrate(argv: list[str]) -> int:
         refl = elm_apply(cube, gain, offset)
         coef = {"gain": gain.tolist(), "offset": offset.tolist()}
         if fit is not None:
-            coef["panels"] = [{"region": list(parse_roi(p.partition("=")[0])), "reflectance": r.tolist(),
-                               "signal": s.tolist()} for p, r, s in zip(args.panel, fit["references"], fit["signals"])]
+            coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
+                              for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
             coef["residual"] = fit["residual"].tolist()
-        with atomic_path(args.out, suffix=".npy") as tmp:
-            with open(tmp, "wb") as fh:
-                np.save(fh, refl)
+        save_npy(args.out, refl)
         if args.save_coefficients:
             write_text(args.save_coefficients, json.dumps(coef, indent=1))
         res = {**coef, "out": args.out, "shape": list(refl.shape),
@@ -378,32 +376,21 @@ FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera
 
 def write_png(path, mask: np.ndarray) -> None:
     """A greyscale PNG of a boolean (H, W) mask (stdlib zlib; no imaging library), written atomically."""
-    import os
     import struct
-    import tempfile
     import zlib
+
+    from .io import write_bytes
 
     m = (np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
     h, w = m.shape
-    raw = b"".join(b"\x00" + m[i].tobytes() for i in range(h))
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), m], 1).tobytes()  # filter byte 0 before every row
 
     def chunk(tag, data):
         return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
 
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".mask.", suffix=".png", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(png)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_bytes(path, png)
 
 
 def cli_detect(argv: list[str]) -> int:

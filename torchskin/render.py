@@ -267,17 +267,18 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(-2, mat) * E)
     if dense is None:
         dense = n.device.type != "cpu"
+    if dense and (tables.skin_ids or tables.panel_brdf_ids):  # every pixel's geometry and Lambertian part, once
+        v = gb.view.reshape(-1, 3)
+        ci, cr, c2b = cos_i.clamp_min(0)[..., None], rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
+        wE = w[..., None] * E
+        lam_part = wE * tables.lambert_f.index_select(-2, mat)
     for flag, brdf, ids in ((tables.is_skin, _skin_brdf, tables.skin_ids),
                             (tables.panel_brdf, _panel_brdf, tables.panel_brdf_ids)):
         if not ids:
             continue
         if dense:
-            ci = cos_i.clamp_min(0)[..., None]
-            v = gb.view.reshape(-1, 3)
-            cr, c2b = rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
             f = brdf(ci, cr, c2b, mat, tables)  # (S, N, B)
-            lam_part = w[..., None] * E * tables.lambert_f.index_select(-2, mat)
-            L = torch.where((hit & flag[mat])[:, None], torch.addcmul(L - lam_part, w[..., None] * E, f), L)
+            L = torch.where((hit & flag[mat])[:, None], torch.addcmul(L - lam_part, wE, f), L)
             continue
         idx = (hit & flag[mat]).nonzero().flatten()
         if idx.numel():
@@ -577,17 +578,15 @@ def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: in
     (scene, timing, panels with their pixel regions, detections). Returns the summary."""
     from pathlib import Path
 
-    from .io import atomic_path, write_text
+    from .io import save_npy, write_text
     from .plots import band_image, mask_image
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cube = result.reflectance[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
     signal = result.signal[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
-    for name, arr in (("reflectance.npy", cube), ("signal.npy", signal)):
-        with atomic_path(out / name, suffix=".npy") as tmp:
-            with open(tmp, "wb") as fh:
-                np.save(fh, arr)
+    save_npy(out / "reflectance.npy", cube)
+    save_npy(out / "signal.npy", signal)
     for k, b in enumerate(result.bands):
         band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")

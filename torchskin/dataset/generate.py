@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..io import atomic_path, write_text
+from ..io import atomic_path, save_npy, write_text
 from ..raycast import Raycaster
 from ..render import Sensor, build_meshes, panel_pixels, render
 from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
@@ -260,9 +260,7 @@ def write_images(out_dir: Path, k: int, cubes: list) -> dict:
     """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images-NNNNN.npy``."""
     arr = np.stack(cubes)
     path = out_dir / f"images-{k:05d}.npy"
-    with atomic_path(path, suffix=".tmp") as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, arr)
+    save_npy(path, arr, suffix=".tmp")
     return {"name": path.name, "shape": list(arr.shape), "sha256": sha256_file(path), "bytes": path.stat().st_size}
 
 
