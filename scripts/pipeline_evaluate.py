@@ -1,14 +1,22 @@
 #!/usr/bin/env python
-"""Pipeline step 3/5: evaluate WORK/boundaries.pt on WORK/heldout against the static box.
+"""Pipeline step 3/5: compare the trained models on WORK/heldout (with the static thesis box) and choose the
+detector to ship.
 
     python scripts/pipeline_evaluate.py [--work out/pipeline]
 
-Writes WORK/evaluation.json (full result) and WORK/plots/{roc,pd_heatmap}.png."""
+Writes WORK/evaluation.json (every model: Pd sunlit / glint-affected / shadowed, Pfa earthlib test and scene
+non-skin by family, decision-region areas, per-bin figures), WORK/plots/{roc,pd_heatmap,boxes,comparison}.png
+and WORK/selection.json (the checkpoint detector.onnx is made from, and why: evaluate.select_detector)."""
 
 import argparse
+import json
 import sys
 
 from torchskin.cli import main
+from torchskin.evaluate import select_detector
+from torchskin.io import write_text
+
+MODELS = ("boundaries.pt", "baseline_box.pt", "classifier.pt")
 
 
 def run(argv=None) -> int:
@@ -16,8 +24,16 @@ def run(argv=None) -> int:
     ap.add_argument("--work", default="out/pipeline")
     a = ap.parse_args(argv)
     print("[evaluate] held-out configurations and earthlib test spectra", flush=True)
-    return main(["evaluate", "--data", f"{a.work}/heldout", "--model", f"{a.work}/boundaries.pt",
-                 "--plots", f"{a.work}/plots", "--save", f"{a.work}/evaluation.json"])
+    models = [x for m in MODELS for x in ("--model", f"{a.work}/{m}")]
+    rc = main(["evaluate", "--data", f"{a.work}/heldout", *models, "--plots", f"{a.work}/plots", "--save",
+               f"{a.work}/evaluation.json"])
+    if rc:
+        return rc
+    with open(f"{a.work}/evaluation.json") as fh:
+        name, reason = select_detector(json.load(fh))
+    print(f"[evaluate] detector.onnx from {name}: {reason}", flush=True)
+    write_text(f"{a.work}/selection.json", json.dumps({"detector": name, "reason": reason}, indent=1))
+    return 0
 
 
 if __name__ == "__main__":

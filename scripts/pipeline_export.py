@@ -1,11 +1,16 @@
 #!/usr/bin/env python
-"""Pipeline step 4/5: export WORK/boundaries.pt to EXPORTS (boundaries.onnx, detector.onnx, model cards with
-the evaluation), and keep the checkpoint, the evaluation and its plots beside them, with thesis_frame.png (the
-exported detector on the thesis geometry, against the static box).
+"""Pipeline step 4/5: export to EXPORTS and measure the exports on the fresh test set.
 
-    python scripts/pipeline_export.py [--work out/pipeline] [--exports exports]"""
+    python scripts/pipeline_export.py [--work out/pipeline] [--exports exports]
+
+Writes boundaries.onnx (WORK/boundaries.pt), baseline_box.onnx (WORK/baseline_box.pt) and detector.onnx (the
+checkpoint chosen in step 3, WORK/selection.json) with model cards quoting the held-out comparison; keeps the
+checkpoints, the held-out evaluation and its plots beside them; evaluates the three ONNX files on WORK/test (a
+seed used for nothing else) into evaluation_test.json and comparison_test.png; and draws thesis_frame.png (the
+exported detector on the thesis geometry, against the static box)."""
 
 import argparse
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -21,14 +26,27 @@ def run(argv=None) -> int:
     a = ap.parse_args(argv)
     work, out = Path(a.work), Path(a.exports)
     out.mkdir(parents=True, exist_ok=True)
-    print(f"[export] to {out}", flush=True)
-    rc = main(["export", "--model", str(work / "boundaries.pt"), "--out", str(out),
+    sel = json.loads((work / "selection.json").read_text())
+    print(f"[export] to {out}; detector.onnx from {sel['detector']}", flush=True)
+    rc = main(["export", "--model", str(work / "boundaries.pt"), "--baseline", str(work / "baseline_box.pt"),
+               "--detector", str(work / sel["detector"]), "--detector-reason", sel["reason"], "--out", str(out),
                "--metrics", str(work / "evaluation.json")])
     if rc:
         return rc
-    for src, dst in ((work / "boundaries.pt", out / "boundaries.pt"), (work / "evaluation.json", out / "evaluation.json"),
-                     (work / "plots" / "roc.png", out / "roc.png"), (work / "plots" / "pd_heatmap.png", out / "pd_heatmap.png"),
-                     (work / "plots" / "boxes.png", out / "boxes.png")):
+    copies = [(work / f, out / f) for f in ("boundaries.pt", "baseline_box.pt", "classifier.pt", "evaluation.json",
+                                             "selection.json")]
+    copies += [(work / "plots" / f, out / f) for f in ("roc.png", "pd_heatmap.png", "boxes.png", "comparison.png")]
+    for src, dst in copies:
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+    print("[export] the exports on the fresh test set (seed 3)", flush=True)
+    models = [x for m in ("boundaries.onnx", "baseline_box.onnx", "detector.onnx") for x in ("--model", str(out / m))]
+    rc = main(["evaluate", "--data", str(work / "test"), *models, "--save", str(work / "evaluation_test.json"),
+               "--plots", str(work / "plots_test")])
+    if rc:
+        return rc
+    for src, dst in ((work / "evaluation_test.json", out / "evaluation_test.json"),
+                     (work / "plots_test" / "comparison.png", out / "comparison_test.png")):
         with atomic_path(dst) as tmp:
             shutil.copyfile(src, tmp)
     from torchskin.evaluate import thesis_frame

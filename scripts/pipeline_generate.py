@@ -1,14 +1,20 @@
 #!/usr/bin/env python
-"""Pipeline step 1/5: generate the training and held-out datasets (embedded default configuration).
+"""Pipeline step 1/5: generate the training, held-out and fresh test datasets (embedded default configuration:
+the thesis skin surface model, clothing drawn from each dataset's earthlib partition).
 
     python scripts/pipeline_generate.py [--work out/pipeline] [--train-configs 9600] [--heldout-configs 2400]
+                                        [--test-configs 960]
 
-Writes WORK/train (seed 1) and WORK/heldout (seed 2); an existing complete dataset is kept (--resume)."""
+Writes WORK/train (seed 1, earthlib train partition), WORK/heldout (seed 2, test partition: used to compare
+the models and choose the detector) and WORK/test (seed 3, test partition: never used for any choice, the
+figures quoted for the exports); an existing complete dataset is kept (--resume)."""
 
 import argparse
 import sys
+from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.io import write_text
 
 
 def run(argv=None) -> int:
@@ -16,10 +22,17 @@ def run(argv=None) -> int:
     ap.add_argument("--work", default="out/pipeline")
     ap.add_argument("--train-configs", type=int, default=9600)
     ap.add_argument("--heldout-configs", type=int, default=2400)
+    ap.add_argument("--test-configs", type=int, default=960)
     a = ap.parse_args(argv)
-    for name, n, seed in (("train", a.train_configs, 1), ("heldout", a.heldout_configs, 2)):
-        print(f"[generate] {name}: {n} configurations, seed {seed}", flush=True)
-        rc = main(["generate", "--configs", str(n), "--seed", str(seed), "--out", f"{a.work}/{name}", "--resume"])
+    work = Path(a.work)
+    work.mkdir(parents=True, exist_ok=True)
+    for name, n, seed, part in (("train", a.train_configs, 1, "train"), ("heldout", a.heldout_configs, 2, "test"),
+                                ("test", a.test_configs, 3, "test")):
+        print(f"[generate] {name}: {n} configurations, seed {seed}, earthlib {part} partition", flush=True)
+        cfg = work / f"{name}.toml"
+        write_text(cfg, f'[confusers]\npartition = "{part}"\n\n[clothing]\npartition = "{part}"\n')
+        rc = main(["generate", "--config", str(cfg), "--configs", str(n), "--seed", str(seed), "--out",
+                   f"{a.work}/{name}", "--resume"])
         if rc:
             return rc
     return 0

@@ -1,14 +1,20 @@
 #!/usr/bin/env python
-"""Pipeline step 2/5: learn the configuration-dependent boxes from WORK/train.
+"""Pipeline step 2/5: learn the detectors compared in step 3 from WORK/train.
 
     python scripts/pipeline_train.py [--work out/pipeline] [--steps 1000]
 
-Writes WORK/boundaries.pt (coverage boxes, earthlib train spectra kept 0.03 outside, Pfa budget 1e-3)."""
+Writes WORK/boundaries.pt (configuration-dependent coverage boxes with the visible/NIR rule, earthlib train
+spectra kept 0.03 outside, Pfa budget 1e-3: `torchskin train` defaults), WORK/baseline_box.pt (the same
+training with one box for every configuration: --hidden 0) and WORK/classifier.pt (a configuration-conditioned
+MLP on band ratios, thresholded at the same budget)."""
 
 import argparse
 import sys
 
 from torchskin.cli import main
+
+#: extra box training options of the shipped models (none: the defaults of `torchskin train`)
+BOX_OPTIONS: list[str] = []
 
 
 def run(argv=None) -> int:
@@ -16,8 +22,14 @@ def run(argv=None) -> int:
     ap.add_argument("--work", default="out/pipeline")
     ap.add_argument("--steps", type=int, default=1000)
     a = ap.parse_args(argv)
-    print("[train] learning boundaries", flush=True)
-    return main(["train", "--data", f"{a.work}/train", "--out", f"{a.work}/boundaries.pt", "--steps", str(a.steps)])
+    common = ["--data", f"{a.work}/train", "--steps", str(a.steps)]
+    for name, extra in (("boundaries", BOX_OPTIONS), ("baseline_box", [*BOX_OPTIONS, "--hidden", "0"]),
+                        ("classifier", ["--method", "classifier"])):
+        print(f"[train] {name}", flush=True)
+        rc = main(["train", *common, "--out", f"{a.work}/{name}.pt", *extra])
+        if rc:
+            return rc
+    return 0
 
 
 if __name__ == "__main__":

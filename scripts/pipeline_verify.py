@@ -3,11 +3,13 @@
 
     python scripts/pipeline_verify.py [--exports exports]
 
-Checks: onnx.checker; metadata (bands, features, domain, manifest hash, version); boundaries.onnx equals the
-checkpoint to 1e-5 over the training domain; detector.onnx run by the torch-free onboard runtime equals the
-torch reference (scores to 1e-5, masks except on a boundary) on a rendered-like cube; on the thesis geometry
-(render, onboard ELM from the panels, detector) the learned boundaries keep > 90 % of the sunlit skin; the
-model cards exist and quote the evaluation. Exit status 1 on any failure."""
+Checks: onnx.checker and metadata (bands, features, domain, box order, skin surface model, manifest hash,
+version) of boundaries.onnx, baseline_box.onnx and detector.onnx; the two box exports equal their checkpoints to
+1e-5 over the training domain; detector.onnx run by the torch-free onboard runtime equals the torch reference of
+the checkpoint it was made from (scores to 1e-5, masks except on a boundary) on a rendered-like cube; on the
+thesis geometry (render, onboard ELM from the panels, detector) the shipped detector keeps > 90 % of the
+sunlit skin; the model cards exist and quote the held-out evaluation; the fresh-test evaluation exists. Exit
+status 1 on any failure."""
 
 import argparse
 import json
@@ -15,6 +17,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+FILES = ("boundaries.pt", "baseline_box.pt", "classifier.pt", "boundaries.onnx", "baseline_box.onnx", "detector.onnx",
+         "boundaries.md", "baseline_box.md", "detector.md", "evaluation.json", "evaluation_test.json", "selection.json")
 
 
 def run(argv=None) -> int:
@@ -25,12 +30,13 @@ def run(argv=None) -> int:
     import torch
 
     from torchskin import boundaries as Bd
+    from torchskin import classifier as Cl
+    from torchskin.export import ClassifierDetector
     from torchskin.export import Detector as TorchDetector
     from torchskin.onboard import Boundaries, Detector
 
     out = Path(a.exports)
-    missing = [f for f in ("boundaries.pt", "boundaries.onnx", "detector.onnx", "boundaries.md", "detector.md",
-                           "evaluation.json") if not (out / f).is_file()]
+    missing = [f for f in FILES if not (out / f).is_file()]
     if missing:
         print(f"[verify] FAIL {out} lacks {', '.join(missing)} (scripts/pipeline_export.py writes them)")
         return 1
@@ -41,32 +47,42 @@ def run(argv=None) -> int:
         if not ok:
             failures.append(what)
 
-    for name in ("boundaries", "detector"):
+    for name in ("boundaries", "baseline_box", "detector"):
         m = onnx.load(str(out / f"{name}.onnx"))
         onnx.checker.check_model(m, full_check=True)
         meta = {p.key: p.value for p in m.metadata_props}
         check(m.opset_import[0].version >= 17 and json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0]
-              and len(meta.get("training_manifest_sha256", "")) == 64 and meta.get("torchskin_version"),
-              f"{name}.onnx: checker, opset >= 17, metadata")
+              and len(meta.get("training_manifest_sha256", "")) == 64 and meta.get("torchskin_version")
+              and meta.get("skin_surface_model") == "thesis" and len(json.loads(meta["box_order"])) == 5,
+              f"{name}.onnx: checker, opset >= 17, metadata (skin surface model {meta.get('skin_surface_model')!r})")
     model = Bd.load(out / "boundaries.pt")
     lo, hi = model.domain[:, 0], model.domain[:, 1]
     cfg = lo + (hi - lo) * torch.rand(4096, len(model.features), generator=torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        ref = model(cfg).numpy()
-    got = Boundaries(out / "boundaries.onnx")(cfg.numpy())
-    err = float(np.abs(got["boxes"] - ref).max())
-    check(err < 1e-5 and not got["out_of_domain"].any(), f"boundaries.onnx vs checkpoint: max |diff| {err:.1e}")
+    for name in ("boundaries", "baseline_box"):
+        m = Bd.load(out / f"{name}.pt")
+        with torch.no_grad():
+            ref = m(cfg).numpy()
+        got = Boundaries(out / f"{name}.onnx")(cfg.numpy())
+        err = float(np.abs(got["boxes"] - ref).max())
+        check(err < 1e-5 and not got["out_of_domain"].any(), f"{name}.onnx vs {name}.pt: max |diff| {err:.1e}")
+    sel = json.loads((out / "selection.json").read_text())
+    det_meta = {p.key: p.value for p in onnx.load(str(out / "detector.onnx")).metadata_props}
+    src = out / sel["detector"]
+    check(det_meta.get("detector_model") == sel["detector"] and src.is_file(),
+          f"detector.onnx made from {sel['detector']} (selection.json)")
+    ck = torch.load(src, map_location="cpu", weights_only=True)
+    reference = ClassifierDetector(Cl.load(src)) if ck.get("kind") == "classifier" else TorchDetector(Bd.load(src))
     rng = np.random.default_rng(0)
     skin = np.array([0.30, 0.55, 0.55, 0.07], dtype=np.float32)[:, None, None]
     cube = (rng.random((2, 4, 256, 256)) * 0.6).astype(np.float32)
     cube[:, :, 64:192, 64:192] = skin * (0.8 + 0.4 * rng.random((2, 1, 128, 128))).astype(np.float32)
     c2 = cfg[:2].numpy()
-    res = Detector(out / "detector.onnx")(cube, c2)
+    res = Detector(out / "detector.onnx")(cube, c2, min_reflectance=0.0)
     with torch.no_grad():
-        mt, st = TorchDetector(model)(torch.from_numpy(cube), torch.from_numpy(c2))
+        mt, st = reference(torch.from_numpy(cube), torch.from_numpy(c2))
     serr = float(np.abs(res["score"] - st.numpy()).max())
     differ = res["mask"] != mt.numpy()
-    check(serr < 1e-5 and bool((np.abs(st.numpy()[differ]) < 1e-6).all()),
+    check(serr < 1e-5 and bool((np.abs(st.numpy()[differ]) < 1e-5).all()),
           f"detector.onnx (onboard runtime) vs torch: max |score diff| {serr:.1e}, {int(differ.sum())} mask pixels differ")
     frac = float(res["mask"][:, 64:192, 64:192].mean())
     check(frac > 0.9, f"detector.onnx finds the skin-like square: {frac:.3f} of it")
@@ -74,15 +90,21 @@ def run(argv=None) -> int:
 
     t = thesis_frame(out / "detector.onnx")
     check(t["pd_sunlit_learned"] > 0.9 and not t["out_of_domain"],
-          f"thesis geometry (horizontal camera, sun 45°, ELM from the frame's panels): learned boundaries keep "
+          f"thesis geometry (horizontal camera, sun 45°, ELM from the frame's panels): the detector keeps "
           f"{t['pd_sunlit_learned']:.3f} of {t['sunlit_skin_pixels']} sunlit skin pixels (static box "
           f"{t['pd_sunlit_static']:.3f}), {t['false_alarms_learned']} false alarms")
     ev = json.loads((out / "evaluation.json").read_text())
+    det_entry = next(m for m in ev["models"] if m["name"] == sel["detector"])
     card = (out / "detector.md").read_text()
-    check(f"{ev['learned']['pd_sunlit']:.3f}" in card and (out / "boundaries.md").is_file(),
-          "model cards quote the evaluation")
-    print(f"[verify] held-out Pd sunlit {ev['learned']['pd_sunlit']:.3f} (static box {ev['static']['pd_sunlit']:.3f}), "
-          f"Pfa earthlib test {ev['learned']['pfa']:.2e}")
+    check(f"{det_entry['overall']['pd_sunlit']:.3f}" in card and sel["detector"] in card
+          and (out / "boundaries.md").is_file() and (out / "baseline_box.md").is_file(),
+          "model cards quote the held-out evaluation")
+    test = json.loads((out / "evaluation_test.json").read_text())
+    for m in test["models"]:
+        o, h = m["overall"], m["sun_zenith_ge_60"]
+        print(f"[verify] fresh test set: {m['name']:<20} Pd sunlit {o['pd_sunlit']:.3f}, sun >= 60° mean over "
+              f"configurations {h['pd_sunlit_mean_over_configs']:.3f}, Pfa earthlib {o['pfa']:.2e}, scene "
+              f"{o['pfa_scene']:.2e}, area {m['area']['mean']:.3f}")
     return 1 if failures else 0
 
 

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from torchskin.cli import main
@@ -265,3 +266,29 @@ def test_panels_stay_visible_down_to_a_horizontal_camera(subject_obj, camera_zen
     assert view_deg == pytest.approx([expected] * 2, abs=1.5)  # a 60 m range: nearly parallel rays
     ok = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32)).tolist()
     assert ok == [True, camera_zenith <= PANEL_MAX_VIEW_DEG]  # a level panel is lit by any sun above the horizon
+
+
+def test_clothing_is_a_measured_spectrum_of_the_partition():
+    """The subject's clothing is an earthlib spectrum from the clothing families of the configured partition,
+    recorded per row; its pixels are labelled "clothing" and, being Lambertian, ELM returns that spectrum up to
+    one geometric factor per pixel (noise off: the band ratios are the spectrum's)."""
+    from torchskin.confusers import CLOTHING_FAMILIES, family, partition, spectrum
+    from torchskin.dataset.config import sample_group
+    from torchskin.dataset.generate import group_rows
+
+    front = {"azimuth_deg": [0.0, 0.0]}  # camera and sun in front of the subject (facing +x)
+    cfg = resolve_config({"camera": {"width": 192, "height": 192, "zenith_deg": [60.0, 70.0], "range_m": [6.0, 8.0],
+                                     **front}, "subject": {"yaw_deg": [0.0, 0.0]},
+                          "sun": {"per_pose": 1, "zenith_deg": [30.0, 40.0], **front}, "skin": {"per_pose": 1},
+                          "sensor": {"noise": False}, "clothing": {"partition": "test"},
+                          "confusers": {"count": [0, 0]}, "sampling": {"pixels_per_class": 400}})
+    g = sample_group(cfg, 5, 0)
+    assert g.clothing and partition(g.clothing) == "test" and family(g.clothing).startswith(CLOTHING_FAMILIES)
+    rows = {k: np.concatenate(v) for k, v in group_rows(g, 400).items() if v}
+    assert set(rows["clothing"]) == {g.clothing} and set(rows["surface"]) == {"thesis"}
+    assert set(rows["material"][rows["label"]]) == {"skin"}
+    cloth = (rows["material"] == "clothing") & ~rows["shadow"]
+    assert cloth.sum() > 20
+    r = np.stack([rows[f"r{b}"] for b in (544, 633, 1080, 1580)], -1)[cloth]
+    ratio = r / np.array(spectrum(g.clothing, (544, 633, 1080, 1580)))
+    assert np.allclose(ratio, ratio[:, :1], rtol=2e-3), ratio[:5]

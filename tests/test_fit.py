@@ -32,7 +32,9 @@ def test_skin_round_trip_rmse_and_identifiable_parameters(round_trip):
     Q = torch.stack([getattr(res.params, k) for k in fit.NAMES], -1)
     rel = (Q - P).abs() / P
     ident = res.identifiable
-    assert float(ident[:, 0].float().mean()) > 0.8  # melanosome fraction is nearly always determined
+    # melanosome fraction is mostly determined (0.75 here with the ISSA-calibrated constants, 0.85 before: more
+    # blood near the surface overlaps melanin's blue absorption, and the melanin layer is thinner)
+    assert float(ident[:, 0].float().mean()) > 0.7
     assert int(ident.sum()) > 80
     assert float(rel[ident].max()) <= 0.05
 

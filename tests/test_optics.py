@@ -139,6 +139,29 @@ def test_smith_shadowing_keeps_energy_bounded_at_grazing():
     assert float(plain[-1]) > float(smith[-1]) + 0.05  # without G the lobe blows up at grazing
 
 
+def test_skin_surface_models_energy():
+    """The conserving skin model (ρ_d the subsurface part) with Smith shadowing keeps the DHR <= 1 at every
+    incidence, even for a nearly white subsurface; the thesis's model (ρ_d with the front surface) counts the
+    surface reflection twice and exceeds 1 towards grazing incidence; at normal incidence the two differ by
+    about (1 - ρ0) R0 only."""
+    ti = deg(torch.tensor([0.0, 30.0, 60.0, 75.0, 85.0, 89.0], dtype=DT))
+    r_sub = torch.tensor([0.05, 0.5, 0.9, 0.99], dtype=DT)[:, None, None, None]  # (R, 1, 1, 1): broadcasts
+
+    def dhr_of(surface, shadowing):
+        fn = lambda a, b, c: O.skin_brdf(a, b, c, r_sub, 0.0313, 0.030, surface, shadowing=shadowing)  # noqa: E731
+        return O.dhr(fn, ti, 128, 128)  # (R, 6)
+
+    cons = dhr_of("conserving", True)
+    assert float(cons.max()) <= 1.0, cons
+    thesis = dhr_of("thesis", False)
+    assert float(thesis[2:, -1].min()) > 1.0  # bright skin at 89°: more light out than in
+    assert bool((thesis > cons).all())
+    # at normal incidence the front-surface term adds about (1 - F) R0 = 0.03 to the diffuse part
+    assert abs(float((thesis - dhr_of("conserving", False))[1, 0]) - 0.97 * 0.030) < 0.01
+    with pytest.raises(ValueError, match="surface must be one of thesis, conserving"):
+        O.skin_brdf(0.1, 0.2, 0.3, 0.5, 0.03, 0.04, "lambertian")
+
+
 def test_observed_reflectance_integrates_to_dhr():
     """Eq 3.1.4 summed over detectors tiling the hemisphere (Ω = sin θ dθ dφ) is the DHR, eq 2.3.2."""
     ti = deg(torch.tensor([20.0], dtype=DT))

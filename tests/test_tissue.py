@@ -140,12 +140,21 @@ def test_polynomial_r0_option_converges_to_exact():
     assert all(b < a / 2 for a, b in zip(err, err[1:])), err
 
 
-def test_diffuse_component_falls_with_incidence_and_vanishes_at_grazing():
+def test_diffuse_component_under_both_surface_models():
+    """Conserving: the subsurface part falls with incidence and vanishes at grazing (R0 = 1: nothing enters).
+    Thesis: ρ_d is the total reflectance R0 + subsurface, which rises to 1 at grazing; the two differ by R0."""
     skins = T.preset("I-II", dtype=DT)
     th = torch.tensor([0.0, 0.5, 1.0, 1.4, math.pi / 2], dtype=DT)[:, None]
-    rd = T.diffuse_reflectance(skins, BANDS, theta_i=th)
+    rd = T.diffuse_reflectance(skins, BANDS, theta_i=th, surface="conserving")
     assert bool((rd[1:] <= rd[:-1] + 1e-15).all())
-    assert float(rd[-1].abs().max()) < 1e-12  # R0 = 1 at grazing: nothing enters
+    assert float(rd[-1].abs().max()) < 1e-12
+    thesis = T.diffuse_reflectance(skins, BANDS, theta_i=th)  # the default
+    r0 = 0.04 + 0.96 * (1 - torch.cos(th)) ** 5
+    torch.testing.assert_close(thesis - rd, r0.expand_as(rd), rtol=0, atol=1e-12)
+    torch.testing.assert_close(thesis[-1], torch.ones(4, dtype=DT), rtol=0, atol=1e-12)
+    torch.testing.assert_close(thesis[0], T.reflectance(skins, BANDS), rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match="surface must be one of"):
+        T.diffuse_reflectance(skins, BANDS, surface="lambertian")
 
 
 @pytest.mark.parametrize("name,value,msg", [

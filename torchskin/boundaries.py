@@ -1,5 +1,15 @@
-"""Configuration-dependent rules-detector boundaries: configuration features -> box (b1, b2, c1, c2) on
-(NDGRI, NDSI), learned as conditional quantiles of sunlit skin pixels (pinball loss) from generated datasets.
+"""Configuration-dependent rules-detector boundaries: configuration features -> box (b1, b2, c1, c2, d1):
+NDGRI in [b1, b2] and NDSI in [c1, c2] (the thesis's rules, eq 2.5.10, with the box chosen per configuration),
+and NDVN >= d1, a visible/NIR rule on NDVN = ((g + r) - (n + s)) / (g + r + n + s), learned from generated
+datasets.
+
+Why the third rule: under eq 3.1.1 with the thesis's surface model, sunlit skin seen at grazing local
+incidence (and in glints) adds a spectrally flat front-surface reflection, which pulls NDGRI and NDSI along
+straight lines towards (0, 0); a box that keeps that skin must reach down in NDSI towards where litter, bark
+and dry vegetation sit. Those are far darker in the visible than in the NIR (NDVN around -0.5), while skin,
+from Type I to VI, stays above about -0.35, and the flat reflection only raises it towards 0. d1 is one value
+for every configuration, set below the training skin's NDVN (``ndvn_rule``); with d1 = -1 the rule is inactive
+(the 2-index rules alone: ``ndvn_quantile=None``).
 
 The model is a small MLP on standardised features with an output that keeps b1 <= b2 and c1 <= c2:
     (lo_g, w_g, lo_s, w_s) -> b1 = lo_g, b2 = lo_g + softplus(w_g), c1 = lo_s, c2 = lo_s + softplus(w_s).
@@ -31,10 +41,35 @@ FEATURE_UNITS = {"sun_zenith_deg": "deg", "camera_zenith_deg": "deg", "relative_
 #: training domain of each feature (inputs outside it are flagged onboard)
 FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0),
                   "relative_azimuth_deg": (0.0, 180.0), "range_m": (0.0, 10000.0)}
+#: the columns of a box: NDGRI min, NDGRI max, NDSI min, NDSI max, NDVN min
+BOX_ORDER = ("b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max", "d1_ndvn_min")
+#: ``ndvn_rule``: d1 = this quantile of the training skin's NDVN minus ``NDVN_MARGIN``
+NDVN_QUANTILE = 0.001
+NDVN_MARGIN = 0.05
+
+
+def ratio_indices(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(NDGRI, NDSI, NDVN) of reflectance (..., 4) in the band order 544, 633, 1080, 1580 nm (NaN where a band
+    sum is 0): NDVN = ((g + r) - (n + s)) / (g + r + n + s), the visible/NIR balance."""
+    g, r, n, s = R.unbind(-1)
+    vis, nir = g + r, n + s
+    return (g - r) / vis, (n - s) / nir, (vis - nir) / (vis + nir)
+
+
+def ndvn_rule(v: torch.Tensor, quantile: float | None = NDVN_QUANTILE, margin: float = NDVN_MARGIN) -> float:
+    """d1 of the visible/NIR rule from the NDVN of training skin pixels ``v``: its ``quantile`` less ``margin``
+    (-1, the rule off, when ``quantile`` is None)."""
+    if quantile is None:
+        return -1.0
+    v = v[torch.isfinite(v)]
+    if v.numel() == 0:
+        return -1.0
+    return max(-1.0, float(torch.quantile(v.double(), quantile)) - margin)
 
 
 class BoundaryModel(nn.Module):
-    """Configuration features (N, k) -> boxes (N, 4) = (b1, b2, c1, c2)."""
+    """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``); d1, the NDVN rule,
+    is the buffer ``ndvn_min``, the same for every configuration (-1: inactive)."""
 
     def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None, domain=None):
         super().__init__()
@@ -47,6 +82,7 @@ class BoundaryModel(nn.Module):
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
         self.register_buffer("scale", torch.ones(()))  # false-alarm calibration: box half-widths x scale
+        self.register_buffer("ndvn_min", torch.full((), -1.0))  # d1 of the visible/NIR rule (-1: inactive)
         if domain is None:
             domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
         # the training domain of each feature (k, 2): configurations outside it are flagged onboard
@@ -61,18 +97,22 @@ class BoundaryModel(nn.Module):
 
     def forward(self, config: torch.Tensor) -> torch.Tensor:
         # z = (lo_g, w_g, lo_s, w_s); centre m = lo + softplus(w) / 2, half-width h = scale * softplus(w) / 2:
-        # box = z P + softplus(z) Q (two small matrix products keep the exported graph short)
+        # box = z P + softplus(z) Q (two small matrix products keep the exported graph short), d1 in column 5
         z = self.net((config - self.mean) / self.std if self.standardize else config)
-        P = z.new_tensor([[1.0, 1.0, 0, 0], [0, 0, 0, 0], [0, 0, 1.0, 1.0], [0, 0, 0, 0]])
+        packed = self.net[-1].out_features == 5  # the export form (``folded``): d1 is a fifth output of the last layer
+        rows = [[1.0, 1.0, 0, 0, 0], [0] * 5, [0, 0, 1.0, 1.0, 0], [0] * 5] + ([[0, 0, 0, 0, 1.0]] if packed else [])
+        P = z.new_tensor(rows)  # built without in-place writes: the exported graph keeps them as constants
         q = torch.stack([0.5 * (1 - self.scale), 0.5 * (1 + self.scale)]).to(z.dtype)
-        zero = torch.zeros(2, dtype=z.dtype, device=z.device)
-        Q = torch.stack([torch.cat([zero, zero]), torch.cat([q, zero]), torch.cat([zero, zero]), torch.cat([zero, q])])
-        return z @ P + nn.functional.softplus(z) @ Q
+        o1, o2, o3, o5 = (torch.zeros(n, dtype=z.dtype, device=z.device) for n in (1, 2, 3, 5))
+        Q = torch.stack([o5, torch.cat([q, o3]), o5, torch.cat([o2, q, o1])] + ([o5] if packed else []))
+        box = z @ P + nn.functional.softplus(z) @ Q
+        return box if packed else box + torch.cat([o2, o2, self.ndvn_min.to(z.dtype).reshape(1)])
 
 
 def folded(model: BoundaryModel) -> BoundaryModel:
-    """A copy of ``model`` with the feature standardisation folded into its first linear layer (the same
-    function with two nodes fewer in the exported graph)."""
+    """A copy of ``model`` for export, the same function with fewer graph nodes: the feature standardisation
+    folded into the first linear layer, and d1 (the NDVN rule) carried by a fifth output of the last layer
+    (zero weights, bias d1) instead of being added to the boxes."""
     import copy
 
     m = copy.deepcopy(model).eval()
@@ -81,6 +121,13 @@ def folded(model: BoundaryModel) -> BoundaryModel:
         w = first.weight / m.std
         first.bias -= w @ m.mean
         first.weight.copy_(w)
+        last = m.net[-1]
+        packed = nn.Linear(last.in_features, 5)
+        packed.weight.zero_()
+        packed.weight[:4] = last.weight
+        packed.bias[:4] = last.bias
+        packed.bias[4] = m.ndvn_min
+        m.net[-1] = packed
     m.standardize = False
     return m
 
@@ -99,17 +146,22 @@ class TrainResult:
 
 
 def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
-    """Features (n, k) and (NDGRI, NDSI) (n, 2) of the skin pixels of a generated dataset (float32), from
-    frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
+    """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
+    from frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
     from .dataset.files import read_valid
 
-    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow"])
+    bands = ["r544", "r633", "r1080", "r1580"]
+    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *bands])
     keep = t.column("label").to_numpy(zero_copy_only=False).copy()
     if sunlit_only:
         keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
     X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
-    Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False),
-                  t.column("ndsi").to_numpy(zero_copy_only=False)], -1)[keep]
+    R = np.stack([t.column(b).to_numpy(zero_copy_only=False) for b in bands], -1)[keep].astype(np.float64)
+    vis, nir = R[:, 0] + R[:, 1], R[:, 2] + R[:, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = (vis - nir) / (vis + nir)
+    Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False)[keep],
+                  t.column("ndsi").to_numpy(zero_copy_only=False)[keep], v], -1)
     ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
     if not ok.any():
         raise ValueError(f"no usable sunlit skin pixels in {str(data_dir)!r}")
@@ -139,8 +191,10 @@ def domain_from_manifest(data_dir, features=FEATURES) -> list[tuple[float, float
 
 
 def _check_xy(X: torch.Tensor, Y: torch.Tensor, features) -> None:
-    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] != len(features) or Y.shape[1] != 2:
-        raise ValueError(f"X (n, {len(features)}) and Y (n, 2) expected, got {tuple(X.shape)} and {tuple(Y.shape)}")
+    if (X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] != len(features)
+            or Y.shape[1] not in (2, 3)):
+        raise ValueError(f"X (n, {len(features)}) and Y (n, 2) or (n, 3) (NDGRI, NDSI[, NDVN]) expected, got "
+                         f"{tuple(X.shape)} and {tuple(Y.shape)}")
     if X.shape[0] < 10:
         raise ValueError(f"at least 10 skin pixels are needed to learn boundaries, got {X.shape[0]}")
 
@@ -188,27 +242,32 @@ def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=
 
 
 def soft_inside(boxes: torch.Tensor, points: torch.Tensor, tau: float) -> torch.Tensor:
-    """Smooth indicator that (NDGRI, NDSI) ``points`` (n, 2) lie in ``boxes`` (n, 4): the product of four
-    sigmoids of the edge distances over ``tau`` (index units)."""
+    """Smooth indicator that (NDGRI, NDSI) ``points`` (n, 2+) lie in ``boxes`` (n, 4+): the product of four
+    sigmoids of the edge distances over ``tau`` (index units; the NDVN rule is not part of it)."""
     g, s = points[:, 0], points[:, 1]
     d = torch.stack([g - boxes[:, 0], boxes[:, 1] - g, s - boxes[:, 2], boxes[:, 3] - s], -1)
     return torch.sigmoid(d / tau).prod(-1)
 
 
-def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float) -> torch.Tensor:
+def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, allow: int = 0) -> torch.Tensor:
     """Per box (N, 4), the summed violation of ``points`` (n, 2) that lie inside it or within ``margin``
-    (L-infinity, index units) of it: sum_j relu(min(edge distances_j) + margin)."""
+    (L-infinity, index units) of it: sum_j relu(min(edge distances_j) + margin), less the ``allow`` largest
+    violations (the points the false-alarm budget lets a box hold)."""
     g, s = points[:, 0][None], points[:, 1][None]
     b = boxes[:, :, None]
     depth = torch.minimum(torch.minimum(g - b[:, 0], b[:, 1] - g), torch.minimum(s - b[:, 2], b[:, 3] - s))
-    return torch.relu(depth + margin).sum(-1)
+    v = torch.relu(depth + margin)
+    total = v.sum(-1)
+    if allow > 0:
+        total = total - v.topk(min(int(allow), v.shape[-1]), dim=-1).values.sum(-1)
+    return total
 
 
 def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, features=FEATURES, hidden: int = 32,
                 steps: int = 1500, lr: float = 1e-2, tau: float = 0.01, margin: float = 0.03,
                 width_cost: float = 0.05, fa_weight: float = 10.0, domain_configs: int = 128,
                 batch: int | None = 32768, seed: int = 0, domain=None, per_config: bool = True,
-                spread_cost: float = 0.1) -> TrainResult:
+                spread_cost: float = 0.1, allow: int = 0, ndvn_min: float = -1.0) -> TrainResult:
     """Learn the box that, per configuration, covers the most sunlit skin pixels ``Y`` (n, 2) given their
     configuration features ``X`` (n, k), while every ``confusers`` point (m, 2) (the earthlib *train* spectra)
     stays ``margin`` outside it, for ``domain_configs`` training configurations and as many random
@@ -223,7 +282,11 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     so geometries that show little skin (a camera overhead) are not traded away; else w_i = 1. The spread
     term pulls every configuration's box towards their mean: the box moves with the configuration only where
     the skin pixels pay for it (without it, boxes shrank where the data are thin: camera-overhead Pd fell to
-    0.90-0.96 on held-out data against 0.97-0.99 for a single refitted box).
+    0.90-0.96 on held-out data against 0.97-0.99 for a single refitted box). ``allow``: the number of confusers
+    a box may hold at no cost (the ``allow`` largest violations are not counted): ``learn`` sets it to the
+    false-alarm budget, floor(pfa_budget x number of confusers), so that training and the hard calibration
+    afterwards enforce the same budget. ``ndvn_min``: d1 of the visible/NIR rule (fixed during training; -1
+    inactive): with (m, 3) ``confusers`` (NDGRI, NDSI, NDVN), those it rejects need no margin from the box.
 
     Adam on random batches of ``batch`` pixels (None: all of them), deterministic in ``seed``; the sigmoid
     edges sharpen from 3 tau to tau over the first half of the steps and the learning rate decays from ``lr``
@@ -235,9 +298,17 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
         if not (v > lo) or not math.isfinite(v):
             raise ValueError(f"{name} must be {'positive' if lo == 0 else 'non-negative'} and finite, got {v}")
     _check_xy(X, Y, features)
-    if confusers.ndim != 2 or confusers.shape[1] != 2 or confusers.shape[0] == 0:
-        raise ValueError(f"confusers must be (m, 2) (NDGRI, NDSI) points, got {tuple(confusers.shape)}")
-    model = _initial_model(X, Y, features, hidden, 0.05, seed, domain)
+    if confusers.ndim != 2 or confusers.shape[1] not in (2, 3) or confusers.shape[0] == 0:
+        raise ValueError(f"confusers must be (m, 2) or (m, 3) (NDGRI, NDSI[, NDVN]) points, got "
+                         f"{tuple(confusers.shape)}")
+    if confusers.shape[1] == 3 and ndvn_min > -1.0:
+        confusers = confusers[confusers[:, 2] >= ndvn_min]  # the others fail the visible/NIR rule anyway
+    confusers = confusers[:, :2]
+    if confusers.shape[0] == 0:
+        confusers = torch.full((1, 2), 10.0)  # nothing left to keep out
+    model = _initial_model(X, Y[:, :2], features, hidden, 0.05, seed, domain)
+    model.ndvn_min.fill_(float(ndvn_min))
+    Y = Y[:, :2]
     g = torch.Generator().manual_seed(seed + 1)
     train_cfg, inv = distinct_configs(X)  # pixels share their configuration: one box per distinct one
     counts = torch.bincount(inv, minlength=len(train_cfg)).to(Y.dtype)
@@ -264,7 +335,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
         cover = (soft_inside(box, yb, t) * wb).mean()
         width = ((box[:, 1] - box[:, 0] + box[:, 3] - box[:, 2]) * wb).mean()
         bc = model(cfg)
-        fa = margin_violation(bc, C, margin).mean()
+        fa = margin_violation(bc, C, margin, allow).mean()
         spread = (bc - bc.mean(0)).square().sum(-1).mean()
         loss = -cover + width_cost * width + fa_weight * fa + spread_cost * spread
         loss.backward()
@@ -286,18 +357,24 @@ METHODS = ("boxes", "quantiles")
 
 
 def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: float = 1e-3,
-          confusers: torch.Tensor | None = None, **options) -> tuple[BoundaryModel, dict]:
+          confusers: torch.Tensor | None = None, ndvn_quantile: float | None = NDVN_QUANTILE,
+          **options) -> tuple[BoundaryModel, dict]:
     """Train (``train_boxes`` or ``train_quantiles``) and enforce the false-alarm budget on the earthlib train
-    partition (``calibrate_false_alarms`` over ``calibration_configs``). Returns the model and a summary."""
+    partition (``calibrate_false_alarms`` over ``calibration_configs``). With (n, 3) skin points ``Y`` and
+    (m, 3) confusers the visible/NIR rule is set first (``ndvn_rule`` of the skin's NDVN at ``ndvn_quantile``;
+    None: no such rule). Returns the model and a summary."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not (0.0 <= pfa_budget < 1.0):
         raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
     C = confuser_indices("train") if confusers is None else confusers
+    d1 = ndvn_rule(Y[:, 2], ndvn_quantile) if Y.ndim == 2 and Y.shape[1] > 2 and C.shape[1] > 2 else -1.0
     if method == "boxes":
-        res = train_boxes(X, Y, C, **options)
+        options.setdefault("allow", int(math.floor(pfa_budget * C.shape[0])))
+        res = train_boxes(X, Y, C, ndvn_min=d1, **options)
     else:
-        res = train_quantiles(X, Y, **options)
+        res = train_quantiles(X, Y[:, :2], **options)
+        res.model.ndvn_min.fill_(d1)
     cfg = calibration_configs(res.model, X)
     scale = calibrate_false_alarms(res.model, cfg, C, pfa_budget)
     with torch.no_grad():
@@ -307,7 +384,7 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         raise ValueError(f"training failed: the learned boxes hold only {coverage:.3f} of the training skin pixels "
                          f"(< {MIN_TRAIN_COVERAGE}); the optimisation left the data. Try another seed (--seed) or "
                          "fewer hidden units (--hidden), or check the dataset and the false-alarm budget")
-    return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale,
+    return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale, "ndvn_min": d1,
                        "pfa_budget": pfa_budget, "pfa_train_worst": pfa_train, "train_coverage": coverage,
                        "calibration_configs": int(cfg.shape[0]), "options": options}
 
@@ -323,24 +400,19 @@ def distinct_configs(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def train_coverage(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor) -> float:
-    """Fraction of the training skin pixels ``Y`` (n, 2) inside the hard box of their configuration ``X``."""
+    """Fraction of the training skin pixels ``Y`` (n, 2 or 3) inside the hard box of their configuration ``X``."""
     uniq, inv = distinct_configs(X)
-    return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1]).float().mean())
+    v = Y[:, 2] if Y.shape[1] > 2 else None
+    return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1], v).float().mean())
 
 
 def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
-    """A torch checkpoint: state, features and hidden size (+ metadata). Serialised through a buffer, so the
-    archive does not carry the temporary file's random name: the same model gives the same bytes."""
-    import io
+    """A torch checkpoint: state, features and hidden size (+ metadata), written atomically through a buffer:
+    the same model gives the same bytes."""
+    from .io import save_torch
 
-    from .io import atomic_path
-
-    buf = io.BytesIO()
-    torch.save({"state_dict": model.state_dict(), "features": list(model.features),
-                "hidden": model.hidden, "meta": meta or {}}, buf)
-    with atomic_path(path, suffix=".pt") as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(buf.getvalue())
+    save_torch(path, {"state_dict": model.state_dict(), "features": list(model.features), "hidden": model.hidden,
+                      "meta": meta or {}})
 
 
 def load(path) -> BoundaryModel:
@@ -348,30 +420,35 @@ def load(path) -> BoundaryModel:
     m = BoundaryModel(ck["features"], ck["hidden"])
     state = dict(ck["state_dict"])
     state.setdefault("domain", m.domain)  # checkpoints written before the domain was stored
+    state.setdefault("ndvn_min", m.ndvn_min)  # and before the visible/NIR rule
     m.load_state_dict(state)
     return m.eval()
 
 
 def confuser_indices(part: str = "train") -> torch.Tensor:
-    """(NDGRI, NDSI) of the earthlib spectra of one partition, (n, 2): geometry-independent (Lambertian).
-    Spectra whose indices are undefined (zero reflectance in a band pair) are left out: no box holds them."""
+    """(NDGRI, NDSI, NDVN) of the earthlib spectra of one partition, (n, 3): geometry-independent (Lambertian:
+    a geometric factor scales every band alike). Spectra whose indices are undefined (zero reflectance in a
+    band pair) are left out: no box holds them."""
     from .confusers import band_reflectance
-    from .detect import indices
 
     _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
-    g, s = indices(R.float())
-    pts = torch.stack([g, s], -1)
+    pts = torch.stack(ratio_indices(R.float()), -1)
     return pts[torch.isfinite(pts).all(-1)]
 
 
-def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-    """Whether (NDGRI, NDSI) = (``g``, ``s``) lies in ``boxes`` (N, 4, ...) (edges included; broadcasting)."""
-    return (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
+def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
+    """Whether (NDGRI, NDSI) = (``g``, ``s``) lies in ``boxes`` (N, 4 or 5, ...) (edges included; broadcasting)
+    and, with ``v`` (NDVN) and a fifth column, NDVN >= d1."""
+    ok = (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
+    if v is not None and boxes.shape[1] > 4:
+        ok = ok & (v >= boxes[:, 4])
+    return ok
 
 
 def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Per box (N, 4): the fraction of ``points`` (n, 2) inside it."""
-    return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None]).float().mean(-1)
+    """Per box (N, 4 or 5): the fraction of ``points`` (n, 2 or 3: NDGRI, NDSI[, NDVN]) inside it."""
+    v = points[:, 2][None] if points.shape[1] > 2 else None
+    return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None], v).float().mean(-1)
 
 
 def calibrate_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,

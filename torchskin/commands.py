@@ -12,6 +12,11 @@ import torch
 from . import __version__, tissue
 from .bands import DEFAULT_BANDS, band_sampling, parse_bands
 from .detect import DEFAULT_BOX, indices, rules_detector
+from .optics import DEFAULT_SURFACE, SURFACE_MODELS
+
+SURFACE_HELP = ("skin surface model of eq 3.1.1's diffuse term: thesis (default; rho_d includes the front surface, "
+                "as the thesis defines it and its measured images support) or conserving (subsurface part only; "
+                "energy-conserving)")
 
 
 # ------------------------------------------------------------------------------------------------ spectra
@@ -137,7 +142,8 @@ def _scene_from_args(args):
     sun = Sun(zenith_deg=args.source_zenith, azimuth_deg=args.source_azimuth, sky_fraction=args.sky)
     subject = "file" if args.mesh else "anny"
     sc = default_scene(subject=subject, mesh_path=args.mesh, skin=args.skin, camera=cam, sun=sun,
-                       panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground)
+                       panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground,
+                       surface=args.surface)
     if args.bands:
         sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
     if args.sky_background:
@@ -178,20 +184,21 @@ def cmd_experiment(args) -> int:
     if args.width < 16 or args.height < 16:
         raise ValueError("--width and --height must be at least 16 pixels")
     res = experiment.run(args.out, width=args.width, height=args.height, sensor=Sensor(noise=not args.no_noise),
-                         device=args.device, panels=args.panels)
+                         device=args.device, panels=args.panels, surface=args.surface)
     if args.json:
-        print(json.dumps({k: res[k] for k in ("angles_deg", "detected_fraction_combined",
-                                              "detected_fraction_diffuse", "bhattacharyya",
-                                              "appendix_c_middle_reflectance", "lambertian_panel_error")
-                          if k in res}))
+        print(json.dumps({k: v for k, v in res.items() if k != "surface_energy"}))
     else:
         for k, a in enumerate(res["angles_deg"]):
             print(f"source {a:4.0f}°: sunlit skin inside the box: diffuse-only {res['detected_fraction_diffuse'][k]:.3f},"
-                  f" combined {res['detected_fraction_combined'][k]:.3f}; Bhattacharyya {res['bhattacharyya'][k]:.3f}")
+                  f" thesis {res['detected_fraction_thesis'][k]:.3f}, conserving "
+                  f"{res['detected_fraction_conserving'][k]:.3f}; Bhattacharyya (diffuse vs {res['surface']}) "
+                  f"{res['bhattacharyya'][k]:.3f}")
         if "lambertian_panel_error" in res:
+            plain = res[f"detected_fraction_{res['surface']}_lambertian_elm"]
             for k, a in enumerate(res["angles_deg"]):
                 errs = ", ".join(f"{100 * e:.1f}%" for e in res["lambertian_panel_error"][k])
-                print(f"source {a:4.0f}°: skin reflectance error if the panels are taken as Lambertian: {errs}")
+                print(f"source {a:4.0f}°: skin reflectance error if the panels are taken as Lambertian: {errs}; "
+                      f"{res['surface']} model inside the box with plain ELM {plain[k]:.3f}")
         print(f"Appendix C middle panel: {res['appendix_c_middle_reflectance']:.4f} (true 0.40); wrote {args.out}")
     return 0
 
@@ -260,6 +267,8 @@ def cmd_generate(args) -> int:
     if args.resume and args.overwrite:
         raise ValueError("--resume and --overwrite exclude each other")
     cfg = load_config(args.config)
+    if args.surface:
+        cfg["skin"]["surface"] = args.surface  # one of SURFACE_MODELS (argparse choices)
     man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
                    quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
                    workers=args.workers, images=args.images)
@@ -287,8 +296,9 @@ def cmd_dataset_verify(args) -> int:
 # ------------------------------------------------------------------------------------------------ boundaries
 def cmd_train(args) -> int:
     from . import boundaries as Bd
-    from .dataset.files import manifest_sha256
 
+    if args.method == "classifier":
+        return _train_classifier(args)
     X, Y = Bd.load_skin_rows(args.data)
     opts = {"hidden": args.hidden, "steps": args.steps, "seed": args.seed}
     domain = Bd.domain_from_manifest(args.data)
@@ -296,27 +306,74 @@ def cmd_train(args) -> int:
         opts["q"] = args.q
     else:
         opts.update(margin=args.margin, width_cost=args.width_cost, spread_cost=args.spread_cost)
-    model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain, **opts)
+    model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain,
+                           ndvn_quantile=None if args.no_ndvn_rule else Bd.NDVN_QUANTILE, **opts)
     info["options"].pop("domain", None)
-    info.update(training_manifest_sha256=manifest_sha256(args.data), data=str(args.data))
-    Bd.save(model, args.out, info)
-    if args.json:
-        print(json.dumps({**info, "out": str(args.out)}))
-    else:
-        print(f"trained ({args.method}) on {info['rows']} sunlit skin pixels, loss {info['loss']:.5f}; false-alarm "
-              f"scale {info['scale']:.3f}: worst Pfa {info['pfa_train_worst']:.2e} <= {args.pfa_budget:g} on the "
-              f"earthlib train partition over {info['calibration_configs']} configurations; wrote {args.out}")
+    return _save_trained(args, Bd.save, model, info, (
+        f"trained ({args.method}) on {info['rows']} sunlit skin pixels, loss {info['loss']:.5f}; NDVN rule d1 "
+        f"{info['ndvn_min']:.3f}; false-alarm scale {info['scale']:.3f}: worst Pfa {info['pfa_train_worst']:.2e} <= "
+        f"{args.pfa_budget:g} on the earthlib train partition over {info['calibration_configs']} configurations"))
+
+
+def _save_trained(args, save, model, info: dict, text: str) -> int:
+    """Record the training data in the summary, write the checkpoint, report."""
+    from .dataset.files import dataset_surface, manifest_sha256
+
+    info.update(training_manifest_sha256=manifest_sha256(args.data), data=str(args.data),
+                surface=dataset_surface(args.data))
+    save(model, args.out, info)
+    print(json.dumps({**info, "out": str(args.out)}) if args.json else f"{text}; wrote {args.out}")
     return 0
 
 
-def cmd_export(args) -> int:
-    import torch as _torch
+def _train_classifier(args) -> int:
+    from . import boundaries as Bd
+    from . import classifier as Cl
+
+    X, R, label, sunlit = Cl.load_rows(args.data)
+    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=max(args.hidden, 1), steps=args.steps,
+                                      seed=args.seed, domain=Bd.domain_from_manifest(args.data),
+                                      pfa_budget=args.pfa_budget)
+    return _save_trained(args, Cl.save, model, info, (
+        f"trained (classifier) on {info['rows']} sunlit skin pixels; threshold {info['threshold']:.3f} (logit) for "
+        f"Pfa <= {args.pfa_budget:g} on the earthlib train partition over {info['calibration_configs']} "
+        f"configurations; training skin kept {info['train_coverage']:.3f}, scene non-skin "
+        f"{info['pfa_scene_train']:.2e}"))
+
+
+def _checkpoint(path, what: str):
+    """(model, training summary) of a boundary or classifier checkpoint; one-line errors for bad files."""
+    from pathlib import Path
 
     from . import boundaries as Bd
+    from . import classifier as Cl
+    from .evaluate import _load_checkpoint
+
+    if not Path(path).is_file():
+        raise ValueError(f"{what} {str(path)!r} does not exist")
+    ck = _load_checkpoint(path)
+    try:
+        model = Cl.load(path) if ck.get("kind") == "classifier" else Bd.load(path)
+    except (KeyError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
+    return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
+
+
+def cmd_export(args) -> int:
+    from .classifier import SkinClassifier
     from .export import export, write_model_cards
 
-    model = Bd.load(args.model)
-    train = _torch.load(args.model, map_location="cpu", weights_only=True).get("meta", {})
+    model, train = _checkpoint(args.model, "--model")
+    if isinstance(model, SkinClassifier):
+        raise ValueError(f"--model {args.model!r} is a classifier; boundaries.onnx needs a box model (pass the "
+                         "classifier as --detector)")
+    trains = {"boundaries": train}
+    baseline = None
+    if args.baseline:
+        baseline, trains["baseline_box"] = _checkpoint(args.baseline, "--baseline")
+        if isinstance(baseline, SkinClassifier):
+            raise ValueError(f"--baseline {args.baseline!r} must be a box model (torchskin train --hidden 0)")
+    detector, trains["detector"] = (model, train) if not args.detector else _checkpoint(args.detector, "--detector")
     evaluation = None
     if args.metrics:
         try:
@@ -324,8 +381,18 @@ def cmd_export(args) -> int:
                 evaluation = json.load(fh)
         except (OSError, ValueError) as e:
             raise ValueError(f"cannot read --metrics {args.metrics!r}: {e}") from None
-    paths = export(model, args.out, train.get("training_manifest_sha256", ""))
-    paths.update(write_model_cards(args.out, train, evaluation))
+        if not isinstance(evaluation, dict) or not {"learned", "static"} <= set(evaluation):
+            raise ValueError(f"--metrics {args.metrics!r} is not a torchskin evaluate --save result")
+    reason = args.detector_reason or ("the configuration-dependent boxes of --model" if not args.detector else "")
+    from .evaluate import MIN_REFLECTANCE
+
+    floor = (evaluation or {}).get("min_reflectance", MIN_REFLECTANCE)
+    det_meta = {"detector_model": trains["detector"]["checkpoint"], "detector_reason": reason,
+                "checkpoint": trains["detector"]["checkpoint"], "min_reflectance": f"{float(floor):g}"}
+    paths = export(model, args.out, train.get("training_manifest_sha256", ""), surface=train.get("surface", ""),
+                   baseline=baseline, detector=detector, detector_meta=det_meta, checkpoints={
+                       k: v["checkpoint"] for k, v in trains.items()})
+    paths.update(write_model_cards(args.out, train, evaluation, trains))
     print(json.dumps(paths) if args.json else "wrote " + ", ".join(paths.values()))
     return 0
 
@@ -334,29 +401,25 @@ def cmd_evaluate(args) -> int:
     from pathlib import Path
 
     from .dataset.files import manifest_sha256
-    from .evaluate import boxes_plot, evaluate, plots
+    from .evaluate import boxes_plot, compare_plot, evaluate, plots, table
     from .io import write_text
 
     res = evaluate(args.data, args.model)
     res["data"] = str(args.data)
     res["data_manifest_sha256"] = manifest_sha256(args.data)
-    res["model"] = str(args.model)
+    res["model"] = str(args.model[0])
     if args.plots:
         plots(res, args.plots)
-        boxes_plot(args.data, args.model, Path(args.plots) / "boxes.png")
+        compare_plot(res, Path(args.plots) / "comparison.png")
+        first = res["models"][0]
+        if first["kind"] == "boxes":
+            boxes_plot(args.data, first["path"], Path(args.plots) / "boxes.png")
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))
     if args.json:
-        print(json.dumps({k: res[k] for k in ("learned", "static", "bins", "sun_zenith_ge_60")}))
+        print(json.dumps({k: res[k] for k in ("models", "learned", "static", "bins", "sun_zenith_ge_60")}))
     else:
-        for name in ("learned", "static"):
-            r = res[name]
-            print(f"{name:8s} Pd {r['pd']:.3f} (sunlit {r['pd_sunlit']:.3f}, shadow {r['pd_shadow']:.3f}); "
-                  f"Pfa earthlib test {r['pfa']:.2e}, scene non-skin {r['pfa_scene']:.2e}")
-        hi = res["sun_zenith_ge_60"]
-        print(f"sun zenith >= 60°: Pd sunlit learned {hi['learned']['pd_sunlit']:.3f}, "
-              f"static {hi['static']['pd_sunlit']:.3f} (mean over configurations: "
-              f"{hi['learned']['pd_sunlit_mean_over_configs']:.3f} vs {hi['static']['pd_sunlit_mean_over_configs']:.3f})")
+        print(table(res))
     return 0
 
 
@@ -424,17 +487,26 @@ def build_parser() -> argparse.ArgumentParser:
                     help="calibrate with the panels' DHR (ELM) or their BRDF at the geometry (BRDF-ELM)")
     rp.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
     rp.add_argument("--diffuse-only", action="store_true", help="skin as the diffuse model (no specular lobe)")
+    rp.add_argument("--surface", choices=SURFACE_MODELS, default=DEFAULT_SURFACE, help=SURFACE_HELP)
     rp.add_argument("--no-ground", action="store_true", help="no ground plane")
     rp.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, mps)")
     rp.add_argument("--seed", type=int, default=0, help="noise seed")
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=cmd_render)
 
-    ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, both models")
+    ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, every skin model",
+                        description="The thesis experiment (section 3.4): a Type I/II subject facing the camera at "
+                                    "9.449 m, a source 10, 30, 60 and 85 deg off normal; the diffuse-only skin and "
+                                    "eq 3.1.1 under both skin surface models, side by side (scatter plots, 2-D "
+                                    "histograms, detected fraction against angle, Bhattacharyya coefficients), and "
+                                    "Appendix C.")
     ep.add_argument("--out", required=True, help="output folder for figures and experiment.json")
-    ep.add_argument("--width", type=int, default=512)
-    ep.add_argument("--height", type=int, default=512)
-    ep.add_argument("--no-noise", action="store_true")
+    ep.add_argument("--width", type=int, default=512, help="image width in pixels (default 512)")
+    ep.add_argument("--height", type=int, default=512, help="image height in pixels (default 512)")
+    ep.add_argument("--surface", choices=SURFACE_MODELS, default=DEFAULT_SURFACE,
+                    help="the combined model reported as detected_fraction_combined (both are always rendered); "
+                         + SURFACE_HELP)
+    ep.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
     ep.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian",
                     help="reference panels; spectralon-brdf calibrates with BRDF-ELM and reports the error of "
                          "assuming Lambertian panels")
@@ -462,6 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
     gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)")
     gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
     gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
+    gp.add_argument("--surface", choices=SURFACE_MODELS,
+                    help="skin surface model, overriding the config's skin.surface (default there: thesis); "
+                         + SURFACE_HELP)
     gp.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
     gp.add_argument("--out", required=True, help="output folder")
     gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
@@ -485,9 +560,11 @@ def build_parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     tp.add_argument("--out", required=True, help="checkpoint (.pt)")
-    tp.add_argument("--method", choices=("boxes", "quantiles"), default="boxes",
+    tp.add_argument("--method", choices=("boxes", "quantiles", "classifier"), default="boxes",
                     help="boxes: most sunlit skin per configuration with the earthlib train spectra kept a margin "
-                         "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss)")
+                         "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss); "
+                         "classifier: a configuration-conditioned MLP on scale-invariant band ratios "
+                         "(torchskin.classifier), thresholded at the false-alarm budget")
     tp.add_argument("--margin", type=float, default=0.03,
                     help="boxes: distance (index units) kept from every earthlib train spectrum (default 0.03)")
     tp.add_argument("--width-cost", type=float, default=0.05,
@@ -496,6 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="boxes: cost of the boxes' spread over configurations (squared distance to their mean): "
                          "the box moves with the configuration only where the data pay for it (default 0.1)")
     tp.add_argument("--q", type=float, default=0.15, help="quantiles: quantile of the box edges (default 0.15)")
+    tp.add_argument("--no-ndvn-rule", action="store_true",
+                    help="boxes and quantiles: no visible/NIR rule (NDVN >= d1, d1 just below the training skin's "
+                         "NDVN): the thesis's two indices alone")
     tp.add_argument("--steps", type=int, default=1500)
     tp.add_argument("--hidden", type=int, default=32, help="MLP width (0: one constant box; default 32)")
     tp.add_argument("--seed", type=int, default=0)
@@ -507,13 +587,22 @@ def build_parser() -> argparse.ArgumentParser:
     xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx")
     xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train")
     xp.add_argument("--out", required=True, help="output folder (e.g. exports/)")
+    xp.add_argument("--baseline", metavar="PT", help="a single-box checkpoint (train --hidden 0) exported as "
+                                                     "baseline_box.onnx, same inputs and outputs as boundaries.onnx")
+    xp.add_argument("--detector", metavar="PT", help="the checkpoint detector.onnx is made from: a box model or a "
+                                                     "classifier (default: --model)")
+    xp.add_argument("--detector-reason", metavar="TEXT", help="why that model: recorded in detector.onnx's "
+                                                              "metadata and model card")
     xp.add_argument("--metrics", metavar="EVAL.json", help="torchskin evaluate --save output for the model cards")
     xp.add_argument("--json", action="store_true")
     xp.set_defaults(func=cmd_export)
 
     ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data")
     ev.add_argument("--data", required=True, help="held-out dataset folder")
-    ev.add_argument("--model", required=True, help="checkpoint (.pt) or exported boundaries.onnx")
+    ev.add_argument("--model", required=True, action="append",
+                    help="a model to evaluate (repeatable; one table row each, the static thesis box always last): "
+                         "a checkpoint (.pt: boxes or classifier), boundaries.onnx / baseline_box.onnx or "
+                         "detector.onnx")
     ev.add_argument("--plots", metavar="DIR", help="write roc.png, pd_heatmap.png and boxes.png here")
     ev.add_argument("--save", metavar="FILE", help="write the full result (JSON, with ROC points) here")
     ev.add_argument("--json", action="store_true")

@@ -86,3 +86,30 @@ def spectrum(name: str, wavelengths_nm) -> list[float]:
     except ValueError:
         raise ValueError(f"no earthlib spectrum named {name!r}") from None
     return np.clip(np.interp(np.asarray(wavelengths_nm, dtype=float), wl, R[i]), 0.0, 1.0).tolist()
+
+
+#: earthlib families (class prefixes) that stand in for clothing: built materials (paint, roofing, tile, metal,
+#: concrete, ...) for dyed and synthetic fabrics, non-photosynthetic vegetation (bark, litter, wood, dry plant
+#: matter) for natural ones. The library holds no fabric spectra; these are its closest measured stand-ins.
+CLOTHING_FAMILIES = ("impervious/built/", "pervious/npv/")
+
+
+def family(name: str) -> str:
+    """The earthlib class (LEVEL_1/LEVEL_2/LEVEL_3, e.g. "impervious/built/paint") of a spectrum name."""
+    names, classes, _, _ = library()
+    index = _name_index()
+    if name not in index:
+        raise ValueError(f"no earthlib spectrum named {name!r}")
+    return classes[index[name]]
+
+
+@functools.lru_cache(maxsize=1)
+def _name_index() -> dict[str, int]:
+    return {n: i for i, n in enumerate(library()[0])}
+
+
+@functools.lru_cache(maxsize=2)
+def clothing_library(part: str) -> tuple[str, ...]:
+    """Names of the spectra of partition ``part`` whose class is one of ``CLOTHING_FAMILIES``."""
+    names, classes, _, _ = library(part)
+    return tuple(n for n, c in zip(names, classes) if c.startswith(CLOTHING_FAMILIES))

@@ -1,114 +1,384 @@
-"""Evaluate learned boundaries against the static box on held-out configurations and on the earthlib test
-partition: detection probability Pd of skin pixels (sunlit and shadowed), false-alarm probability Pfa (test
-spectra inside each configuration's box, and the scene's non-skin pixels), overall and per (sun zenith x
-camera zenith) bin; ROC curves and a Pd heat map as PNG."""
+"""Evaluate skin detectors on held-out configurations and on the earthlib test partition, side by side: the
+static thesis box, learned box models (checkpoints or ``boundaries.onnx`` / ``baseline_box.onnx``), the
+configuration-conditioned classifier and any exported ``detector.onnx``. Detection probability Pd of skin
+pixels (sunlit, glint-affected, shadowed), false-alarm probability Pfa (test spectra inside each
+configuration's decision region, and the scene's non-skin pixels, also by confuser family), each model's
+decision-region area in the (NDGRI, NDSI) plane per configuration, overall and per (sun zenith x camera
+zenith) bin; ROC curves, a Pd heat map and a comparison figure as PNG."""
 
 from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from .boundaries import FEATURES, confuser_indices, false_alarm_rate, inside_box
+from .boundaries import FEATURES, confuser_indices, false_alarm_rate, inside_box, ratio_indices
 from .dataset.files import read_valid
 from .detect import DEFAULT_BOX
 
 SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 CAMERA_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+BAND_COLUMNS = ("r544", "r633", "r1080", "r1580")
+#: a sunlit skin pixel is glint-affected when the specular lobe adds at least this much apparent reflectance
+#: (π f_s) at 1580 nm (section 3.3.3 parameters): enough to move NDSI by about 0.02 or more
+GLINT_REFLECTANCE = 0.01
+#: index-plane grid (per axis, over [-1, 1]) on which the decision region of a non-box model is measured
+AREA_GRID = 64
+#: brightness floor of the evaluation protocol, applied to every model alike: a pixel whose mean reflectance over
+#: the bands is not above it is not skin (at the noise floor its indices are ratios of sensor noise; the onboard
+#: runtime applies the same floor, ``min_reflectance``, recorded in the exported detector's metadata)
+MIN_REFLECTANCE = 0.005
+
+
+@dataclass
+class Candidate:
+    """A detector under evaluation: ``decide(R (n, 4), X (n, k)) -> (n,) bool`` on ELM reflectance at 544, 633,
+    1080, 1580 nm and configuration features; ``boxes(X) -> (n, 4)`` for box models (None otherwise)."""
+
+    name: str
+    kind: str  # "static", "boxes", "classifier" or "detector"
+    features: list[str]
+    decide: Callable
+    boxes: Callable | None = None
+    path: str = ""
+    meta: dict = field(default_factory=dict)
+
+
+def _box_decide(boxes_of):
+    def decide(R, X):
+        g, s, v = ratio_indices(R)
+        return inside_box(boxes_of(X), g, s, v)
+    return decide
+
+
+def static_candidate() -> Candidate:
+    """The thesis's diffuse-model box, the same at every configuration."""
+    box = torch.tensor([DEFAULT_BOX.b1, DEFAULT_BOX.b2, DEFAULT_BOX.c1, DEFAULT_BOX.c2])
+    boxes_of = lambda X: box.expand(X.shape[0], 4)  # noqa: E731
+    return Candidate("static box (thesis)", "static", list(FEATURES), _box_decide(boxes_of), boxes_of, "static")
+
+
+def load_candidate(spec) -> Candidate:
+    """A candidate from a path: a torch checkpoint (.pt: boundary boxes or a classifier), an exported
+    ``boundaries.onnx`` / ``baseline_box.onnx`` (configuration -> boxes) or a ``detector.onnx`` (cube +
+    configuration -> mask), or the word "static"."""
+    from pathlib import Path
+
+    p = str(spec)
+    if p == "static":
+        return static_candidate()
+    if not Path(p).is_file():
+        raise ValueError(f"model file {p!r} does not exist")
+    name = Path(p).name
+    if p.endswith(".onnx"):
+        from .onboard import Boundaries, Detector, model_inputs
+
+        if "cube" in model_inputs(p):
+            d = Detector(p)
+            decide = lambda R, X: torch.from_numpy(d.pixels(R.numpy(), X.numpy())["mask"])  # noqa: E731
+            return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta))
+        b = Boundaries(p)
+        boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
+        return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
+    ck = _load_checkpoint(p)
+    if ck.get("kind") == "classifier":
+        from .classifier import load as load_classifier
+
+        m = load_classifier(p)
+        decide = lambda R, X: m.decide(R, X)  # noqa: E731
+        return Candidate(name, "classifier", list(m.features), decide, None, p, ck.get("meta", {}))
+    from .boundaries import load
+
+    m = load(p)
+    boxes_of = lambda X: m(torch.as_tensor(X, dtype=torch.float32)).detach()  # noqa: E731
+    return Candidate(name, "boxes", list(m.features), _box_decide(boxes_of), boxes_of, p, ck.get("meta", {}))
+
+
+def _load_checkpoint(path) -> dict:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for junk files
+        raise ValueError(f"cannot read model checkpoint {str(path)!r}: {e}") from None
+    if not isinstance(ck, dict) or "state_dict" not in ck:
+        raise ValueError(f"{str(path)!r} is not a torchskin model checkpoint")
+    return ck
 
 
 def box_function(model_path):
     """``features (N, k) -> boxes (N, 4)`` from a torch checkpoint (.pt) or an exported boundaries.onnx."""
-    p = str(model_path)
-    if p.endswith(".onnx"):
-        from .onboard import Boundaries
+    c = load_candidate(model_path)
+    if c.boxes is None:
+        raise ValueError(f"{str(model_path)!r} is not a box model (it has no per-configuration boxes)")
+    return c.features, c.boxes
 
-        b = Boundaries(p)
-        return list(b.features), lambda x: torch.from_numpy(b(np.asarray(x, dtype=np.float32))["boxes"])
-    from .boundaries import load
 
-    m = load(p)
-    return list(m.features), lambda x: m(torch.as_tensor(x, dtype=torch.float32)).detach()
+def glint_affected(theta_i_deg, theta_r_deg, delta_phi_deg) -> torch.Tensor:
+    """Whether the specular lobe (eq 2.3.4, section 3.3.3 parameters at 1580 nm) adds at least
+    ``GLINT_REFLECTANCE`` apparent reflectance π f_s at these local angles (degrees)."""
+    from .optics import THESIS_SPECULAR, microfacet_brdf
+
+    d = math.pi / 180
+    sig, rho0 = THESIS_SPECULAR.at(torch.tensor([1580.0], dtype=torch.float64))
+    f = microfacet_brdf(torch.as_tensor(theta_i_deg, dtype=torch.float64) * d,
+                        torch.as_tensor(theta_r_deg, dtype=torch.float64) * d,
+                        torch.as_tensor(delta_phi_deg, dtype=torch.float64) * d, sig[0], rho0[0])
+    return math.pi * f >= GLINT_REFLECTANCE
+
+
+def _families(col: dict) -> np.ndarray:
+    """Per row, the family of what a non-skin pixel shows: "ground", "clothing: <earthlib class>",
+    "confuser: <earthlib class>" (datasets written before the material column: confusers and "other")."""
+    from .confusers import family
+
+    n = len(col["label"])
+    conf = col.get("confuser")
+    mat = col.get("material")
+    cloth = col.get("clothing")
+    out = np.full(n, "other", dtype=object)
+    cache: dict[str, str] = {}
+
+    def fam(name):
+        if name not in cache:
+            try:
+                cache[name] = family(name)
+            except ValueError:
+                cache[name] = "unknown"
+        return cache[name]
+
+    if mat is not None:
+        out[mat == "ground"] = "ground"
+        out[mat == "clothing"] = "clothing: fixed spectrum"
+        if cloth is not None:
+            for nm in np.unique(cloth[(mat == "clothing") & (cloth != "")]):
+                out[(mat == "clothing") & (cloth == nm)] = "clothing: " + fam(nm)
+    if conf is not None:
+        for nm in np.unique(conf[conf != ""]):
+            out[conf == nm] = "confuser: " + fam(nm)
+    return out
 
 
 ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
 
 
-def evaluate(data_dir, model_path, scales=ROC_SCALES) -> dict:
-    """Pd / Pfa of the boxes of ``model_path`` and of the static box on the dataset at ``data_dir``."""
-    features, boxes_of = box_function(model_path)
-    cols = sorted(set(features) | {"sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri", "ndsi",
-                                   "group", "sun", "skin"})
-    t, excluded = read_valid(data_dir, cols)  # frames without sunlit panels have no physical ELM
-    if len(t) == 0:
-        raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
-    col = {c: torch.from_numpy(np.array(t.column(c).to_numpy(zero_copy_only=False))) for c in cols}
-    X = torch.stack([col[f].float() for f in features], -1)
-    g, s = col["ndgri"].float(), col["ndsi"].float()
-    label, shadow = col["label"].bool(), col["shadow"].bool()
-    learned = boxes_of(X)
-    static = torch.tensor([DEFAULT_BOX.b1, DEFAULT_BOX.b2, DEFAULT_BOX.c1, DEFAULT_BOX.c2]).expand_as(learned)
-    test_pts = confuser_indices("test")
-    keys = torch.stack([col["group"].long(), col["sun"].long(), col["skin"].long()], -1)
+class _Rows:
+    """The held-out rows a model is judged on, with their configurations and categories."""
 
-    def summary(boxes, mask=None):
-        m = torch.ones_like(label) if mask is None else mask
-        hit = inside_box(boxes, g, s)
-        sk, lit = label & m, label & m & ~shadow
-        # Pfa on the earthlib test partition: each configuration's box (its first row) against every test spectrum
-        pos = m.nonzero().flatten()
-        if pos.numel():
-            _, inv = torch.unique(keys[pos], dim=0, return_inverse=True)
-            first = torch.full((int(inv.max()) + 1,), pos.numel(), dtype=torch.long).scatter_reduce(
-                0, inv, torch.arange(pos.numel()), "amin")
-            pfa = float(false_alarm_rate(boxes[pos[first]], test_pts).mean())
-        else:
-            pfa = float("nan")
-        nonskin = ~label & m
-        # mean over configurations of each configuration's sunlit-skin Pd
-        lit_pos = lit.nonzero().flatten()
-        if lit_pos.numel():
-            _, cinv = torch.unique(keys[lit_pos], dim=0, return_inverse=True)
-            n_c = int(cinv.max()) + 1
-            hits = torch.zeros(n_c).index_add_(0, cinv, hit[lit_pos].float())
-            cnt = torch.zeros(n_c).index_add_(0, cinv, torch.ones(lit_pos.numel()))
-            pd_cfg = float((hits / cnt).mean())
-        else:
-            pd_cfg = float("nan")
-        return {"pd": float(hit[sk].float().mean()) if bool(sk.any()) else float("nan"),
-                "pd_sunlit_mean_over_configs": pd_cfg,
-                "pd_sunlit": float(hit[lit].float().mean()) if bool(lit.any()) else float("nan"),
-                "pd_shadow": float(hit[sk & shadow].float().mean()) if bool((sk & shadow).any()) else float("nan"),
-                "pfa": pfa,
-                "pfa_scene": float(hit[nonskin].float().mean()) if bool(nonskin.any()) else float("nan"),
-                "skin_pixels": int(sk.sum())}
+    def __init__(self, data_dir, features):
+        cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri",
+                                   "ndsi", "group", "sun", "skin", *BAND_COLUMNS, "theta_i_deg", "theta_r_deg",
+                                   "delta_phi_deg"]))
+        import pyarrow.dataset as ds
 
-    out = {"learned": summary(learned), "static": summary(static), "bins": []}
-    sz, cz = col["sun_zenith_deg"].float(), col["camera_zenith_deg"].float()
-    for i in range(len(SUN_BINS) - 1):
-        for j in range(len(CAMERA_BINS) - 1):
-            m = (sz >= SUN_BINS[i]) & (sz < SUN_BINS[i + 1]) & (cz >= CAMERA_BINS[j]) & (cz < CAMERA_BINS[j + 1])
-            if not bool((m & label).any()):
-                continue
-            out["bins"].append({"sun_zenith_deg": [SUN_BINS[i], SUN_BINS[i + 1]],
-                                "camera_zenith_deg": [CAMERA_BINS[j], CAMERA_BINS[j + 1]],
-                                "learned": summary(learned, m), "static": summary(static, m)})
-    hi = sz >= 60
-    out["sun_zenith_ge_60"] = {"learned": summary(learned, hi), "static": summary(static, hi)}
-    # ROC: scale every box about its centre
-    roc = {}
-    for name, bx in (("learned", learned), ("static", static)):
-        c = torch.stack([(bx[:, 0] + bx[:, 1]) / 2, (bx[:, 0] + bx[:, 1]) / 2, (bx[:, 2] + bx[:, 3]) / 2,
-                         (bx[:, 2] + bx[:, 3]) / 2], -1)
+        names = set(ds.dataset(str(data_dir), format="parquet").schema.names)
+        missing = [c for c in cols if c not in names]
+        if missing:
+            raise ValueError(f"dataset {str(data_dir)!r} lacks column(s) {missing}: not a torchskin dataset?")
+        extra = [c for c in ("material", "confuser", "clothing") if c in names]
+        t, self.excluded = read_valid(data_dir, cols + extra)
+        if len(t) == 0:
+            raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
+        self.n = len(t)
+        col = {c: np.array(t.column(c).to_numpy(zero_copy_only=False)) for c in cols + extra}
+        self.X = torch.from_numpy(np.stack([col[f] for f in features], -1).astype(np.float32))
+        self.R = torch.from_numpy(np.stack([col[b] for b in BAND_COLUMNS], -1).astype(np.float32))
+        self.g, self.s = torch.from_numpy(col["ndgri"]).float(), torch.from_numpy(col["ndsi"]).float()
+        self.v = ratio_indices(self.R)[2]
+        self.label = torch.from_numpy(col["label"]).bool()
+        self.shadow = torch.from_numpy(col["shadow"]).bool()
+        self.glint = glint_affected(col["theta_i_deg"], col["theta_r_deg"], col["delta_phi_deg"]) & ~self.shadow
+        self.sz = torch.from_numpy(col["sun_zenith_deg"]).float()
+        self.cz = torch.from_numpy(col["camera_zenith_deg"]).float()
+        keys = torch.from_numpy(np.stack([col["group"], col["sun"], col["skin"]], -1).astype(np.int64))
+        _, self.cfg = torch.unique(keys, dim=0, return_inverse=True)  # configuration id per row
+        self.n_cfg = int(self.cfg.max()) + 1
+        self.first = torch.full((self.n_cfg,), self.n, dtype=torch.long).scatter_reduce(
+            0, self.cfg, torch.arange(self.n), "amin")  # a row of each configuration
+        self.cfg_X = self.X[self.first]  # (configs, k)
+        self.family = _families(col)
+        self.features = list(features)
+
+
+def _cfg_mean(values: torch.Tensor, cfg: torch.Tensor, n_cfg: int) -> float:
+    """Mean over configurations of the per-configuration mean of ``values`` (rows of ``cfg``)."""
+    if values.numel() == 0:
+        return float("nan")
+    s = torch.zeros(n_cfg, dtype=torch.float64).index_add_(0, cfg, values.double())
+    c = torch.zeros(n_cfg, dtype=torch.float64).index_add_(0, cfg, torch.ones_like(values, dtype=torch.float64))
+    return float((s[c > 0] / c[c > 0]).mean())
+
+
+def _rate(hit: torch.Tensor, m: torch.Tensor) -> float:
+    return float(hit[m].float().mean()) if bool(m.any()) else float("nan")
+
+
+class _Judged:
+    """One model's decisions on the rows, its earthlib-test Pfa and region area per configuration."""
+
+    def __init__(self, cand: Candidate, rows: _Rows, test_R: torch.Tensor, test_pts: torch.Tensor, floor: float):
+        if cand.features != rows.features:
+            raise ValueError(f"{cand.name} takes features {cand.features}, the rows hold {rows.features}")
+        cfg_X = rows.cfg_X
+        self.hit = cand.decide(rows.R, rows.X).bool() & (rows.R.mean(-1) > floor)
+        bright = test_R.mean(-1) > floor
+        if cand.boxes is not None:
+            bx = cand.boxes(cfg_X)
+            pts = torch.where(bright[:, None], test_pts, torch.full_like(test_pts, math.nan))  # aligned with test_R
+            self.pfa_cfg = false_alarm_rate(bx, pts).double()
+            w = (bx[:, 1].clamp(-1, 1) - bx[:, 0].clamp(-1, 1)).clamp_min(0)
+            h = (bx[:, 3].clamp(-1, 1) - bx[:, 2].clamp(-1, 1)).clamp_min(0)
+            self.area_cfg = (w * h).double()
+        else:
+            self.pfa_cfg = _pfa_by_config(cand, cfg_X, test_R, bright)
+            self.area_cfg = _grid_area(cand, cfg_X, rows)
+
+    def summary(self, rows: _Rows, m: torch.Tensor | None = None) -> dict:
+        m = torch.ones_like(rows.label) if m is None else m
+        sk = rows.label & m
+        lit = sk & ~rows.shadow
+        cfgs = torch.unique(rows.cfg[m]) if bool(m.any()) else torch.zeros(0, dtype=torch.long)
+        nonskin = ~rows.label & m
+        return {"pd": _rate(self.hit, sk), "pd_sunlit": _rate(self.hit, lit),
+                "pd_sunlit_mean_over_configs": _cfg_mean(self.hit[lit].float(), rows.cfg[lit], rows.n_cfg),
+                "pd_sunlit_no_glint": _rate(self.hit, lit & ~rows.glint), "pd_glint": _rate(self.hit, lit & rows.glint),
+                "pd_shadow": _rate(self.hit, sk & rows.shadow),
+                "pfa": float(self.pfa_cfg[cfgs].mean()) if cfgs.numel() else float("nan"),
+                "pfa_scene": _rate(self.hit, nonskin),
+                "area_mean": float(self.area_cfg[cfgs].mean()) if cfgs.numel() else float("nan"),
+                "skin_pixels": int(sk.sum()), "sunlit_skin_pixels": int(lit.sum()),
+                "glint_pixels": int((lit & rows.glint).sum())}
+
+    def scene_by_family(self, rows: _Rows) -> dict:
+        out = {}
+        nonskin = (~rows.label).numpy()
+        hit = self.hit.numpy()
+        for fam in np.unique(rows.family[nonskin]):
+            sel = nonskin & (rows.family == fam)
+            out[str(fam)] = {"pfa": float(hit[sel].mean()), "pixels": int(sel.sum())}
+        return out
+
+
+def _pfa_by_config(cand: Candidate, cfg_X: torch.Tensor, test_R: torch.Tensor, bright: torch.Tensor,
+                   chunk: int = 1 << 20) -> torch.Tensor:
+    """Per configuration, the fraction of the earthlib test spectra (reflectance (m, 4), as measured) that the
+    model calls skin (only ``bright`` ones can be)."""
+    m = test_R.shape[0]
+    out = torch.empty(cfg_X.shape[0], dtype=torch.float64)
+    per = max(1, chunk // m)
+    for lo in range(0, cfg_X.shape[0], per):
+        c = cfg_X[lo:lo + per]
+        X = c.repeat_interleave(m, 0)
+        R = test_R.repeat(c.shape[0], 1)
+        out[lo:lo + c.shape[0]] = (cand.decide(R, X).reshape(c.shape[0], m) & bright).double().mean(1)
+    return out
+
+
+def _grid_area(cand: Candidate, cfg_X: torch.Tensor, rows: _Rows) -> torch.Tensor:
+    """Per configuration, the area of the (NDGRI, NDSI) plane (over [-1, 1]^2) that the model calls skin, at
+    the band-pair brightness of that configuration's sunlit skin (median (g + r) / 2 and (n + s) / 2)."""
+    lit = rows.label & ~rows.shadow
+    pair = torch.stack([(rows.R[:, 0] + rows.R[:, 1]) / 2, (rows.R[:, 2] + rows.R[:, 3]) / 2], -1)
+    default = pair[lit].median(0).values if bool(lit.any()) else torch.tensor([0.4, 0.3])
+    med = default.expand(rows.n_cfg, 2).clone()
+    order = torch.argsort(rows.cfg[lit], stable=True)
+    cfg_l, pair_l = rows.cfg[lit][order], pair[lit][order]
+    uniq, counts = torch.unique_consecutive(cfg_l, return_counts=True)
+    for c, part in zip(uniq.tolist(), torch.split(pair_l, counts.tolist())):  # per configuration (not per pixel)
+        med[c] = part.median(0).values
+    k = AREA_GRID
+    axis = -1 + (torch.arange(k) + 0.5) * (2.0 / k)
+    G, S = torch.meshgrid(axis, axis, indexing="ij")
+    G, S = G.reshape(-1), S.reshape(-1)
+    out = torch.empty(rows.n_cfg, dtype=torch.float64)
+    per = max(1, (1 << 20) // (k * k))
+    for lo in range(0, rows.n_cfg, per):
+        a = med[lo:lo + per]  # (c, 2)
+        n = a.shape[0]
+        R = torch.stack([a[:, :1] * (1 + G), a[:, :1] * (1 - G), a[:, 1:] * (1 + S), a[:, 1:] * (1 - S)], -1)
+        X = cfg_X[lo:lo + per].repeat_interleave(k * k, 0)
+        hit = cand.decide(R.reshape(-1, 4).float(), X).reshape(n, k * k)
+        out[lo:lo + n] = hit.double().mean(1) * 4.0
+    return out
+
+
+def evaluate(data_dir, model_paths, scales=ROC_SCALES, min_reflectance: float = MIN_REFLECTANCE) -> dict:
+    """Every model of ``model_paths`` (one path or a list; see ``load_candidate``) and the static box on the
+    held-out dataset at ``data_dir``, all under the brightness floor ``min_reflectance`` (``MIN_REFLECTANCE``).
+    ``models`` holds one entry per model (the static box last); for compatibility ``learned`` / ``static`` (and
+    ``bins``, ``sun_zenith_ge_60``, ``roc``) compare the first model with the static box."""
+    if not (0.0 <= float(min_reflectance) < 1.0) or not math.isfinite(min_reflectance):
+        raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
+    paths = [model_paths] if isinstance(model_paths, (str, bytes)) or not hasattr(model_paths, "__iter__") \
+        else list(model_paths)
+    if not paths:
+        raise ValueError("evaluate needs at least one model")
+    cands = [load_candidate(p) for p in paths]
+    features = cands[0].features
+    for c in cands[1:]:
+        if c.features != features:
+            raise ValueError(f"models take different features: {c.name} {c.features} vs {cands[0].name} {features}")
+    cands.append(static_candidate())
+    rows = _Rows(data_dir, features)
+    from .confusers import band_reflectance
+
+    _, test_R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], "test")
+    test_R = test_R.float()
+    test_pts = torch.stack(ratio_indices(test_R), -1)  # (m, 3), row for row with test_R (NaN: undefined)
+    judged = [_Judged(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
+    hi = rows.sz >= 60
+    models = []
+    for c, j in zip(cands, judged):
+        bins = []
+        for i in range(len(SUN_BINS) - 1):
+            for k in range(len(CAMERA_BINS) - 1):
+                m = (rows.sz >= SUN_BINS[i]) & (rows.sz < SUN_BINS[i + 1]) & (rows.cz >= CAMERA_BINS[k]) & \
+                    (rows.cz < CAMERA_BINS[k + 1])
+                if bool((m & rows.label).any()):
+                    bins.append({"sun_zenith_deg": [SUN_BINS[i], SUN_BINS[i + 1]],
+                                 "camera_zenith_deg": [CAMERA_BINS[k], CAMERA_BINS[k + 1]], **j.summary(rows, m)})
+        area = j.area_cfg
+        models.append({"name": c.name, "path": c.path, "kind": c.kind, "overall": j.summary(rows),
+                       "sun_zenith_ge_60": j.summary(rows, hi), "bins": bins,
+                       "area": {"mean": float(area.mean()), "median": float(area.median()),
+                                "p10": float(area.quantile(0.1)), "p90": float(area.quantile(0.9))},
+                       "scene_pfa_by_family": j.scene_by_family(rows)})
+    first, static = models[0], models[-1]
+    out = {"models": models, "learned": first["overall"], "static": static["overall"],
+           "sun_zenith_ge_60": {"learned": first["sun_zenith_ge_60"], "static": static["sun_zenith_ge_60"]},
+           "bins": [{"sun_zenith_deg": a["sun_zenith_deg"], "camera_zenith_deg": a["camera_zenith_deg"],
+                     "learned": {k: v for k, v in a.items() if not k.endswith("_deg")},
+                     "static": {k: v for k, v in b.items() if not k.endswith("_deg")}}
+                    for a, b in zip(first["bins"], static["bins"])],
+           "features": features, "rows": rows.n, "rows_excluded_no_sunlit_panels": rows.excluded,
+           "configurations": rows.n_cfg, "glint_reflectance": GLINT_REFLECTANCE,
+           "min_reflectance": float(min_reflectance)}
+    if cands[0].boxes is not None:
+        out["roc"] = _roc(cands[0], cands[-1], rows, test_pts, scales, float(min_reflectance))
+    return out
+
+
+def _scaled(b: torch.Tensor, k: float) -> torch.Tensor:
+    """Boxes (N, 4+) scaled by ``k`` about their centres in (NDGRI, NDSI) (a fifth column, d1, is kept)."""
+    ctr = torch.stack([(b[:, 0] + b[:, 1]) / 2] * 2 + [(b[:, 2] + b[:, 3]) / 2] * 2, -1)
+    return torch.cat([ctr + float(k) * (b[:, :4] - ctr), b[:, 4:]], -1)
+
+
+def _roc(cand: Candidate, static: Candidate, rows: _Rows, test_pts, scales, floor: float) -> dict:
+    """Pd (sunlit) against Pfa as every box is scaled about its centre, for ``cand`` and the static box."""
+    out = {"scales": [float(k) for k in scales]}
+    lit = rows.label & ~rows.shadow
+    nonskin = ~rows.label
+    for key, c in (("learned", cand), ("static", static)):
+        bx = c.boxes(rows.X)
+        cb = c.boxes(rows.cfg_X)
         pts = []
         for k in scales:
-            b = c + float(k) * (bx - c)
-            r = summary(b)
-            pts.append([r["pfa"], r["pd_sunlit"], r["pfa_scene"]])
-        roc[name] = pts
-    out["roc"] = {"scales": [float(k) for k in scales], **roc}
-    out["features"] = features
-    out["rows"] = len(t)
-    out["rows_excluded_no_sunlit_panels"] = excluded
+            hit = inside_box(_scaled(bx, k), rows.g, rows.s, rows.v) & (rows.R.mean(-1) > floor)
+            pts.append([float(false_alarm_rate(_scaled(cb, k), test_pts).mean()), _rate(hit, lit),
+                        _rate(hit, nonskin)])
+        out[key] = pts
     return out
 
 
@@ -200,8 +470,9 @@ def plots(result: dict, out_dir) -> None:
     plt = _plt()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    first = result["models"][0]["name"] if result.get("models") else "learned"
     fig, ax = plt.subplots(figsize=(5.5, 4.2))
-    for name in ("learned", "static"):
+    for name in ("learned", "static") if "roc" in result else ():
         pts = np.array(result["roc"][name], dtype=float)
         ax.plot(np.maximum(pts[:, 2], 1e-5), pts[:, 1], "o-", ms=3, label=f"{name} (scene non-skin pixels)")
         ax.plot(np.maximum(pts[:, 0], 1e-5), pts[:, 1], "s--", ms=3, label=f"{name} (earthlib test spectra)")
@@ -210,7 +481,8 @@ def plots(result: dict, out_dir) -> None:
     ax.set_ylabel("Pd, sunlit skin")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
-    ax.set_title("ROC: boxes scaled about their centres")
+    ax.set_title(f"ROC: boxes scaled about their centres\n(learned: {first})" if "roc" in result
+                 else "ROC: the first model has no boxes to scale", fontsize=9)
     fig.tight_layout()
     save_figure(fig, out / "roc.png")
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
@@ -234,3 +506,92 @@ def plots(result: dict, out_dir) -> None:
 
 
 __all__ = ["FEATURES", "evaluate", "plots"]
+
+
+_TABLE = (("Pd sunlit", "pd_sunlit"), ("no glint", "pd_sunlit_no_glint"), ("glint", "pd_glint"),
+          ("shadow", "pd_shadow"), ("mean/config", "pd_sunlit_mean_over_configs"))
+
+
+def table(result: dict) -> str:
+    """The comparison as a text table: one row per model (the static box last)."""
+    head = (f"{'model':<26}" + "".join(f"{h:>12}" for h, _ in _TABLE) + f"{'sun>=60 m/c':>12}{'Pfa earthlib':>13}"
+            f"{'Pfa scene':>11}{'area':>7}")
+    lines = [head]
+    for m in result["models"]:
+        o, hi = m["overall"], m["sun_zenith_ge_60"]
+        lines.append(f"{m['name'][:25]:<26}" + "".join(f"{o[k]:>12.3f}" for _, k in _TABLE)
+                     + f"{hi['pd_sunlit_mean_over_configs']:>12.3f}{o['pfa']:>13.2e}{o['pfa_scene']:>11.2e}"
+                     + f"{m['area']['mean']:>7.3f}")
+    lines.append(f"({result['rows']} rows, {result['configurations']} configurations; Pd sunlit split into glint-"
+                 f"affected (specular >= {result['glint_reflectance']:g} at 1580 nm) and not; area: mean decision-"
+                 "region area per configuration in the (NDGRI, NDSI) plane)")
+    return "\n".join(lines)
+
+
+def compare_plot(result: dict, path) -> None:
+    """Bars per model: Pd (sunlit without glint, glint-affected, shadowed, sun >= 60° mean over configurations),
+    false alarms (earthlib test and scene non-skin, log scale) and the decision-region area."""
+    from .plots import _plt, save_figure
+
+    plt = _plt()
+    models = result["models"]
+    names = [m["name"] for m in models]
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4.2), gridspec_kw={"width_ratios": [2.2, 1.2, 1]})
+    cats = [("sunlit, no glint", lambda m: m["overall"]["pd_sunlit_no_glint"]),
+            ("glint-affected", lambda m: m["overall"]["pd_glint"]),
+            ("shadowed", lambda m: m["overall"]["pd_shadow"]),
+            ("sun ≥ 60°, mean/config", lambda m: m["sun_zenith_ge_60"]["pd_sunlit_mean_over_configs"])]
+    x = np.arange(len(cats))
+    w = 0.8 / len(models)
+    for k, m in enumerate(models):
+        a1.bar(x + (k - (len(models) - 1) / 2) * w, [f(m) for _, f in cats], w, label=names[k])
+    a1.set_xticks(x, [c for c, _ in cats], fontsize=8)
+    a1.set_ylabel("Pd (held-out skin pixels)")
+    a1.set_ylim(0, 1.3)
+    a1.set_yticks(np.linspace(0, 1, 6))
+    a1.grid(alpha=0.3, axis="y")
+    a1.legend(fontsize=7, loc="upper center", ncol=min(4, len(models)))
+    x2 = np.arange(2)
+    for k, m in enumerate(models):
+        a2.bar(x2 + (k - (len(models) - 1) / 2) * w, [max(m["overall"]["pfa"], 1e-6), max(m["overall"]["pfa_scene"], 1e-6)],
+               w)
+    a2.set_yscale("log")
+    a2.set_ylim(5e-7, 1)
+    a2.set_xticks(x2, ["earthlib test", "scene non-skin"], fontsize=8)
+    a2.set_ylabel("Pfa (0 drawn at 1e-6)")
+    a2.grid(alpha=0.3, axis="y", which="both")
+    a3.bar(np.arange(len(models)), [m["area"]["mean"] for m in models], color=[f"C{k}" for k in range(len(models))])
+    a3.set_xticks(np.arange(len(models)), names, fontsize=7, rotation=25, ha="right")
+    a3.set_ylabel("decision-region area, (NDGRI, NDSI) units²")
+    a3.grid(alpha=0.3, axis="y")
+    fig.suptitle(f"Held-out comparison ({result['configurations']} configurations)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def select_detector(result: dict, pfa_budget: float = 1e-3, scene_budget: float = 1e-4,
+                    tolerance: float = 0.005) -> tuple[str, str]:
+    """The model to ship as ``detector.onnx``: among the evaluated models (not the static box) whose held-out
+    Pfa is within ``pfa_budget`` on the earthlib test spectra and ``scene_budget`` on scene non-skin pixels,
+    those within ``tolerance`` of the highest sunlit Pd; of these a box model (auditable rules, the cheaper
+    graph) before a classifier, then the smallest mean decision-region area (at equal Pd, less false-alarm
+    exposure than earthlib can show). Returns (model name, the reason in words)."""
+    models = [m for m in result["models"] if m["kind"] != "static"]
+    if not models:
+        raise ValueError("no model to choose from")
+
+    def ok(m):
+        return m["overall"]["pfa"] <= pfa_budget and m["overall"]["pfa_scene"] <= scene_budget
+
+    eligible = [m for m in models if ok(m)] or models
+    best = max(m["overall"]["pd_sunlit"] for m in eligible)
+    near = [m for m in eligible if m["overall"]["pd_sunlit"] >= best - tolerance]
+    pick = min(near, key=lambda m: (m["kind"] != "boxes", m["area"]["mean"]))
+    figures = "; ".join(f"{m['name']}: Pd sunlit {m['overall']['pd_sunlit']:.3f}, Pfa earthlib "
+                        f"{m['overall']['pfa']:.1e}, scene {m['overall']['pfa_scene']:.1e}, mean area "
+                        f"{m['area']['mean']:.3f}" for m in models)
+    why = (f"within {tolerance:g} of the highest held-out sunlit Pd among the models inside the false-alarm budgets "
+           f"(earthlib test <= {pfa_budget:g}, scene non-skin <= {scene_budget:g}), a box model first, then the "
+           "smallest decision region" if ok(pick) else
+           "no model met the false-alarm budgets on the held-out set; highest sunlit Pd")
+    return pick["name"], f"{why}. Held-out ({result.get('data', '')}): {figures}."

@@ -1,10 +1,12 @@
-"""The thesis experiment (section 3.4, chapter 4) and Appendix C, rendered with both skin models.
+"""The thesis experiment (section 3.4, chapter 4) and Appendix C, rendered with every skin model.
 
 A Type I/II subject faces the camera at 31 ft (9.449 m) with reference panels beside the head; a sun-like
 directional source sits in the horizontal plane 10, 30, 60 and 85 degrees off the camera axis. For each
 angle: calibrated reflectance images, the rules-detector scatter of sunlit skin pixels, 2-D NDSI x NDGRI
-histograms, for the diffuse-only model (the Lambertian skin that set the box) and the combined model
-(eq 3.1.1); and the Bhattacharyya coefficient between the two models' histograms.
+histograms, for the diffuse-only model (the Lambertian skin that set the box) and the combined model of
+eq 3.1.1 under both skin surface models ("thesis": ρ_d with the front surface, as the thesis defines it;
+"conserving": the subsurface part only; ``optics.skin_diffuse``); and the Bhattacharyya coefficient between
+the diffuse-only and each combined model's histograms.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import torch
 
 from .detect import DEFAULT_BOX, bhattacharyya, histogram2d
 from .io import write_text
+from .optics import DEFAULT_SURFACE, SURFACE_MODELS, check_surface
 from .raycast import Raycaster
 from .render import Sensor, build_meshes, render
 from .scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
@@ -27,10 +30,14 @@ HIST_RANGE_NDGRI = (-1.0, 0.5)
 HIST_RANGE_NDSI = (-0.2, 1.0)
 
 
+#: the models rendered side by side: the diffuse-only skin and eq 3.1.1 under each surface model
+MODELS = ("diffuse", *SURFACE_MODELS)
+
+
 def experiment_scene(angles=ANGLES_DEG, skin="I-II", diffuse_only=False, width=512, height=512,
-                     panels: str = "lambertian") -> Scene:
+                     panels: str = "lambertian", surface: str = DEFAULT_SURFACE) -> Scene:
     mats = {
-        "skin": Material("skin", skin=skin, specular=not diffuse_only),
+        "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
         **panel_materials(panels),
     }
@@ -65,58 +72,88 @@ def appendix_c(sensor: Sensor | None = None, width: int = 192, height: int = 96)
 
 
 def run(out_dir, angles=ANGLES_DEG, width: int = 512, height: int = 512, sensor: Sensor | None = None,
-        device="cpu", panels: str = "lambertian") -> dict:
+        device="cpu", panels: str = "lambertian", surface: str = DEFAULT_SURFACE) -> dict:
     """Run the experiment, write its figures and ``experiment.json`` into ``out_dir``; return the summary.
+
+    Three skin models share one ray cast: "diffuse" (diffuse-only), "thesis" and "conserving" (eq 3.1.1 under
+    each skin surface model, ``optics.skin_diffuse``). ``surface`` names the combined model reported as
+    ``detected_fraction_combined`` and ``bhattacharyya`` (default "thesis"); ``detected_fraction_<model>``
+    and ``bhattacharyya_<surface>`` hold every model.
 
     ``panels="spectralon-brdf"`` uses Spectralon-like panels (Table 3 DHR with the Appendix B forward lobe):
     the images are then calibrated with BRDF-ELM, and the summary adds ``lambertian_panel_error``, the
     median relative error per angle and band of skin reflectance when the panels are assumed Lambertian
-    (ELM on their DHR) - the error the thesis estimates at up to 4.1 % (VIS) and 7.4 % (NIR)."""
+    (ELM on their DHR) - the error the thesis estimates at up to 4.1 % (VIS) and 7.4 % (NIR) - and
+    ``detected_fraction_<model>_lambertian_elm``, the detected fractions with that (plain) ELM."""
     from . import plots
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_surface(surface)
     sensor = sensor if sensor is not None else Sensor()
     scenes = {m: experiment_scene(angles, diffuse_only=(m == "diffuse"), width=width, height=height,
-                                  panels=panels) for m in ("diffuse", "combined")}
+                                  panels=panels, surface=m if m != "diffuse" else DEFAULT_SURFACE) for m in MODELS}
     elm = "brdf" if panels == "spectralon-brdf" else "dhr"
-    meshes, names = build_meshes(scenes["combined"])
+    meshes, names = build_meshes(scenes[surface])
     rc = Raycaster(meshes, names)
-    gb = rc.gbuffer(scenes["combined"].cameras, np.stack([s.direction for s in scenes["combined"].suns]))
+    gb = rc.gbuffer(scenes[surface].cameras, np.stack([s.direction for s in scenes[surface].suns]))
     res = {m: render(sc, device=device, sensor=sensor, gbuffer=gb, elm=elm) for m, sc in scenes.items()}
-    summary = {"angles_deg": [float(a) for a in angles], "detected_fraction_combined": [],
-               "detected_fraction_diffuse": [], "bhattacharyya": [], "sunlit_skin_pixels": []}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {"angles_deg": [float(a) for a in angles], "surface": surface, "panels": panels,
+               **{f"detected_fraction_{m}": [] for m in MODELS},
+               **{f"bhattacharyya_{m}": [] for m in SURFACE_MODELS}, "sunlit_skin_pixels": []}
     hists = {}
     for si, _ in enumerate(angles):
         for m, r in res.items():
             lit = r.skin[0] & r.lit[si, 0]
-            frac = float(r.mask[si, 0][lit].float().mean()) if bool(lit.any()) else 0.0
-            summary[f"detected_fraction_{m}"].append(frac)
+            summary[f"detected_fraction_{m}"].append(_fraction(r.mask[si, 0], lit))
             hists[(m, si)] = histogram2d(r.ndgri[si, 0][lit], r.ndsi[si, 0][lit], HIST_BINS, HIST_RANGE_NDGRI,
                                          HIST_RANGE_NDSI)
-        summary["sunlit_skin_pixels"].append(int((res["combined"].skin[0] & res["combined"].lit[si, 0]).sum()))
-        h1, h2 = hists[("diffuse", si)], hists[("combined", si)]
-        bc = float(bhattacharyya(h1, h2)) if float(h1.sum()) > 0 and float(h2.sum()) > 0 else 0.0
-        summary["bhattacharyya"].append(bc)
+        summary["sunlit_skin_pixels"].append(int((res[surface].skin[0] & res[surface].lit[si, 0]).sum()))
+        for m in SURFACE_MODELS:
+            h1, h2 = hists[("diffuse", si)], hists[(m, si)]
+            bc = float(bhattacharyya(h1, h2)) if float(h1.sum()) > 0 and float(h2.sum()) > 0 else 0.0
+            summary[f"bhattacharyya_{m}"].append(bc)
+    summary["detected_fraction_combined"] = summary[f"detected_fraction_{surface}"]
+    summary["bhattacharyya"] = summary[f"bhattacharyya_{surface}"]
     summary["appendix_c_middle_reflectance"] = appendix_c(sensor)
-    summary["panels"] = panels
     if elm == "brdf":
-        summary["lambertian_panel_error"] = _lambertian_panel_error(res["combined"], scenes["combined"], gb)
+        summary["lambertian_panel_error"] = _lambertian_panel_error(res[surface], scenes[surface], gb)
+        for m in MODELS:
+            summary[f"detected_fraction_{m}_lambertian_elm"] = _lambertian_elm_detection(res[m], scenes[m], gb)
     _figures(out, angles, res, hists, summary, plots)
+    summary["surface_energy"] = plots.surface_energy(out / "surface_energy.png")
     write_text(out / "experiment.json", json.dumps(summary, indent=1))
     return summary
 
 
-def _lambertian_panel_error(r, scene, gb) -> list[list[float]]:
-    """Median |ρ_DHR-ELM / ρ_BRDF-ELM - 1| over sunlit skin pixels, per angle and band."""
+def _fraction(mask: torch.Tensor, where: torch.Tensor) -> float:
+    """The fraction of the pixels ``where`` that ``mask`` holds (0 when there are none)."""
+    return float(mask[where].float().mean()) if bool(where.any()) else 0.0
+
+
+def _lambertian_elm(r, scene, gb) -> torch.Tensor:
+    """The render ``r`` (made with BRDF-ELM) recalibrated with plain ELM on the panels' DHR."""
     from .render import apply_elm, material_tables, panel_pixels, panel_references, panel_values
 
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=r.signal.dtype)
     g = gb.to(dtype=r.signal.dtype)
     tables = material_tables(scene, g.material_names, r.signal.dtype, r.signal.device)
     pix = panel_pixels(g, list(scene.panels))
-    pv = panel_values(r.signal, pix)
-    dhr = apply_elm(r.signal, pv, panel_references(scene, g, tables, sun_dirs, pix, "dhr"))
+    return apply_elm(r.signal, panel_values(r.signal, pix), panel_references(scene, g, tables, sun_dirs, pix, "dhr"))
+
+
+def _lambertian_elm_detection(r, scene, gb) -> list[float]:
+    """Per angle, the sunlit skin fraction inside the box when the panels are taken as Lambertian."""
+    from .detect import indices, rules_detector
+
+    g, s = indices(_lambertian_elm(r, scene, gb), r.bands)
+    mask = rules_detector(g, s, DEFAULT_BOX)
+    return [_fraction(mask[si, 0], r.skin[0] & r.lit[si, 0]) for si in range(mask.shape[0])]
+
+
+def _lambertian_panel_error(r, scene, gb) -> list[list[float]]:
+    """Median |ρ_DHR-ELM / ρ_BRDF-ELM - 1| over sunlit skin pixels, per angle and band."""
+    dhr = _lambertian_elm(r, scene, gb)
     out = []
     for si in range(r.signal.shape[0]):
         lit = r.skin[0] & r.lit[si, 0]
@@ -125,60 +162,77 @@ def _lambertian_panel_error(r, scene, gb) -> list[list[float]]:
     return out
 
 
+_LABELS = {"diffuse": "diffuse-only", "thesis": "eq 3.1.1, thesis surface", "conserving": "eq 3.1.1, conserving"}
+_COLORS = {"diffuse": "C0", "thesis": "C3", "conserving": "C1"}
+
+
 def _figures(out: Path, angles, res, hists, summary, plots) -> None:
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Rectangle
+
     plt = plots._plt()
-    models = ("diffuse", "combined")
-    # reflectance images: rows = angles, columns = bands (combined model), like Figs 29/35
-    r = res["combined"]
+    surface = summary["surface"]
+    # reflectance images of the chosen combined model: rows = angles, columns = bands, like Figs 29/35
+    r = res[surface]
     B = r.reflectance.shape[-1]
-    fig, axes = plt.subplots(len(angles), B, figsize=(3.0 * B, 3.0 * len(angles)))
-    axes = np.atleast_2d(axes)
+    fig, axes = plt.subplots(len(angles), B, figsize=(3.0 * B, 3.0 * len(angles)), squeeze=False)
     for si, a in enumerate(angles):
         for k in range(B):
             ax = axes[si, k]
             im = ax.imshow(r.reflectance[si, 0, :, :, k].cpu().float().numpy(), cmap="jet", vmin=0, vmax=1)
             ax.set_title(f"{r.bands[k].center_nm:g} nm, source {a:g}°", fontsize=9)
             ax.axis("off")
-    fig.colorbar(im, ax=axes, fraction=0.02, label="reflectance (ELM)")
+    fig.colorbar(im, ax=axes, fraction=0.02, label=f"reflectance (ELM; {_LABELS[surface]}; clipped to [0, 1])")
     plots.save_figure(fig, out / "reflectance_combined.png")
-    # rules scatter, Fig 32/37 style
-    fig, axes = plt.subplots(2, len(angles), figsize=(3.6 * len(angles), 7), sharex=True, sharey=True)
-    axes = np.atleast_2d(axes)
-    for mi, m in enumerate(models):
+    # rules scatter, Fig 32/37 style: one row per model
+    fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles), 3.4 * len(MODELS)),
+                             sharex=True, sharey=True, squeeze=False)
+    for mi, m in enumerate(MODELS):
         rr = res[m]
         for si, a in enumerate(angles):
             lit = rr.skin[0] & rr.lit[si, 0]
-            plots.rules_scatter(axes[mi, si], rr.ndgri[si, 0][lit], rr.ndsi[si, 0][lit], DEFAULT_BOX,
-                                color="C0" if m == "diffuse" else "C3")
-            axes[mi, si].set_title(f"{m}, {a:g}°: {summary[f'detected_fraction_{m}'][si]:.2f} in box", fontsize=9)
+            plots.rules_scatter(axes[mi, si], rr.ndgri[si, 0][lit], rr.ndsi[si, 0][lit], DEFAULT_BOX, color=_COLORS[m])
+            axes[mi, si].set_title(f"{_LABELS[m]}, {a:g}°: {summary[f'detected_fraction_{m}'][si]:.2f} in box",
+                                   fontsize=9)
     fig.tight_layout()
     plots.save_figure(fig, out / "rules_scatter.png")
-    # 2-D histograms, Fig 33/38 style
-    fig, axes = plt.subplots(2, len(angles), figsize=(3.6 * len(angles), 7), sharex=True, sharey=True)
-    axes = np.atleast_2d(axes)
+    # 2-D histograms, Fig 33/38 style: counts per bin (log colour scale), the box drawn
+    fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles) + 1.0, 3.2 * len(MODELS)),
+                             sharex=True, sharey=True, squeeze=False)
     ext = [*HIST_RANGE_NDGRI, *HIST_RANGE_NDSI]
-    for mi, m in enumerate(models):
+    vmax = max(float(h.max()) for h in hists.values()) or 1.0
+    b = DEFAULT_BOX
+    for mi, m in enumerate(MODELS):
         for si, a in enumerate(angles):
             h = hists[(m, si)].cpu().numpy().T
-            axes[mi, si].imshow(np.log1p(h), origin="lower", extent=ext, aspect="auto", cmap="magma")
-            axes[mi, si].set_title(f"{m}, {a:g}°", fontsize=9)
-            axes[mi, si].set_xlabel("NDGRI")
-            axes[mi, si].set_ylabel("NDSI")
-    fig.tight_layout()
+            ax = axes[mi, si]
+            im = ax.imshow(np.ma.masked_equal(h, 0), origin="lower", extent=ext, aspect="auto", cmap="viridis",
+                           norm=LogNorm(vmin=1, vmax=vmax))
+            ax.add_patch(Rectangle((b.b1, b.c1), b.b2 - b.b1, b.c2 - b.c1, fill=False, ec="r", lw=1.2))
+            ax.set_title(f"{_LABELS[m]}, {a:g}°", fontsize=9)
+            if mi == len(MODELS) - 1:
+                ax.set_xlabel("NDGRI")
+            if si == 0:
+                ax.set_ylabel("NDSI")
+    fig.colorbar(im, ax=axes, fraction=0.02, label="sunlit skin pixels per bin")
     plots.save_figure(fig, out / "histograms.png")
     # detected fraction and Bhattacharyya coefficient vs angle, Fig 39 style
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
-    a1.plot(angles, summary["detected_fraction_diffuse"], "o-", label="diffuse-only model")
-    a1.plot(angles, summary["detected_fraction_combined"], "s-", color="C3", label="combined model (eq 3.1.1)")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 3.9))
+    for m, marker in zip(MODELS, "os^"):
+        a1.plot(angles, summary[f"detected_fraction_{m}"], marker + "-", color=_COLORS[m], label=_LABELS[m])
     a1.set_xlabel("source angle off normal (deg)")
     a1.set_ylabel("sunlit skin pixels inside the box")
     a1.set_ylim(0, 1.02)
     a1.grid(alpha=0.3)
-    a1.legend()
-    a2.bar([str(int(a)) for a in angles], summary["bhattacharyya"], color="C2")
+    a1.legend(fontsize=8)
+    x = np.arange(len(angles))
+    for k, m in enumerate(SURFACE_MODELS):
+        a2.bar(x + (k - 0.5) * 0.38, summary[f"bhattacharyya_{m}"], 0.38, color=_COLORS[m], label=_LABELS[m])
+    a2.set_xticks(x, [f"{a:g}" for a in angles])
     a2.set_xlabel("source angle off normal (deg)")
     a2.set_ylabel("Bhattacharyya coefficient")
     a2.set_ylim(0, 1)
-    a2.set_title("diffuse vs combined NDSI x NDGRI histograms")
+    a2.legend(fontsize=8)
+    a2.set_title("diffuse-only vs eq 3.1.1 NDSI x NDGRI histograms", fontsize=10)
     fig.tight_layout()
     plots.save_figure(fig, out / "detection_vs_angle.png")

@@ -1,6 +1,7 @@
-"""Export learned boundaries to ONNX: ``boundaries.onnx`` (configuration (N, k) -> boxes (N, 4)) and
-``detector.onnx`` (reflectance cube (B, 4, H, W) + configuration (B, k) -> mask (B, H, W) and score), opset
-17, with metadata (band centres, units, feature order and units, training manifest hash, package version)."""
+"""Export learned detectors to ONNX: ``boundaries.onnx`` and ``baseline_box.onnx`` (configuration (N, k) ->
+boxes (N, 4)) and ``detector.onnx`` (reflectance cube (B, 4, H, W) + configuration (B, k) -> mask (B, H, W) and
+score; from a box model or a classifier), opset 17, with metadata (band centres, units, feature order and
+units, skin surface model, training manifest hash, package version)."""
 
 from __future__ import annotations
 
@@ -12,36 +13,41 @@ import torch
 from torch import nn
 
 from . import __version__
-from .boundaries import FEATURE_UNITS, BoundaryModel, folded
+from .boundaries import BOX_ORDER, FEATURE_UNITS, BoundaryModel, folded
 from .io import atomic_path
 
 OPSET = 17
 BANDS_NM = (544.0, 633.0, 1080.0, 1580.0)
 
 
-#: the edge forms as a linear function of the box: W(box) = box @ EDGE_M + EDGE_C, reshaped to (4 edges, 4 bands)
+#: the edge forms as a linear function of the box: W(box) = box @ EDGE_M + EDGE_C, reshaped to (5 edges, 4 bands)
 #: with bands (g, r, n, s) = (544, 633, 1080, 1580) nm and edges
-#:   L1 = (g - r) - b1 (g + r),  L2 = b2 (g + r) - (g - r),  L3 = (n - s) - c1 (n + s),  L4 = c2 (n + s) - (n - s)
-EDGE_C = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, -1.0), (0.0, 0.0, -1.0, 1.0))
+#:   L1 = (g - r) - b1 (g + r),  L2 = b2 (g + r) - (g - r),  L3 = (n - s) - c1 (n + s),  L4 = c2 (n + s) - (n - s),
+#:   L5 = (g + r) - (n + s) - d1 (g + r + n + s)   (the visible/NIR rule NDVN >= d1)
+EDGE_C = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, -1.0), (0.0, 0.0, -1.0, 1.0),
+          (1.0, 1.0, -1.0, -1.0))
 EDGE_M = tuple(tuple(float(v) for v in row) for row in (
-    [-1, -1, 0, 0] + [0] * 12, [0] * 4 + [1, 1, 0, 0] + [0] * 8, [0] * 10 + [-1, -1] + [0] * 4, [0] * 14 + [1, 1]))
+    [-1, -1, 0, 0] + [0] * 16, [0] * 4 + [1, 1, 0, 0] + [0] * 12, [0] * 10 + [-1, -1] + [0] * 8,
+    [0] * 14 + [1, 1] + [0] * 4, [0] * 16 + [-1, -1, -1, -1]))
 
 
 def edge_matrix(boxes: torch.Tensor) -> torch.Tensor:
-    """(B, 4) boxes -> (B, 4, 4) matrices whose rows, applied to a pixel's (g, r, n, s), give the four edge
-    forms L1..L4: each is the pixel's index margin to that edge times its band-pair sum."""
-    M = torch.tensor(EDGE_M, dtype=boxes.dtype, device=boxes.device)
-    C = torch.tensor(EDGE_C, dtype=boxes.dtype, device=boxes.device).reshape(16)
-    return (boxes @ M + C).reshape(-1, 4, 4)
+    """(B, E) boxes (E = 4: b1, b2, c1, c2; E = 5 with d1) -> (B, E, 4) matrices whose rows, applied to a
+    pixel's (g, r, n, s), give the edge forms L1..LE: each is the pixel's index margin to that edge times its
+    band sum (g + r, n + s, or g + r + n + s for the NDVN rule)."""
+    e = boxes.shape[1]
+    M = torch.tensor(EDGE_M, dtype=boxes.dtype, device=boxes.device)[:e, :4 * e]
+    C = torch.tensor(EDGE_C, dtype=boxes.dtype, device=boxes.device)[:e].reshape(4 * e)
+    return (boxes @ M + C).reshape(-1, e, 4)
 
 
 class Detector(nn.Module):
     """Rules detector with configuration-dependent boxes, written without divisions:
-    NDGRI in [b1, b2] and NDSI in [c1, c2] <=> the four edge forms L1..L4 (``edge_matrix``) are positive.
-    ``score`` = min(L1..L4): the smallest index margin to a box edge, weighted by the band-pair sum (g + r
-    or n + s), in reflectance units; positive inside. ``mask`` = score > 0 (a pixel with g + r = 0 or
-    n + s = 0 has undefined indices and is never skin). This module is the reference; ``export`` writes the
-    same arithmetic as a short ONNX graph (four one-row MatMuls, Min, Greater)."""
+    NDGRI in [b1, b2], NDSI in [c1, c2] and NDVN >= d1 <=> the five edge forms L1..L5 (``edge_matrix``) are
+    positive. ``score`` = min(L1..L5): the smallest index margin to a box edge, weighted by the band sum
+    (g + r, n + s or g + r + n + s), in reflectance units; positive inside. ``mask`` = score > 0 (a pixel with
+    g + r = 0 or n + s = 0 has undefined indices and is never skin). This module is the reference; ``export``
+    writes the same arithmetic as a short ONNX graph (one one-row MatMul per edge, Min, Greater)."""
 
     def __init__(self, boundaries: BoundaryModel):
         super().__init__()
@@ -49,55 +55,41 @@ class Detector(nn.Module):
 
     def forward(self, cube: torch.Tensor, config: torch.Tensor):
         B, _, H, W = cube.shape
-        lin = edge_matrix(self.boundaries(config)) @ cube.reshape(B, 4, H * W)
+        lin = edge_matrix(self.boundaries(config)) @ cube.reshape(B, 4, H * W)  # (B, E, HW)
         score = lin.amin(1).reshape(B, H, W)
         return score > 0, score
 
 
-def metadata(model: BoundaryModel, manifest_sha256: str = "") -> dict[str, str]:
+def metadata(model: BoundaryModel, manifest_sha256: str = "", surface: str = "") -> dict[str, str]:
     return {
+        "skin_surface_model": surface,
         "torchskin_version": __version__,
         "bands_nm": json.dumps(list(BANDS_NM)),
         "band_units": "nm; reflectance in [0, 1] (ELM-calibrated)",
         "features": json.dumps(list(model.features)),
         "feature_units": json.dumps([FEATURE_UNITS.get(f, "") for f in model.features]),
         "feature_domain": json.dumps([[float(lo), float(hi)] for lo, hi in model.domain.tolist()]),
-        "box_order": json.dumps(["b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max"]),
+        "box_order": json.dumps(list(BOX_ORDER)),
+        "ndvn": "((g + r) - (n + s)) / (g + r + n + s) with (g, r, n, s) the 544, 633, 1080, 1580 nm reflectance",
         "training_manifest_sha256": manifest_sha256,
     }
 
 
-def _to_onnx(module, args, input_names, output_names, dynamic_axes, meta: dict, path) -> None:
-    import onnx
-
-    buf = io.BytesIO()
-    with warnings.catch_warnings():  # the TorchScript exporter is deliberate: no onnxscript dependency
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,
-                          dynamic_axes=dynamic_axes, opset_version=OPSET, dynamo=False)
-    m = onnx.load_from_string(buf.getvalue())
-    for k, v in meta.items():
-        p = m.metadata_props.add()
-        p.key, p.value = k, v
-    onnx.checker.check_model(m)
-    with atomic_path(path, suffix=".onnx") as tmp:
-        onnx.save(m, str(tmp))
-
-
 def _detector_graph(boundaries_model, meta: dict):
-    """``detector.onnx`` from the exported ``boundaries.onnx`` graph plus a hand-written head: the edge
-    matrices from the boxes (MatMul, Add, Reshape), then per pixel four one-row MatMuls (one per edge form,
-    viewed as (B, H, W)) -> Min -> Greater."""
+    """``detector.onnx`` from the exported ``boundaries.onnx`` graph (boxes (N, E), E = 4 or 5) plus a
+    hand-written head: the edge matrices from the boxes (MatMul, Add, Reshape), then per pixel one one-row
+    MatMul per edge form (viewed as (B, H, W)) -> Min -> Greater."""
     import numpy as np
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
     g = boundaries_model.graph
     box = g.output[0].name
+    e = int(g.output[0].type.tensor_type.shape.dim[1].dim_value) or 5
     inits = list(g.initializer) + [
-        numpy_helper.from_array(np.array(EDGE_M, dtype=np.float32), "det_edge_M"),
-        numpy_helper.from_array(np.array(EDGE_C, dtype=np.float32).reshape(16), "det_edge_C"),
-        numpy_helper.from_array(np.array([-1, 4, 4], dtype=np.int64), "det_w_shape"),
+        numpy_helper.from_array(np.array(EDGE_M, dtype=np.float32)[:e, :4 * e], "det_edge_M"),
+        numpy_helper.from_array(np.array(EDGE_C, dtype=np.float32)[:e].reshape(4 * e), "det_edge_C"),
+        numpy_helper.from_array(np.array([-1, e, 4], dtype=np.int64), "det_w_shape"),
         numpy_helper.from_array(np.array([0, 4, -1], dtype=np.int64), "det_flat_shape"),
         numpy_helper.from_array(np.array([0, 2, 3], dtype=np.int64), "det_bhw_index"),
         numpy_helper.from_array(np.array(0.0, dtype=np.float32), "det_zero"),
@@ -109,12 +101,12 @@ def _detector_graph(boundaries_model, meta: dict):
         helper.make_node("Shape", ["cube"], ["det_cube_shape"]),
         helper.make_node("Gather", ["det_cube_shape", "det_bhw_index"], ["det_bhw"]),
         helper.make_node("Reshape", ["cube", "det_flat_shape"], ["det_flat"]),
-        helper.make_node("Split", ["det_w"], [f"det_w{k}" for k in range(4)], axis=1),
+        helper.make_node("Split", ["det_w"], [f"det_w{k}" for k in range(e)], axis=1),
     ]
-    for k in range(4):  # one edge form per MatMul, viewed as (B, H, W): no (B, 4, HW) intermediate to split
+    for k in range(e):  # one edge form per MatMul, viewed as (B, H, W): no (B, E, HW) intermediate to split
         head += [helper.make_node("MatMul", [f"det_w{k}", "det_flat"], [f"det_e{k}"]),
                  helper.make_node("Reshape", [f"det_e{k}", "det_bhw"], [f"det_l{k}"])]
-    head += [helper.make_node("Min", [f"det_l{k}" for k in range(4)], ["score"]),
+    head += [helper.make_node("Min", [f"det_l{k}" for k in range(e)], ["score"]),
              helper.make_node("Greater", ["score", "det_zero"], ["mask"])]
     cube = helper.make_tensor_value_info("cube", TensorProto.FLOAT, ["B", 4, "H", "W"])
     outputs = [helper.make_tensor_value_info("mask", TensorProto.BOOL, ["B", "H", "W"]),
@@ -130,28 +122,109 @@ def _detector_graph(boundaries_model, meta: dict):
     return m
 
 
-def export(model: BoundaryModel, out_dir, manifest_sha256: str = "") -> dict:
-    """Write ``boundaries.onnx`` and ``detector.onnx`` into ``out_dir``; return their paths."""
-    from pathlib import Path
+class ClassifierDetector(nn.Module):
+    """``detector.onnx`` for a ``classifier.SkinClassifier``: cube (B, 4, H, W) + configuration (B, k) -> mask
+    and score (B, H, W), score = logit - threshold (positive: skin). The configuration's part of the first
+    layer is computed once per frame; per pixel the three band ratios go through the MLP."""
 
+    def __init__(self, classifier):
+        super().__init__()
+        self.c = classifier
+
+    def forward(self, cube: torch.Tensor, config: torch.Tensor):
+        from .classifier import ratio_features
+
+        B, _, H, W = cube.shape
+        x = cube.reshape(B, 4, H * W).transpose(1, 2)  # (B, HW, 4)
+        first, *rest = list(self.c.net)
+        w = first.weight
+        cfg = (config - self.c.mean) / self.c.std  # (B, k)
+        bias = cfg @ w[:, 3:].T + first.bias  # (B, hidden): the configuration's part, once per frame
+        h = (ratio_features(x) * 2.0) @ w[:, :3].T + bias[:, None, :]
+        for layer in rest:
+            h = layer(h)
+        valid = (x[..., 0] + x[..., 1] > 0) & (x[..., 2] + x[..., 3] > 0)
+        score = (h.squeeze(-1) - self.c.threshold).reshape(B, H, W)
+        return (score > 0) & valid.reshape(B, H, W), score
+
+
+def _onnx_bytes(module, args, input_names, output_names, dynamic_axes, meta: dict):
     import onnx
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    with warnings.catch_warnings():  # the TorchScript exporter is deliberate: no onnxscript dependency
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,
+                          dynamic_axes=dynamic_axes, opset_version=OPSET, dynamo=False)
+    m = onnx.load_from_string(buf.getvalue())
+    for k, v in meta.items():
+        p = m.metadata_props.add()
+        p.key, p.value = k, v
+    onnx.checker.check_model(m)
+    return m
+
+
+def boundaries_graph(model: BoundaryModel, meta: dict):
+    """The ONNX graph configuration (N, k) -> boxes (N, 4) of a box model."""
+    cfg = torch.zeros(2, len(model.features))
+    return _onnx_bytes(folded(model.eval()), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}},
+                       meta)
+
+
+def detector_graph(model, meta: dict):
+    """The ONNX graph cube (B, 4, H, W) + configuration (B, k) -> mask, score of a box model (edge forms) or a
+    classifier."""
+    from .classifier import SkinClassifier
+
+    if isinstance(model, SkinClassifier):
+        cube, cfg = torch.rand(2, 4, 3, 5), torch.zeros(2, len(model.features))
+        axes = {"cube": {0: "B", 2: "H", 3: "W"}, "config": {0: "B"}, "mask": {0: "B", 1: "H", 2: "W"},
+                "score": {0: "B", 1: "H", 2: "W"}}
+        return _onnx_bytes(ClassifierDetector(model.eval()), (cube, cfg), ["cube", "config"], ["mask", "score"], axes,
+                           meta)
+    return _detector_graph(boundaries_graph(model, {}), meta)
+
+
+def export(model: BoundaryModel, out_dir, manifest_sha256: str = "", *, surface: str = "",
+           baseline: BoundaryModel | None = None, detector=None, detector_meta: dict | None = None,
+           checkpoints: dict | None = None) -> dict:
+    """Write ``boundaries.onnx`` (``model``), ``baseline_box.onnx`` (``baseline``, a constant box with the same
+    inputs and outputs, when given) and ``detector.onnx`` (``detector``: a box model or a classifier; default
+    ``model``) into ``out_dir``; return their paths. Every graph is built and checked before any file is
+    written. ``detector_meta`` adds metadata to detector.onnx (e.g. which model it is and why)."""
+    from pathlib import Path
+
     model = model.eval()
-    meta = metadata(model, manifest_sha256)
-    k = len(model.features)
-    cfg = torch.zeros(2, k)
-    _to_onnx(folded(model), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}}, meta,
-             out / "boundaries.onnx")
-    det = _detector_graph(onnx.load(str(out / "boundaries.onnx")), meta)
-    with atomic_path(out / "detector.onnx", suffix=".onnx") as tmp:
-        onnx.save(det, str(tmp))
-    return {"boundaries": str(out / "boundaries.onnx"), "detector": str(out / "detector.onnx")}
+    ck = checkpoints or {}
+
+    def meta(m, name):
+        return {**metadata(m, manifest_sha256, surface), **({"checkpoint": ck[name]} if name in ck else {})}
+
+    graphs = {"boundaries": boundaries_graph(model, meta(model, "boundaries"))}
+    if baseline is not None:
+        graphs["baseline_box"] = boundaries_graph(baseline, meta(baseline, "baseline_box"))
+    det = model if detector is None else detector
+    graphs["detector"] = detector_graph(det, {**meta(det, "detector"), **(detector_meta or {})})
+    return write_graphs(graphs, Path(out_dir))
 
 
-def write_model_cards(out_dir, train: dict, evaluation: dict | None = None) -> dict:
-    """``boundaries.md`` and ``detector.md`` beside the exported models (metadata read back from them)."""
+def write_graphs(graphs: dict, out) -> dict:
+    """Write ``{name: onnx.ModelProto}`` as ``out/<name>.onnx`` (atomically, one by one)."""
+    import onnx
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    for name, g in graphs.items():
+        with atomic_path(out / f"{name}.onnx", suffix=".onnx") as tmp:
+            onnx.save(g, str(tmp))
+        paths[name] = str(out / f"{name}.onnx")
+    return paths
+
+
+def write_model_cards(out_dir, train: dict, evaluation: dict | None = None, trains: dict | None = None) -> dict:
+    """A Markdown card beside each exported model (``boundaries``, ``baseline_box``, ``detector``; metadata read
+    back from the ONNX files). ``train``: the training summary of boundaries.onnx; ``trains``: per model name,
+    its own (default ``train``)."""
     from pathlib import Path
 
     import onnx
@@ -160,9 +233,14 @@ def write_model_cards(out_dir, train: dict, evaluation: dict | None = None) -> d
     from .modelcard import model_card
 
     out = Path(out_dir)
-    paths = {}
-    for kind in ("boundaries", "detector"):
+    cards = {}
+    for kind in ("boundaries", "baseline_box", "detector"):
+        if not (out / f"{kind}.onnx").is_file():
+            continue
         meta = {p.key: p.value for p in onnx.load(str(out / f"{kind}.onnx")).metadata_props}
-        write_text(out / f"{kind}.md", model_card(kind, meta, train, evaluation))
+        cards[kind] = model_card(kind, meta, (trains or {}).get(kind, train), evaluation)
+    paths = {}
+    for kind, text in cards.items():  # every card rendered before any is written
+        write_text(out / f"{kind}.md", text)
         paths[f"{kind}_card"] = str(out / f"{kind}.md")
     return paths

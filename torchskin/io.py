@@ -56,3 +56,15 @@ def save_npy(path: str | os.PathLike, array, suffix: str = ".npy") -> None:
     with atomic_path(path, suffix=suffix) as tmp:
         with open(tmp, "wb") as fh:
             np.save(fh, array)
+
+
+def save_torch(path: str | os.PathLike, obj) -> None:
+    """``torch.save`` written atomically and serialised through a buffer, so the archive does not carry the
+    temporary file's random name: the same object gives the same bytes."""
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_bytes(path, buf.getvalue())

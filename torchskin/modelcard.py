@@ -9,12 +9,21 @@ from . import __version__
 
 _INPUTS = {
     "boundaries": ("`config` float32 (N, k): configuration features in the order and units below",
-                   "`boxes` float32 (N, 4): (b1, b2, c1, c2) = NDGRI min, NDGRI max, NDSI min, NDSI max"),
+                   "`boxes` float32 (N, 5): (b1, b2, c1, c2, d1) = NDGRI min, NDGRI max, NDSI min, NDSI max, "
+                   "NDVN min"),
+    "baseline_box": ("`config` float32 (N, k): configuration features in the order and units below (ignored: "
+                     "one box for every configuration)",
+                     "`boxes` float32 (N, 5): (b1, b2, c1, c2, d1) = NDGRI min, NDGRI max, NDSI min, NDSI max, "
+                     "NDVN min"),
     "detector": ("`cube` float32 (B, 4, H, W): ELM-calibrated reflectance at 544, 633, 1080, 1580 nm (bands on "
                  "axis 1, values in [0, 1]); `config` float32 (B, k): the frame's configuration features",
-                 "`mask` bool (B, H, W): skin; `score` float32 (B, H, W): the smallest margin to a box edge in "
-                 "index units times the band-pair sum (g + r or n + s), positive inside"),
+                 "`mask` bool (B, H, W): skin; `score` float32 (B, H, W): positive for skin (box models: the "
+                 "smallest margin to a box edge in index units times the band-pair sum (g + r or n + s); the "
+                 "classifier: its logit minus the calibrated threshold)"),
 }
+_TITLES = {"boundaries": "configuration-dependent skin-detector boundaries (the auditable rules model)",
+           "baseline_box": "the single refitted rules box (baseline: one box for every configuration)",
+           "detector": "onboard skin detector (cube + configuration -> mask)"}
 
 
 def _f(v, digits=3) -> str:
@@ -29,26 +38,48 @@ def _f(v, digits=3) -> str:
     return f"{x:.2e}" if 0 < abs(x) < 10 ** -digits else f"{x:.{digits}f}"
 
 
-def _metrics_section(ev: dict) -> list[str]:
+def _entry(ev: dict, checkpoint: str) -> tuple[dict, dict]:
+    """(overall, sun >= 60) of the evaluated model named ``checkpoint`` (else the first), and the static box's."""
+    models = ev.get("models") or []
+    mine = next((m for m in models if m.get("name") == checkpoint), models[0] if models else None)
+    if mine is None:
+        return ev["learned"], {"learned": ev["learned"], "static": ev["static"], **ev.get("sun_zenith_ge_60", {})}
+    return mine["overall"], mine["sun_zenith_ge_60"]
+
+
+def _metrics_section(ev: dict, checkpoint: str = "") -> list[str]:
     out = ["## Evaluation (held-out configurations)", ""]
     if ev.get("data"):
         out += [f"Held-out dataset: `{ev['data']}` (manifest SHA-256 `{ev.get('data_manifest_sha256', '')}`).", ""]
-    out += ["| | learned | static box (thesis) |", "|---|---|---|"]
+    mine, hi = _entry(ev, checkpoint)
+    static = ev["static"]
+    static_hi = (ev.get("sun_zenith_ge_60") or {}).get("static", {})
+    out += ["| | this model | static box (thesis) |", "|---|---|---|"]
     rows = [("Pd, sunlit skin", "pd_sunlit"), ("Pd, sunlit skin, mean over configurations", "pd_sunlit_mean_over_configs"),
+            ("Pd, sunlit skin without glint", "pd_sunlit_no_glint"), ("Pd, glint-affected sunlit skin", "pd_glint"),
             ("Pd, shadowed skin", "pd_shadow"), ("Pd, all skin", "pd"),
-            ("Pfa, earthlib test spectra", "pfa"), ("Pfa, scene non-skin pixels", "pfa_scene")]
+            ("Pfa, earthlib test spectra", "pfa"), ("Pfa, scene non-skin pixels", "pfa_scene"),
+            ("decision-region area per configuration, mean ((NDGRI, NDSI) units²)", "area_mean")]
     for label, k in rows:
-        out.append(f"| {label} | {_f(ev['learned'].get(k))} | {_f(ev['static'].get(k))} |")
-    hi = ev.get("sun_zenith_ge_60")
+        out.append(f"| {label} | {_f(mine.get(k))} | {_f(static.get(k))} |")
     if hi:
         out.append(f"| Pd sunlit, sun zenith >= 60 deg, mean over configurations | "
-                   f"{_f(hi['learned'].get('pd_sunlit_mean_over_configs'))} | "
-                   f"{_f(hi['static'].get('pd_sunlit_mean_over_configs'))} |")
-    if ev.get("bins"):
-        out += ["", "Per configuration bin (Pd sunlit skin, learned / static; Pfa earthlib test, learned):", "",
-                "| sun zenith (deg) | camera zenith (deg) | Pd learned | Pd static | Pfa learned | skin pixels |",
+                   f"{_f(hi.get('pd_sunlit_mean_over_configs'))} | {_f(static_hi.get('pd_sunlit_mean_over_configs'))} |")
+    if ev.get("models"):
+        out += ["", "Every model evaluated on the same held-out set (Pd sunlit / glint-affected / shadowed; mean over "
+                "configurations at sun zenith >= 60 deg; Pfa earthlib test / scene non-skin; mean area):", "",
+                "| model | Pd sunlit | Pd glint | Pd shadow | sun >= 60, mean/config | Pfa earthlib | Pfa scene | area |",
+                "|---|---|---|---|---|---|---|---|"]
+        for m in ev["models"]:
+            o, h = m["overall"], m["sun_zenith_ge_60"]
+            out.append(f"| {m['name']} | {_f(o['pd_sunlit'])} | {_f(o.get('pd_glint'))} | {_f(o['pd_shadow'])} | "
+                       f"{_f(h['pd_sunlit_mean_over_configs'])} | {_f(o['pfa'])} | {_f(o['pfa_scene'])} | "
+                       f"{_f(m.get('area', {}).get('mean'))} |")
+    if ev.get("bins") and (not checkpoint or checkpoint == (ev.get("models") or [{}])[0].get("name")):
+        out += ["", "Per configuration bin (Pd sunlit skin, this model / static; Pfa earthlib test, this model):", "",
+                "| sun zenith (deg) | camera zenith (deg) | Pd this model | Pd static | Pfa this model | skin pixels |",
                 "|---|---|---|---|---|---|"]
-        for b in ev["bins"]:
+        for b in ev.get("bins", []):
             out.append(f"| {b['sun_zenith_deg'][0]:g}-{b['sun_zenith_deg'][1]:g} | "
                        f"{b['camera_zenith_deg'][0]:g}-{b['camera_zenith_deg'][1]:g} | {_f(b['learned']['pd_sunlit'])} | "
                        f"{_f(b['static']['pd_sunlit'])} | {_f(b['learned']['pfa'])} | {b['learned']['skin_pixels']} |")
@@ -56,8 +87,33 @@ def _metrics_section(ev: dict) -> list[str]:
     return out
 
 
+_USE = {
+    "boxes": "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with the NDGRI/NDSI "
+             "rules detector of the thesis (eq 2.5.10), the rules box chosen for the frame's sun and camera geometry "
+             "instead of the fixed diffuse-model box, plus a visible/NIR rule NDVN = ((g + r) - (n + s)) / (g + r + "
+             "n + s) >= d1 (box column 5) that keeps litter, bark and dry vegetation out where the box reaches down "
+             "towards them.",
+    "classifier": "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with a "
+                  "configuration-conditioned MLP on the band ratios NDGRI, NDSI and NDVN (`torchskin.classifier`), "
+                  "thresholded at the false-alarm budget.",
+}
+
+
+def _false_alarm_line(train: dict) -> str:
+    if train.get("method") == "classifier":
+        how = (f"the decision threshold was raised to {_f(train.get('threshold'))} (logit) so that at most "
+               f"{_f(train.get('pfa_budget'))} of the earthlib *train* spectra are called skin in any of "
+               f"{train.get('calibration_configs', 'n/a')} configurations")
+    else:
+        how = (f"the boxes were shrunk by {_f(train.get('scale'))} so that at most {_f(train.get('pfa_budget'))} of "
+               f"the earthlib *train* spectra fall inside any box over {train.get('calibration_configs', 'n/a')} "
+               f"configurations (worst case after calibration: {_f(train.get('pfa_train_worst'))})")
+    return (f"- False alarms: {how}. The earthlib *test* partition (SHA-256 of the spectrum name) was never used "
+            "in training.")
+
+
 def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | None = None) -> str:
-    """Markdown card for ``kind`` in ("boundaries", "detector"). ``meta``: the ONNX metadata properties;
+    """Markdown card for ``kind`` in ("boundaries", "baseline_box", "detector"). ``meta``: the ONNX metadata;
     ``train``: the checkpoint's training summary; ``evaluation``: the ``torchskin evaluate`` result."""
     if kind not in _INPUTS:
         raise ValueError(f"kind must be one of {tuple(_INPUTS)}, got {kind!r}")
@@ -67,13 +123,20 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
     inp, outp = _INPUTS[kind]
     opts = train.get("options", {})
     lines = [
-        f"# torchskin {kind}.onnx: configuration-dependent skin-detector boundaries", "",
+        f"# torchskin {kind}.onnx: {_TITLES[kind]}", "",
         f"torchskin {meta.get('torchskin_version', __version__)}, ONNX opset 17. Inputs: {inp}. Outputs: {outp}.", "",
+        *(["## Which model", "", f"Made from `{meta.get('detector_model', '')}`: {meta.get('detector_reason', '')}",
+           ""] if kind == "detector" else []),
         "## Intended use", "",
-        "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with the NDGRI/NDSI rules "
-        "detector of the thesis (eq 2.5.10), with the rules box chosen for the frame's sun and camera geometry "
-        "instead of the fixed diffuse-model box. Run it with `torchskin.onboard` or `torchskin detect` (numpy + "
-        "onnxruntime only). Reflectance must be calibrated (empirical line with reference panels) first.", "",
+        _USE["classifier" if train.get("method") == "classifier" else "boxes"],
+        "Run it with `torchskin.onboard` or `torchskin detect` (numpy + onnxruntime only). Reflectance must be "
+        "calibrated (empirical line with reference panels) first; pixels whose mean reflectance is not above "
+        f"{meta.get('min_reflectance', '0.005')} are not skin (the brightness floor of the evaluation, applied by "
+        "the onboard runtime by default for detector.onnx).", "",
+        f"Skin model of the training renders: eq 3.1.1 with the `{meta.get('skin_surface_model') or 'n/a'}` skin "
+        "surface model (`thesis`: eq 3.1.1's ρ_d is the total diffuse-model reflectance, front surface included, as "
+        "the thesis defines it; `conserving`: its subsurface part only). Detectors learned under one model are not "
+        "valid under the other.", "",
         "Configuration features (order, units, training domain; values outside it are flagged `out_of_domain`):", "",
         "| feature | units | domain |", "|---|---|---|",
     ]
@@ -86,13 +149,9 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               f"reference panels, earthlib confusers, sensor noise, ELM calibration).",
               f"- {train.get('rows', 'n/a')} sunlit skin pixels; method `{train.get('method', 'n/a')}` "
               f"({', '.join(f'{k}={v}' for k, v in sorted(opts.items()))}).",
-              f"- False alarms: the boxes were shrunk by {_f(train.get('scale'))} so that at most "
-              f"{_f(train.get('pfa_budget'))} of the earthlib *train* spectra fall inside any box over "
-              f"{train.get('calibration_configs', 'n/a')} configurations (worst case after calibration: "
-              f"{_f(train.get('pfa_train_worst'))}). The earthlib *test* partition (SHA-256 of the spectrum name) "
-              f"was never used in training.", ""]
+              _false_alarm_line(train), ""]
     if evaluation:
-        lines += _metrics_section(evaluation)
+        lines += _metrics_section(evaluation, meta.get("checkpoint", train.get("checkpoint", "")))
     else:
         lines += ["## Evaluation", "", "No evaluation was attached (`torchskin export --metrics EVAL.json`).", ""]
     lines += ["## Limits", "",
@@ -101,8 +160,11 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               "not represented beyond what the renderer models.",
               "- Confusers are earthlib's Lambertian laboratory spectra; glossy or fluorescent materials, skin-like "
               "fabrics and leather are not in the library.",
-              "- Sunlit skin drove the boxes; shadowed skin is reported but was not optimised for. Glints that push "
-              "NDGRI towards 0 are missed by design (they overlap vegetation and soils).",
+              "- Sunlit skin drove the training; shadowed skin is reported but was not optimised for. Skin seen at "
+              "grazing local incidence or in a glint carries a spectrally flat surface reflection that pulls NDGRI "
+              "and NDSI towards 0; the part of it below the box's NDSI floor is missed (it would meet soils).",
+              "- The visible/NIR rule (NDVN >= d1) was set from the rendered skin population (Fitzpatrick I-VI of the "
+              "calibrated model); skin darker in the visible than that (or heavily made-up) would be rejected.",
               "- The four band centres and widths must match the training sensor (Gaussian bands, see metadata).",
               "- Configurations outside the feature domain above are flagged, never silently extrapolated.",
               "- Reflectance must be finite and non-negative: the onboard runtime refuses NaN always and negative "

@@ -59,8 +59,20 @@ class _Model:
         return c, ood
 
 
+def model_inputs(path) -> list[str]:
+    """The input names of an ONNX model (``cube`` marks a detector, ``config`` alone a boundary model)."""
+    import onnxruntime as ort
+
+    try:
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise ValueError(f"cannot load ONNX model {str(path)!r}: {e}") from None
+    return [i.name for i in sess.get_inputs()]
+
+
 class Boundaries(_Model):
-    """``boundaries.onnx``: configuration (N, k) -> boxes (N, 4) (b1, b2, c1, c2)."""
+    """``boundaries.onnx``: configuration (N, k) -> boxes (N, 5) (b1, b2, c1, c2, d1; see ``box_order`` in the
+    metadata; models exported before the NDVN rule give (N, 4))."""
 
     def __call__(self, config) -> dict:
         c, ood = self._config(config)
@@ -121,6 +133,26 @@ class Detector(_Model):
                 io.bind_cpu_input("cube", buf)
         return low
 
+    def pixels(self, reflectance, config, chunk: int = 65536) -> dict:
+        """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, 4) and
+        ``config`` (n, k) run as a (n, 4, 1, 1) cube in chunks of ``chunk`` pixels (negative values clipped to 0,
+        as ``negative="clip"``; no brightness floor). Returns ``mask`` (n,) bool and ``score`` (n,) float32."""
+        r = np.asarray(reflectance, dtype=np.float32)
+        if r.ndim != 2 or r.shape[1] != 4:
+            raise ValueError(f"reflectance must be (n, 4), got shape {r.shape}")
+        if not np.isfinite(r).all():
+            raise ValueError("reflectance holds NaN or infinite values")
+        c, _ = self._config(config)
+        if c.shape[0] != r.shape[0]:
+            raise ValueError(f"config has {c.shape[0]} rows for {r.shape[0]} pixels")
+        mask, score = np.empty(len(r), dtype=bool), np.empty(len(r), dtype=np.float32)
+        for lo in range(0, len(r), chunk):
+            hi = min(lo + chunk, len(r))
+            cube = np.maximum(r[lo:hi], 0).reshape(hi - lo, 4, 1, 1)
+            m, sc = self.session.run(None, {"cube": cube, "config": c[lo:hi]})
+            mask[lo:hi], score[lo:hi] = m.reshape(-1), sc.reshape(-1)
+        return {"mask": mask, "score": score}
+
     @staticmethod
     def _check_low(low) -> None:
         if np.isnan(low):
@@ -129,15 +161,26 @@ class Detector(_Model):
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
-    def __call__(self, cube, config, out=None, negative: str = "error", min_reflectance: float = 0.0) -> dict:
+    @property
+    def default_min_reflectance(self) -> float:
+        """The brightness floor the model was evaluated with (metadata ``min_reflectance``; 0 when absent)."""
+        try:
+            return float(self.meta.get("min_reflectance", 0.0))
+        except ValueError:
+            return 0.0
+
+    def __call__(self, cube, config, out=None, negative: str = "error", min_reflectance: float | None = None) -> dict:
         """``out``: optional preallocated (mask, score) arrays, (B, H, W) bool and float32, C-contiguous, that
         receive the result (an onboard loop reuses them; their content is undefined if the call raises).
         ``negative``: "error" (default) raises on negative reflectance; "clip" sets it to 0 (the caller's
         cube is not modified) and reports the count per frame as ``clipped_values``. ``min_reflectance`` > 0:
         pixels whose mean reflectance over the bands is not above it are never skin (at the noise floor the
-        indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 (default) keeps the rules alone."""
+        indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 keeps the rules alone; None (default): the
+        floor the model was evaluated with (``default_min_reflectance``, from its metadata)."""
         if negative not in ("error", "clip"):
             raise ValueError(f"negative must be 'error' or 'clip', got {negative!r}")
+        if min_reflectance is None:
+            min_reflectance = self.default_min_reflectance
         if not (0.0 <= float(min_reflectance) < 1.0):
             raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
         x = np.asarray(cube)
@@ -411,9 +454,10 @@ def cli_detect(argv: list[str]) -> int:
     ap.add_argument("--clip-negative", action="store_true",
                     help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
                          "clipped, instead of refusing the cube")
-    ap.add_argument("--min-reflectance", type=float, default=0.0,
+    ap.add_argument("--min-reflectance", type=float, default=None,
                     help="pixels whose mean reflectance over the bands is not above this are never skin (their "
-                         "indices are noise); default 0: the rules alone")
+                         "indices are noise); default: the floor the model was evaluated with (its metadata "
+                         "min_reflectance; 0 for models without it)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     try:

@@ -62,7 +62,12 @@ def schlick(rho0, theta) -> torch.Tensor:
     """Schlick's approximation, eq 2.2.7: ρ0 + (1 - ρ0)(1 - cos θ)^5."""
     theta = as_tensor(theta)
     rho0 = as_tensor(rho0, like=theta)
-    return rho0 + (1 - rho0) * (1 - torch.cos(theta)).pow(5)
+    return schlick_cos(rho0, torch.cos(theta))
+
+
+def schlick_cos(rho0, cos_theta):
+    """Schlick's approximation from a cosine (tensors or floats): ρ0 + (1 - ρ0)(1 - cos θ)^5."""
+    return rho0 + (1 - rho0) * (1 - cos_theta) ** 5
 
 
 def rho0_to_n(rho0, n1: float = 1.0) -> torch.Tensor:
@@ -108,7 +113,7 @@ def microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, *, shadowing: boo
     ct = ((cos_i + cos_r) / (2 * cos_b)).clamp(-1.0, 1.0)  # cos of the facet tilt θ, eq 2.3.6
     ct2 = (ct * ct).clamp_min(_EPS_COS)
     tan2 = (1 - ct2) / ct2
-    fresnel = rho0 + (1 - rho0) * (1 - cos_b).pow(5)  # Schlick at the facet incidence β
+    fresnel = schlick_cos(rho0, cos_b)  # Schlick at the facet incidence β
     f = fresnel * torch.exp(-tan2 / (2 * sigma2)) / (
         8 * math.pi * sigma2 * (ct2 * ct2) * (cos_i * cos_r).clamp_min(_EPS_COS))
     if shadowing:
@@ -169,7 +174,7 @@ def combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, *, shadowing
     """Eq 3.1.1 from cosines (see ``microfacet_brdf_cos``); the renderer's form of ``combined_brdf``."""
     fs = microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, shadowing=shadowing)
     cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
-    fd = (1 - (rho0 + (1 - rho0) * (1 - cos_b).pow(5))) * rho_d / math.pi
+    fd = (1 - schlick_cos(rho0, cos_b)) * rho_d / math.pi
     return fs + torch.where((cos_i > 0) & (cos_r > 0), fd, torch.zeros_like(fd))
 
 
@@ -185,6 +190,72 @@ def combined_brdf(theta_i, theta_r, delta_phi, rho_d, sigma2, rho0, *, shadowing
     cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
     return combined_brdf_cos(ci, cr, cos2b, as_tensor(rho_d, like=ci), as_tensor(sigma2, like=ci),
                              as_tensor(rho0, like=ci), shadowing=shadowing)
+
+
+# ------------------------------------------------------------------------------------ skin surface models
+#: how the front surface enters eq 3.1.1's diffuse term ρ_d (``skin_diffuse``); "thesis" is the default
+SURFACE_MODELS = ("thesis", "conserving")
+DEFAULT_SURFACE = "thesis"
+
+
+def check_surface(surface: str) -> str:
+    """``surface`` if it names a skin surface model (``SURFACE_MODELS``), else ``ValueError``."""
+    if surface not in SURFACE_MODELS:
+        raise ValueError(f"surface must be one of {', '.join(SURFACE_MODELS)} (skin surface model), got {surface!r}")
+    return surface
+
+
+def surface_front(surface: str) -> float:
+    """The weight of the front-surface term R0 in ``skin_diffuse``: 1 for "thesis", 0 for "conserving"."""
+    return 1.0 if check_surface(surface) == "thesis" else 0.0
+
+
+def skin_diffuse(r_sub, r0, front=1.0):
+    """Eq 3.1.1's diffuse reflectance ρ_d(θi) of skin from its subsurface reflectance R_sub (the nine layers
+    and substrate, ``tissue.subsurface_reflectance``) under a front surface of reflectance R0 = Schlick(ρ0, θi):
+
+        ρ_d = front · R0 + (1 - R0)² R_sub / (1 - R0 R_sub)
+
+    ``front = 1`` (``surface="thesis"``, the default): the thesis's ρ_d, the *total* diffuse-model reflectance,
+    front surface included. The thesis says what ρ_d is: the diffuse component is "represented by subsurface
+    reflectance through radiometer measurements" (section 3.1); "the measured spectrum is a sum of surface and
+    subsurface components" and the Kubelka-Munk model is fitted to that combined reflectance (3.2.2); Fig 18
+    varies R0 "from 0.04 to 1" inside the KM stack, whose accumulated reflectance starts from R0 (eq 2.4.12
+    with R_0 as the first layer); and in its Blender simulation "the diffuse reflectance is set to the
+    radiometer measured reflectance value" (4.2.1). This is the model that agrees with the thesis's measured
+    images (Fig 32). It counts the front-surface reflection twice (once in ρ_d, once in the specular lobe),
+    so eq 3.1.1 is not energy-conserving: its directional-hemispherical reflectance exceeds 1 towards grazing
+    incidence (``optics.dhr``; README).
+
+    ``front = 0`` (``surface="conserving"``): the subsurface part only, the light that crosses the surface,
+    scatters inside and leaves again. With the specular lobe carrying the surface reflection this conserves
+    energy (with Smith shadowing the DHR stays <= 1 at every incidence). It lowers the apparent 1580 nm
+    reflectance of skin away from the glint from about 0.085 to 0.045.
+
+    ``front`` may be a tensor (per material) broadcasting with the inputs.
+    """
+    return (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub) + front * r0
+
+
+def skin_brdf_cos(cos_i, cos_r, cos_2beta, r_sub, sigma2, rho0, front=1.0, *, shadowing: bool = False):
+    """The combined skin BRDF of eq 3.1.1 from cosines, with ρ_d from ``skin_diffuse`` at R0 = Schlick(ρ0, θi)
+    (``front``: 1 thesis, 0 conserving). All inputs broadcast, band axis last; sr^-1."""
+    rho_d = skin_diffuse(r_sub, schlick_cos(rho0, cos_i.clamp(0.0, 1.0)), front)
+    return combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, shadowing=shadowing)
+
+
+def skin_brdf(theta_i, theta_r, delta_phi, r_sub, sigma2, rho0, surface: str = DEFAULT_SURFACE, *,
+              shadowing: bool = False) -> torch.Tensor:
+    """The combined skin BRDF of eq 3.1.1 (sr^-1) from the subsurface reflectance ``r_sub``: the specular lobe
+    (eq 2.3.4) plus (1 - ρ_Schlick(β)) ρ_d / π with ρ_d from the skin surface model ``surface`` ("thesis" or
+    "conserving", see ``skin_diffuse``). Angles in radians (Δφ = π forward); inputs broadcast, band axis last."""
+    front = surface_front(surface)
+    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
+                                                          as_tensor(delta_phi))
+    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
+    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    return skin_brdf_cos(ci, cr, cos2b, as_tensor(r_sub, like=ci), as_tensor(sigma2, like=ci),
+                         as_tensor(rho0, like=ci), front, shadowing=shadowing)
 
 
 def observed_reflectance(brdf, theta_r, solid_angle) -> torch.Tensor:

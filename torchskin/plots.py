@@ -242,3 +242,43 @@ def fit_brdf_curves(path, theta_i, theta_r, delta_phi, measured, fitted_fn, band
                 ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def surface_energy(path, skin: str = "I-II", n_quad: int = 128) -> dict:
+    """The energy of the two skin surface models (``optics.skin_diffuse``): the directional-hemispherical
+    reflectance of eq 3.1.1 (``optics.dhr``, quadrature) against incidence for a ``skin`` preset at 633 and
+    1580 nm, each model with and without Smith shadowing; DHR > 1 means more light out than in. Writes a PNG;
+    returns the curves ``{label: {band_nm: [DHR per angle]}}`` and the angles."""
+    from . import tissue
+    from .optics import SURFACE_MODELS, THESIS_SPECULAR, dhr, skin_brdf
+
+    angles = torch.linspace(0.0, 89.5, 60, dtype=torch.float64)
+    wl = torch.tensor([633.0, 1580.0], dtype=torch.float64)
+    r_sub = tissue.subsurface_reflectance(tissue.preset(skin, dtype=torch.float64), wl)[:, None, None, None]
+    sig, rho0 = (x[:, None, None, None] for x in THESIS_SPECULAR.at(wl))
+    curves = {}
+    for surface in SURFACE_MODELS:
+        for shadowing in (False, True):
+            d = dhr(lambda a, b, c, s=surface, g=shadowing: skin_brdf(a, b, c, r_sub, sig, rho0, s, shadowing=g),
+                    angles * (math.pi / 180), n_quad, n_quad)  # (2, angles)
+            label = f"{surface}{', Smith shadowing' if shadowing else ''}"
+            curves[label] = {f"{w:g}": d[k].tolist() for k, w in enumerate(wl.tolist())}
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.9), sharey=True)
+    styles = {"thesis": ("C3", "-"), "thesis, Smith shadowing": ("C3", "--"), "conserving": ("C0", "-"),
+              "conserving, Smith shadowing": ("C0", "--")}
+    for ax, w in zip(axes, ("633", "1580")):
+        for label, c in curves.items():
+            color, ls = styles[label]
+            ax.plot(angles.numpy(), c[w], color=color, ls=ls, lw=1.6, label=label)
+        ax.axhline(1.0, color="k", lw=0.8, ls=":")
+        ax.set_xlabel("incidence angle θi (deg)")
+        ax.set_title(f"{w} nm, skin {skin}")
+        ax.set_ylim(0, 2.0)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("directional-hemispherical reflectance")
+    axes[0].legend(fontsize=8, loc="upper left")
+    fig.suptitle("Energy of eq 3.1.1 under the two skin surface models (DHR > 1: not energy-conserving)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return {"angles_deg": angles.tolist(), "dhr": curves}

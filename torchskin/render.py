@@ -20,7 +20,7 @@ from . import tissue
 from .bands import Band, band_sampling
 from .calibrate import elm_coefficients
 from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
-from .optics import THESIS_SPECULAR, combined_brdf_cos, spectralon_brdf_cos
+from .optics import THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
 from .raycast import GBuffer, Raycaster, rowsum
 from .scene import Scene, TriMesh
 
@@ -157,6 +157,7 @@ class MaterialTables:
     wavelengths: torch.Tensor  # (B,) band centres, nm
     skin_ids: tuple = ()  # host copies of the flags above: which materials need each BRDF (no device sync)
     panel_brdf_ids: tuple = ()
+    skin_front: torch.Tensor | None = None  # (M, 1): weight of R0 in the skin's ρ_d, 1 "thesis", 0 "conserving"
 
 
 _TABLE_CACHE: dict = {}
@@ -190,9 +191,11 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
     skin = torch.zeros(M, dtype=torch.bool)
     pbrdf = torch.zeros(M, dtype=torch.bool)
     dhr = torch.zeros(M, B, dtype=torch.float64)
+    front = torch.zeros(M, 1, dtype=torch.float64)
     for k, name in enumerate(names):
         m = scene.materials[name]
         if m.kind == "skin":
+            front[k] = surface_front(m.surface)
             p = m.skin_params(dtype=torch.float64)
             r_sub_grid = tissue.subsurface_reflectance(p, grid)  # once per material: both quantities derive from it
             rs = r_sub_grid @ wE
@@ -217,7 +220,7 @@ def _material_tables(scene: Scene, names: list[str], dtype, device) -> MaterialT
 
     return MaterialTables(dev(lam), dev(alb), dev(skin), dev(rsub), dev(sig), dev(rho0), dev(e_band), dev(pbrdf),
                           dev(dhr), dev(wl), tuple(skin.nonzero().flatten().tolist()),
-                          tuple(pbrdf.nonzero().flatten().tolist()))
+                          tuple(pbrdf.nonzero().flatten().tolist()), dev(front))
 
 
 def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
@@ -231,11 +234,10 @@ def local_cosines(gb: GBuffer, idx: torch.Tensor, sun_dirs: torch.Tensor):
 
 
 def _skin_brdf(ci, cr, c2b, mat, tables):
-    """Eq 3.1.1 with ρ_d from the exact closed form in R0 = Schlick(ρ0, θi)."""
+    """Eq 3.1.1 with ρ_d from the exact closed form in R0 = Schlick(ρ0, θi), per the material's skin surface
+    model (``optics.skin_brdf_cos``)."""
     r_sub = tables.r_sub.index_select(-2, mat)  # (K, B), or (S, K, B) for per-sun skins
-    r0 = tables.rho0 + (1 - tables.rho0) * (1 - ci).pow(5)
-    rho_d = (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub)
-    return combined_brdf_cos(ci, cr, c2b, rho_d, tables.sigma2, tables.rho0)
+    return skin_brdf_cos(ci, cr, c2b, r_sub, tables.sigma2, tables.rho0, tables.skin_front.index_select(0, mat))
 
 
 def _panel_brdf(ci, cr, c2b, mat, tables):

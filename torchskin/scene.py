@@ -25,6 +25,7 @@ import torch
 from . import tissue
 from .bands import DEFAULT_BANDS, Band, as_bands
 from .io import write_text
+from .optics import check_surface
 
 # ------------------------------------------------------------------------------------------------ materials
 #: Spectralon reference panels, directional-hemispherical reflectance per band (thesis Table 3)
@@ -44,7 +45,10 @@ class Material:
       with incidence, Appendix B);
     - ``kind="skin"``: the combined skin BRDF (eq 3.1.1) with skin parameters ``skin`` (a preset name or a
       dict of ``tissue`` parameters) and the section 3.3.3 microfacet parameters per band (``specular``
-      False gives the diffuse-only model).
+      False gives the diffuse-only model). ``surface`` is the skin surface model of eq 3.1.1's diffuse term
+      (``optics.skin_diffuse``): "thesis" (default; ρ_d is the total diffuse-model reflectance, front surface
+      included, as the thesis defines it and as its measured images support) or "conserving" (the
+      subsurface part only: energy-conserving).
     """
 
     kind: str = "lambertian"
@@ -53,8 +57,10 @@ class Material:
     skin: str | dict | None = None
     specular: bool = True
     brdf: bool = False
+    surface: str = "thesis"
 
     def __post_init__(self):
+        check_surface(self.surface)
         if self.kind not in ("lambertian", "spectralon", "skin"):
             raise ValueError(f"material kind must be 'lambertian', 'spectralon' or 'skin', got {self.kind!r}")
         if self.kind == "lambertian":
@@ -600,11 +606,13 @@ def default_scene(
     panels: str = "lambertian",
     diffuse_only: bool = False,
     ground: bool = True,
+    surface: str = "thesis",
 ) -> Scene:
     """The thesis's layout: a subject at the origin facing +x, reference panels either side of it, a camera
-    in front at 31 ft (9.449 m). ``panels``: see ``panel_materials``."""
+    in front at 31 ft (9.449 m). ``panels``: see ``panel_materials``; ``surface``: the skin surface model
+    (``Material``)."""
     mats = {
-        "skin": Material("skin", skin=skin, specular=not diffuse_only),
+        "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
         "ground": Material("lambertian", reflectance=[0.15, 0.18, 0.30, 0.25]),
     }

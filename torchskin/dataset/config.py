@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .. import tissue
+from ..optics import DEFAULT_SURFACE, SURFACE_MODELS
 
 #: every key with its default and allowed domain: section -> key -> (default, domain or kind)
 SCHEMA: dict[str, dict[str, tuple]] = {
@@ -50,6 +51,12 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "skin": {
         "types": (list(tissue.FITZPATRICK_TYPES), "types"),
         "per_pose": (3, "int>=1"),
+        "surface": (DEFAULT_SURFACE, SURFACE_MODELS),  # skin surface model of eq 3.1.1 (optics.skin_diffuse)
+    },
+    "clothing": {
+        # the subject's clothing: a measured earthlib spectrum of this partition from the families that stand in
+        # for dyed and natural fabrics (confusers.CLOTHING_FAMILIES), or "fixed": the one grey-brown spectrum
+        "partition": ("train", ("train", "test", "fixed")),
     },
     "atmosphere": {
         "transmittance": ([0.85, 1.0], (0.0, 1.0)),
@@ -168,6 +175,8 @@ class PoseGroup:
     sensor: dict = field(default_factory=dict)
     panels: str = "lambertian"
     confusers: list[dict] = field(default_factory=list)  # earthlib spectrum name, ground position, size
+    clothing: str = ""  # earthlib spectrum name of the subject's clothing ("": the fixed clothing spectrum)
+    surface: str = DEFAULT_SURFACE  # skin surface model
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -230,4 +239,11 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
             ang, dist = float(rng.uniform(0, 2 * math.pi)), float(rng.uniform(0.6, 1.2))
             confusers.append({"name": names[int(rng.integers(len(names)))], "x": dist * math.cos(ang),
                               "y": dist * math.sin(ang), "size": 0.5})
-    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor, panels, confusers)
+    clothing = ""
+    if cfg["clothing"]["partition"] != "fixed":
+        from ..confusers import clothing_library
+
+        names = clothing_library(cfg["clothing"]["partition"])
+        clothing = names[int(rng.integers(len(names)))]
+    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor, panels, confusers, clothing,
+                     cfg["skin"]["surface"])

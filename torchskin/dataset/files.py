@@ -24,6 +24,15 @@ def manifest(data_dir) -> dict | None:
     return json.loads(p.read_text()) if p.is_file() else None
 
 
+def dataset_surface(data_dir) -> str:
+    """The skin surface model a dataset was rendered with (its config's ``skin.surface``; datasets written
+    before the option existed used the subsurface-only form, "conserving"). "" without a manifest."""
+    man = manifest(data_dir)
+    if man is None:
+        return ""
+    return man.get("config", {}).get("skin", {}).get("surface", "conserving")
+
+
 def manifest_sha256(data_dir) -> str:
     """SHA-256 of the dataset's manifest ("" without one): names the exact data a model was trained on."""
     p = Path(data_dir) / MANIFEST
@@ -46,4 +55,4 @@ def read_valid(data_dir, columns):
     return t.filter(valid).select(list(columns)), excluded
 
 
-__all__ = ["MANIFEST", "manifest", "manifest_sha256", "read_valid", "sha256_file"]
+__all__ = ["MANIFEST", "dataset_surface", "manifest", "manifest_sha256", "read_valid", "sha256_file"]

@@ -28,10 +28,13 @@ from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
 from .config import PoseGroup, sample_group
 from .files import MANIFEST, sha256_file
 
-SCHEMA_VERSION = 2  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg)
+SCHEMA_VERSION = 3  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
+# clothing and material columns, clothing drawn from earthlib
 BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+#: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
+FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
 
 #: Parquet columns: name -> (pyarrow type name, description, unit)
 COLUMNS: dict[str, tuple[str, str, str]] = {
@@ -65,7 +68,10 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "height": ("float32", "anny phenotype", ""),
     "proportions": ("float32", "anny phenotype", ""),
     "subject": ("string", "subject source (anny or the mesh path)", ""),
+    "surface": ("string", "skin surface model of eq 3.1.1 (thesis or conserving)", ""),
+    "clothing": ("string", "earthlib spectrum name of the subject's clothing (empty: the fixed clothing spectrum)", ""),
     "panels": ("string", "reference panel kind", ""),
+    "material": ("string", "what the pixel shows: skin, clothing, ground or confuser", ""),
     "confuser": ("string", "earthlib confuser spectrum name (empty: none)", ""),
     "theta_i_deg": ("float32", "local incidence angle", "deg"),
     "theta_r_deg": ("float32", "local view angle", "deg"),
@@ -109,7 +115,11 @@ def group_scene(g: PoseGroup) -> Scene:
     cam = Camera(width=g.camera["width"], height=g.camera["height"], zenith_deg=g.camera["zenith_deg"],
                  azimuth_deg=g.camera["azimuth_deg"], range_m=g.camera["range_m"],
                  target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=g.camera["fov_deg"])
-    mats = {"skin": Material("skin", skin="I-II"), "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
+    from ..confusers import spectrum
+
+    clothing = spectrum(g.clothing, BANDS_NM) if g.clothing else FIXED_CLOTHING
+    mats = {"skin": Material("skin", skin="I-II", surface=g.surface),
+            "clothing": Material("lambertian", reflectance=clothing),
             "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(g.panels)}
     if g.subject["kind"] == "anny":
         pose = {"head": [g.subject["head_pitch_deg"], 0.0, g.subject["head_yaw_deg"]]}
@@ -125,8 +135,6 @@ def group_scene(g: PoseGroup) -> Scene:
                        position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
                        tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
-    from ..confusers import spectrum
-
     conf = []
     for k, c in enumerate(g.confusers):  # flat patches on the ground around the subject
         mats[f"confuser{k}"] = Material("lambertian", reflectance=spectrum(c["name"], BANDS_NM))
@@ -184,6 +192,10 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
     for k, c in enumerate(g.confusers):
         conf_names[gb.mesh_names.index(f"confuser{k}") + 1] = c["name"]
     mesh_flat = gb.mesh[0].reshape(-1)
+    # what each pixel shows, indexed by material id + 1: skin, clothing, ground, confuser ("" for no hit)
+    mat_labels = np.array(["", *("confuser" if n.startswith("confuser") else n for n in gb.material_names)],
+                          dtype=object)
+    mat_flat = gb.material[0].reshape(-1)
     is_panel = torch.zeros_like(gb.hit)
     for k in panel_ids:
         is_panel |= gb.mesh == k
@@ -234,10 +246,11 @@ def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list |
                      "head_yaw_deg": g.subject.get("head_yaw_deg", math.nan),
                      "head_pitch_deg": g.subject.get("head_pitch_deg", math.nan),
                      **{k: g.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
-                     "panels": g.panels}
+                     "panels": g.panels, "surface": g.surface, "clothing": g.clothing}
             for k, v in const.items():
                 out[k].append(np.full(n, v, dtype=object if isinstance(v, str) else None))
             out["confuser"].append(conf_names[mesh_flat[idx].numpy() + 1])
+            out["material"].append(mat_labels[mat_flat[idx].numpy() + 1])
             out["label"].append(np.repeat(np.array([True, False]), m))
             out["theta_i_deg"].append(ti.numpy())
             out["theta_r_deg"].append(tr.numpy())

@@ -1,0 +1,84 @@
+"""The configuration-conditioned classifier: scale-invariant inputs, a threshold that holds the false-alarm
+budget on the earthlib train spectra, a checkpoint round trip, and detector.onnx equal to the torch model."""
+
+import numpy as np
+import pytest
+import torch
+
+from torchskin import classifier as Cl
+from torchskin.boundaries import calibration_configs
+
+
+def synthetic(n=3000, seed=0):
+    """Skin-like spectra (a rendered-skin shape at random brightness, plus a flat offset on some) and
+    non-skin rows (earthlib train spectra at random brightness), with random configurations."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.stack([torch.rand(n, generator=g) * 80, torch.rand(n, generator=g) * 70,
+                     torch.rand(n, generator=g) * 180], -1)
+    skin = torch.tensor([0.30, 0.60, 0.53, 0.08]) * (0.9 + 0.2 * torch.rand(n, 4, generator=g))
+    skin = skin * (0.3 + 1.5 * torch.rand(n, 1, generator=g)) + 0.1 * torch.rand(n, 1, generator=g)
+    C = Cl._earthlib_reflectance("train")
+    neg = C[torch.randint(len(C), (n,), generator=g)] * (0.3 + 1.5 * torch.rand(n, 1, generator=g))
+    label = torch.arange(2 * n) < n
+    return torch.cat([X, X]), torch.cat([skin, neg]), label, torch.ones(2 * n, dtype=torch.bool)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    X, R, label, sunlit = synthetic()
+    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, max_calibration_configs=50)
+    return X, R, label, model, info
+
+
+def test_ratio_features_are_scale_invariant_and_safe():
+    R = torch.tensor([[0.3, 0.6, 0.5, 0.1], [0.0, 0.0, 0.5, 0.1], [0.0, 0.0, 0.0, 0.0]])
+    f = Cl.ratio_features(R)
+    torch.testing.assert_close(Cl.ratio_features(R * 3.7), f)
+    torch.testing.assert_close(f[0], torch.tensor([-1 / 3, 2 / 3, 0.3 / 1.5]))
+    assert bool(torch.isfinite(f).all()) and float(f[2].abs().sum()) == 0.0
+
+
+def test_classifier_separates_and_holds_the_budget(trained):
+    X, R, label, model, info = trained
+    keep = model.decide(R, X)
+    assert float(keep[label].float().mean()) > 0.9 and float(keep[~label].float().mean()) < 0.01
+    assert info["train_coverage"] == pytest.approx(float(keep[label].float().mean()))
+    # the calibrated threshold: at most budget x m of the train spectra pass in any calibration configuration
+    C = Cl._earthlib_reflectance("train")
+    cfg = calibration_configs(model, X[:1])[1:][::37]  # a subset of the lattice the threshold was set on
+    m = C.shape[0]
+    hits = model.decide(C.repeat(len(cfg), 1), cfg.repeat_interleave(m, 0)).reshape(len(cfg), m).sum(1)
+    assert int(hits.max()) <= int(np.floor(1e-3 * m)), hits.max()
+    assert float(model.threshold) == info["threshold"] >= 0.0
+    # the same scale-invariant decision at any brightness (the configuration and ratios are all it sees)
+    assert bool((model.decide(R * 2.5, X) == keep).all())
+    assert not bool(model.decide(torch.zeros(2, 4), X[:2]).any())
+
+
+def test_checkpoint_round_trip_and_onnx_detector(trained, tmp_path):
+    from torchskin.export import ClassifierDetector, detector_graph, metadata, write_graphs
+    from torchskin.onboard import Detector
+
+    X, R, _, model, info = trained
+    Cl.save(model, tmp_path / "c.pt", info)
+    again = Cl.load(tmp_path / "c.pt")
+    assert bool((again.decide(R, X) == model.decide(R, X)).all())
+    with pytest.raises(ValueError, match="not a classifier"):
+        from torchskin.boundaries import BoundaryModel, save
+
+        save(BoundaryModel(), tmp_path / "b.pt")
+        Cl.load(tmp_path / "b.pt")
+    paths = write_graphs({"detector": detector_graph(model, metadata(model))}, tmp_path)
+    rng = np.random.default_rng(0)
+    cube = (rng.random((2, 4, 24, 30)) * 0.7).astype(np.float32)
+    cube[:, :, 5:15, 5:15] = np.array([0.3, 0.6, 0.53, 0.08], dtype=np.float32)[:, None, None]
+    cfg = X[:2].numpy()
+    out = Detector(paths["detector"], tile=1024)(cube, cfg, min_reflectance=0.0)
+    with torch.no_grad():
+        mt, st = ClassifierDetector(model)(torch.from_numpy(cube), torch.from_numpy(cfg))
+    assert np.abs(out["score"] - st.numpy()).max() < 1e-4
+    differ = out["mask"] != mt.numpy()
+    assert (np.abs(st.numpy()[differ]) < 1e-4).all() and out["mask"][:, 5:15, 5:15].all()
+    flat = torch.from_numpy(cube).permute(0, 2, 3, 1).reshape(-1, 4)
+    cfgs = torch.from_numpy(cfg).repeat_interleave(24 * 30, 0)
+    assert bool((model.decide(flat, cfgs).reshape(2, 24, 30).numpy() == mt.numpy()).all())

@@ -1,0 +1,209 @@
+"""A configuration-conditioned skin classifier: a small MLP on scale-invariant band ratios of the ELM
+reflectance and the configuration, the comparison the learned boxes must beat (``torchskin evaluate``).
+
+Inputs per pixel: three normalised differences of the four bands (g, r, n, s) = (544, 633, 1080, 1580) nm,
+
+    NDGRI = (g - r) / (g + r),   NDSI = (n - s) / (n + s),   NDVN = ((g + r) - (n + s)) / (g + r + n + s),
+
+which describe the spectrum up to its overall scale (the "indices plus brightness" of the issue, with the
+brightness taken as the visible / NIR ratio rather than an absolute level: ELM reflectance of a surface that
+is not parallel to the panels is its reflectance times a geometric factor of 0 to ~1/cos(sun zenith), so an
+absolute brightness would let a bright confuser look like skin, and earthlib's test spectra could not show
+it). NDVN carries what boxes on (NDGRI, NDSI) cannot see: a glint adds the same reflectance to every band, so
+it drives NDSI towards 0 while the visible/NIR balance of skin stays far from that of soils and vegetation.
+The configuration features (sun zenith, camera zenith, relative azimuth) are standardised and concatenated.
+
+Training (``train_classifier``): weighted logistic loss; positives are the sunlit skin pixels of a
+generated dataset (every configuration weighing the same), negatives the scene's non-skin pixels (clothing,
+ground, confusers of the training partition) and every earthlib *train* spectrum under random configurations
+over the training domain. The decision threshold is then raised until at most ``pfa_budget`` of the earthlib
+train spectra are called skin in any configuration of the calibration set (the boxes' rule).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from .boundaries import FEATURE_DOMAIN, FEATURES, calibration_configs, distinct_configs
+
+BAND_ORDER = ("r544", "r633", "r1080", "r1580")
+
+
+def ratio_features(R: torch.Tensor) -> torch.Tensor:
+    """(NDGRI, NDSI, NDVN) of reflectance (..., 4) in the band order 544, 633, 1080, 1580 nm; pixels whose band
+    sums are not positive get 0 (and are never skin: see ``SkinClassifier.decide``)."""
+    g, r, n, s = R.unbind(-1)
+    vis, nir = g + r, n + s
+    tiny = torch.finfo(R.dtype).tiny
+
+    def nd(a, b, d):
+        return torch.where(d > 0, (a - b) / d.clamp_min(tiny), torch.zeros_like(d))
+
+    return torch.stack([nd(g, r, vis), nd(n, s, nir), nd(vis, nir, vis + nir)], -1)
+
+
+class SkinClassifier(nn.Module):
+    """Configuration features (N, k) and reflectance (N, 4) -> skin logit (N,)."""
+
+    def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None, domain=None):
+        super().__init__()
+        self.features = tuple(features)
+        k = len(self.features)
+        if hidden < 1:
+            raise ValueError(f"hidden must be >= 1, got {hidden}")
+        self.hidden = int(hidden)
+        self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
+        self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
+        self.register_buffer("threshold", torch.zeros(()))  # logit above which a pixel is skin (calibrated)
+        if domain is None:
+            domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
+        self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
+        self.net = nn.Sequential(nn.Linear(3 + k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
+                                 nn.Linear(hidden, 1))
+
+    def forward(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([ratio_features(R) * 2.0, (config - self.mean) / self.std], -1)
+        return self.net(x).squeeze(-1)
+
+    @torch.no_grad()
+    def decide(self, R: torch.Tensor, config: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
+        """Skin mask (N,) of reflectance (N, 4) under configurations (N, k), in chunks (no graph)."""
+        R = torch.as_tensor(R, dtype=torch.float32)
+        config = torch.as_tensor(config, dtype=torch.float32)
+        out = torch.empty(R.shape[0], dtype=torch.bool)
+        for lo in range(0, R.shape[0], chunk):
+            r = R[lo:lo + chunk]
+            ok = (r[:, :2].sum(-1) > 0) & (r[:, 2:].sum(-1) > 0)
+            out[lo:lo + chunk] = ok & (self(r, config[lo:lo + chunk]) > self.threshold)
+        return out
+
+
+def load_rows(data_dir, features=FEATURES):
+    """Training rows of a generated dataset (valid ELM frames): configuration (n, k), reflectance (n, 4),
+    skin label and sunlit flag (numpy)."""
+    from .dataset.files import read_valid
+
+    t, _ = read_valid(data_dir, list(features) + list(BAND_ORDER) + ["label", "shadow"])
+    col = {c: np.asarray(t.column(c).to_numpy(zero_copy_only=False)) for c in t.column_names}
+    X = np.stack([col[f] for f in features], -1).astype(np.float32)
+    R = np.stack([col[b] for b in BAND_ORDER], -1).astype(np.float32)
+    ok = np.isfinite(X).all(1) & np.isfinite(R).all(1)
+    return X[ok], R[ok], col["label"][ok].astype(bool), ~col["shadow"][ok].astype(bool)
+
+
+def _earthlib_reflectance(part: str) -> torch.Tensor:
+    from .confusers import band_reflectance
+
+    _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
+    return R.float()
+
+
+def train_classifier(X, R, label, sunlit, features=FEATURES, hidden: int = 32, steps: int = 1500,
+                     lr: float = 3e-3, batch: int = 16384, seed: int = 0, domain=None, pfa_budget: float = 1e-3,
+                     confuser_weight: float = 4.0, max_calibration_configs: int = 2000) -> tuple[SkinClassifier, dict]:
+    """Fit a ``SkinClassifier`` (see the module docstring) and calibrate its threshold to ``pfa_budget`` on the
+    earthlib train partition. ``X`` (n, k), ``R`` (n, 4), ``label`` and ``sunlit`` (n,) from ``load_rows``.
+    Deterministic in ``seed``. Returns the model and a summary."""
+    X, R = torch.as_tensor(X), torch.as_tensor(R)
+    label, sunlit = torch.as_tensor(label), torch.as_tensor(sunlit)
+    pos = label & sunlit
+    neg = ~label
+    if int(pos.sum()) < 10 or int(neg.sum()) < 10:
+        raise ValueError(f"need at least 10 sunlit skin and 10 non-skin pixels, got {int(pos.sum())} and "
+                         f"{int(neg.sum())}")
+    if not (0.0 <= pfa_budget < 1.0):
+        raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    Xp, Rp = X[pos], R[pos]
+    Xn, Rn = X[neg], R[neg]
+    if domain is None:
+        domain = torch.stack([X.min(0).values, X.max(0).values], -1)
+    domain = torch.as_tensor(domain, dtype=torch.float32)
+    model = SkinClassifier(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
+    _, inv = distinct_configs(Xp)  # every configuration weighs the same among the positives
+    cnt = torch.bincount(inv).float()
+    wp = (1.0 / cnt[inv])
+    wp = wp / wp.sum()
+    C = _earthlib_reflectance("train")
+    lo, hi = domain[:, 0], domain[:, 1]
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=lr * 0.01)
+    bce = nn.functional.binary_cross_entropy_with_logits
+    loss = torch.tensor(0.0)
+    for _ in range(steps):
+        ip = torch.multinomial(wp, batch, replacement=True, generator=g)
+        i_n = torch.randint(len(Xn), (batch,), generator=g)
+        ic = torch.randint(len(C), (batch,), generator=g)
+        cfg_c = lo + (hi - lo) * torch.rand(batch, len(lo), generator=g)
+        opt.zero_grad()
+        lp = model(Rp[ip], Xp[ip])
+        ln = model(Rn[i_n], Xn[i_n])
+        lc = model(C[ic], cfg_c)
+        loss = (bce(lp, torch.ones_like(lp)) + bce(ln, torch.zeros_like(ln))
+                + confuser_weight * bce(lc, torch.zeros_like(lc)))
+        loss.backward()
+        opt.step()
+        sched.step()
+    model.eval()
+    cal = calibration_configs(model, Xp)
+    if cal.shape[0] > max_calibration_configs:  # the lattice (last) and a fixed subset of training configurations
+        lattice = calibration_configs(model, Xp[:1])[1:]
+        pick = torch.randperm(cal.shape[0] - lattice.shape[0], generator=g)[:max_calibration_configs]
+        cal = torch.cat([cal[pick], lattice])
+    threshold = calibrate_threshold(model, cal, C, pfa_budget)
+    with torch.no_grad():
+        keep = model.decide(Rp, Xp)
+        coverage = float(keep.float().mean())
+        scene = float(model.decide(Rn, Xn).float().mean())
+    return model, {"method": "classifier", "rows": int(pos.sum()), "loss": float(loss.detach()),
+                   "threshold": threshold, "pfa_budget": pfa_budget, "train_coverage": coverage,
+                   "pfa_scene_train": scene, "calibration_configs": int(cal.shape[0]),
+                   "options": {"hidden": hidden, "steps": steps, "lr": lr, "seed": seed,
+                               "confuser_weight": confuser_weight}}
+
+
+@torch.no_grad()
+def calibrate_threshold(model: SkinClassifier, configs: torch.Tensor, spectra: torch.Tensor,
+                        budget: float = 1e-3) -> float:
+    """The smallest logit threshold (>= 0) at which at most ``budget`` of ``spectra`` (m, 4) are called skin in
+    every configuration of ``configs``. Sets and returns ``model.threshold``."""
+    m = spectra.shape[0]
+    k = int(math.floor(budget * m))  # spectra allowed per configuration
+    worst = torch.full((), -math.inf)
+    per = max(1, (1 << 20) // m)
+    for lo in range(0, configs.shape[0], per):
+        c = configs[lo:lo + per]
+        logit = model(spectra.repeat(c.shape[0], 1), c.repeat_interleave(m, 0)).reshape(c.shape[0], m)
+        kth = logit.sort(dim=1, descending=True).values[:, k]  # the (k+1)-th highest logit: must not pass
+        worst = torch.maximum(worst, kth.max())
+    thr = max(0.0, float(worst))
+    model.threshold.fill_(thr)
+    return thr
+
+
+def save(model: SkinClassifier, path, meta: dict | None = None) -> None:
+    """A torch checkpoint (kind "classifier"), written atomically; the same model gives the same bytes."""
+    from .io import save_torch
+
+    save_torch(path, {"kind": "classifier", "state_dict": model.state_dict(), "features": list(model.features),
+                      "hidden": model.hidden, "meta": meta or {}})
+
+
+def load(path) -> SkinClassifier:
+    ck = torch.load(path, map_location="cpu", weights_only=True)
+    if ck.get("kind") != "classifier":
+        raise ValueError(f"{str(path)!r} is not a classifier checkpoint")
+    m = SkinClassifier(ck["features"], ck["hidden"])
+    m.load_state_dict(ck["state_dict"])
+    return m.eval()
+
+
+__all__ = ["SkinClassifier", "calibrate_threshold", "load", "load_rows", "ratio_features", "save",
+           "train_classifier"]
