@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from .boundaries import FEATURES, confuser_indices, false_alarm_rate, inside_box, ratio_indices
-from .dataset.files import read_valid
+from .dataset.files import open_dataset, read_valid
 from .detect import DEFAULT_BOX
 
 SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
@@ -101,7 +101,8 @@ def _load_checkpoint(path) -> dict:
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for junk files
-        raise ValueError(f"cannot read model checkpoint {str(path)!r}: {e}") from None
+        raise ValueError(f"cannot read model checkpoint {str(path)!r}: not a torch checkpoint, or truncated "
+                         f"({type(e).__name__})") from None
     if not isinstance(ck, dict) or "state_dict" not in ck:
         raise ValueError(f"{str(path)!r} is not a torchskin model checkpoint")
     return ck
@@ -170,12 +171,7 @@ class _Rows:
         cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri",
                                    "ndsi", "group", "sun", "skin", *BAND_COLUMNS, "theta_i_deg", "theta_r_deg",
                                    "delta_phi_deg"]))
-        import pyarrow.dataset as ds
-
-        names = set(ds.dataset(str(data_dir), format="parquet").schema.names)
-        missing = [c for c in cols if c not in names]
-        if missing:
-            raise ValueError(f"dataset {str(data_dir)!r} lacks column(s) {missing}: not a torchskin dataset?")
+        names = set(open_dataset(data_dir, cols).schema.names)  # validates the folder and the columns
         extra = [c for c in ("material", "confuser", "clothing") if c in names]
         t, self.excluded = read_valid(data_dir, cols + extra)
         if len(t) == 0:

@@ -39,14 +39,34 @@ def manifest_sha256(data_dir) -> str:
     return sha256_file(p) if p.is_file() else ""
 
 
+def open_dataset(data_dir, columns=()):
+    """The pyarrow dataset of the Parquet shards in ``data_dir``, checked to hold ``columns``; one-line
+    ``ValueError`` for a missing folder, a folder without shards or a foreign schema."""
+    import pyarrow.dataset as ds
+
+    folder = Path(data_dir)
+    if not folder.is_dir():
+        raise ValueError(f"dataset folder {str(folder)!r} does not exist (torchskin generate writes one)")
+    if not any(folder.glob("*.parquet")):
+        raise ValueError(f"{str(folder)!r} holds no Parquet shards: not a torchskin dataset (torchskin generate)")
+    try:
+        d = ds.dataset(str(folder), format="parquet", exclude_invalid_files=True)
+    except Exception as e:  # pyarrow raises its own types
+        raise ValueError(f"cannot read the dataset in {str(folder)!r}: {str(e).splitlines()[0]}") from None
+    missing = [c for c in columns if c not in d.schema.names]
+    if missing:
+        raise ValueError(f"dataset {str(folder)!r} lacks column(s) {missing}: not a torchskin dataset, or an older "
+                         "schema (regenerate it)")
+    return d
+
+
 def read_valid(data_dir, columns):
     """A pyarrow table of ``columns`` from the Parquet shards in ``data_dir``, keeping only frames whose
     reference panels were sunlit (``elm_valid``; datasets without the column keep every row), and the number
     of rows left out."""
     import numpy as np
-    import pyarrow.dataset as ds
 
-    d = ds.dataset(str(data_dir), format="parquet")
+    d = open_dataset(data_dir, columns)
     if "elm_valid" not in d.schema.names:
         return d.to_table(columns=list(columns)), 0
     t = d.to_table(columns=list(dict.fromkeys([*columns, "elm_valid"])))
@@ -55,4 +75,4 @@ def read_valid(data_dir, columns):
     return t.filter(valid).select(list(columns)), excluded
 
 
-__all__ = ["MANIFEST", "dataset_surface", "manifest", "manifest_sha256", "read_valid", "sha256_file"]
+__all__ = ["MANIFEST", "dataset_surface", "manifest", "open_dataset", "manifest_sha256", "read_valid", "sha256_file"]
