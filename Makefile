@@ -14,9 +14,14 @@ setup: $(STAMP)
 
 $(STAMP): pyproject.toml Makefile
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
-		echo "installing libusb-1.0-0 (needed by open3d)"; \
-		(apt-get install -y libusb-1.0-0 >/dev/null 2>&1 || (apt-get update >/dev/null && apt-get install -y libusb-1.0-0 >/dev/null)) \
-		|| echo "warning: could not install libusb-1.0-0; open3d will not import"; \
+		SUDO=""; if [ "$$(id -u)" != 0 ]; then if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO=sudo; else SUDO=none; fi; fi; \
+		if [ "$$SUDO" = none ]; then \
+			echo "warning: open3d needs the system library libusb-1.0-0; install it with: sudo apt-get install -y libusb-1.0-0"; \
+		else \
+			echo "installing libusb-1.0-0 (needed by open3d)"; \
+			($$SUDO apt-get install -y libusb-1.0-0 >/dev/null 2>&1 || ($$SUDO apt-get update >/dev/null && $$SUDO apt-get install -y libusb-1.0-0 >/dev/null)) \
+			|| echo "warning: could not install libusb-1.0-0; open3d will not import (sudo apt-get install -y libusb-1.0-0)"; \
+		fi; \
 	fi
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip

@@ -143,8 +143,12 @@ def test_full_disk_stops_with_a_clear_error_and_no_partial_shard(tmp_path, subje
     out = tmp_path / "full"
     with pytest.raises(ValueError, match="shard-00000.parquet .* failed: No space left on device"):
         generate(small_cfg(subject_obj), 6, 0, out, quiet=True)
-    assert sorted(p.name for p in out.iterdir()) == [MANIFEST]  # no shard, no temporary left behind
-    assert not verify(out)["ok"]
+    assert not out.exists()  # no shard finished: the folder is left as it was found (it did not exist)
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    with pytest.raises(ValueError, match="No space left"):
+        generate(small_cfg(subject_obj), 6, 0, out, quiet=True, overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]  # no manifest, shard or temporary left
 
 
 def test_ray_backend_with_two_workers_matches_local(tmp_path, subject_obj):

@@ -23,19 +23,27 @@ def as_tensor(x, like: torch.Tensor | None = None, dtype=None, device=None) -> t
     return t
 
 
-def check_range(name: str, x: torch.Tensor, lo: float, hi: float, unit: str = "") -> None:
-    """Raise ``ValueError`` if any element of ``x`` is NaN or outside ``[lo, hi]``.
+def check_range(name: str, x, lo: float, hi: float, unit: str = "", *, lo_open: bool = False,
+                hi_open: bool = False) -> None:
+    """Raise ``ValueError`` if any element of ``x`` (a tensor or a Python number) is NaN or outside the
+    interval from ``lo`` to ``hi`` (closed by default; ``lo_open``/``hi_open`` exclude an end, so
+    ``hi=math.inf, hi_open=True`` also refuses infinities).
 
     One fused reduction; it synchronises with the device once (validation is not on a hot path).
     """
+    if not isinstance(x, torch.Tensor):
+        x = torch.as_tensor(x, dtype=torch.float64)
     if x.numel() == 0:
         return
-    bad = torch.isnan(x) | (x < lo) | (x > hi)
+    if not x.is_floating_point():
+        x = x.to(torch.float64)
+    bad = torch.isnan(x) | ((x <= lo) if lo_open else (x < lo)) | ((x >= hi) if hi_open else (x > hi))
     if bool(bad.any()):
         vals = x.detach()[bad]
         u = f" {unit}" if unit else ""
+        iv = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
         raise ValueError(
-            f"{name} must lie in [{lo:g}, {hi:g}]{u}; got {vals.min().item():g}..{vals.max().item():g}{u}"
+            f"{name} must lie in {iv}{u}; got {vals.min().item():g}..{vals.max().item():g}{u}"
             f" ({int(bad.sum())} of {x.numel()} values out of range or NaN)"
         )
 

@@ -16,6 +16,16 @@ from ._checks import as_tensor
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 SUPPORT_FWHM = 1.5  # a band's response is truncated at centre +- 1.5 FWHM (+- 3.5 sigma)
+#: most wavelengths a sampling grid (``band_sampling``, ``tissue.wavelength_grid``) may have: refused before
+#: anything is allocated (1e6 points is about 1 pm steps over the model's 400-1700 nm); ``band_sampling``'s
+#: weight matrix (grid x bands) may hold at most 16 times as many entries
+MAX_GRID_POINTS = 1_000_000
+
+
+def _model_range() -> tuple[float, float]:
+    from .tissue import MODEL_RANGE_NM  # lazy: tissue imports this module (through optics)
+
+    return MODEL_RANGE_NM
 
 
 @dataclass(frozen=True)
@@ -49,17 +59,39 @@ def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tupl
     for b in bands:
         if isinstance(b, Band):
             out.append(b)
-        elif isinstance(b, (tuple, list)):
-            out.append(Band(float(b[0]), float(b[1])))
-        else:
-            out.append(Band(float(b)))
+            continue
+        try:
+            if isinstance(b, (tuple, list)):
+                if len(b) not in (1, 2):
+                    raise ValueError
+                out.append(Band(*(float(x) for x in b)))
+            else:
+                out.append(Band(float(b)))
+        except (TypeError, ValueError) as e:
+            msg = f": {e}" if str(e) else ""
+            raise ValueError(f"band {b!r} must be a centre or (centre, fwhm) in nm{msg}") from None
     if not out:
         raise ValueError("bands must name at least one band")
     return tuple(out)
 
 
-def parse_bands(text: str) -> tuple[Band, ...]:
-    """Parse ``"544,633,1080/20,1580/40"`` (centre[/fwhm] in nm, comma separated)."""
+def check_band_within(band: Band, lo: float, hi: float) -> None:
+    """``ValueError`` unless the band's response (centre +- ``SUPPORT_FWHM`` FWHM) lies within ``lo..hi`` nm."""
+    s_lo, s_hi = band.support
+    if s_lo >= lo - 1e-9 and s_hi <= hi + 1e-9:
+        return
+    c, f = band.center_nm, band.fwhm_nm
+    if not (lo <= c <= hi):
+        raise ValueError(f"band {c:g}/{f:g} nm: the centre lies outside the model's {lo:g}-{hi:g} nm")
+    fmax = min(c - lo, hi - c) / SUPPORT_FWHM
+    raise ValueError(f"band {c:g}/{f:g} nm: its response (centre +- {SUPPORT_FWHM:g} FWHM) spans {s_lo:g}..{s_hi:g}"
+                     f" nm, outside the model's {lo:g}-{hi:g} nm; the FWHM may be at most {fmax:.4g} nm at this centre")
+
+
+def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:
+    """Parse ``"544,633,1080/20,1580/40"`` (centre[/fwhm] in nm, comma separated). Every band's response must
+    lie ``within`` (lo, hi) nm, by default the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``)."""
+    lo, hi = _model_range() if within is None else within
     out = []
     for item in text.split(","):
         item = item.strip()
@@ -67,9 +99,11 @@ def parse_bands(text: str) -> tuple[Band, ...]:
             continue
         c, _, f = item.partition("/")
         try:
-            out.append(Band(float(c), float(f) if f else 0.0))
+            band = Band(float(c), float(f) if f else 0.0)
+            check_band_within(band, lo, hi)
         except ValueError as e:
             raise ValueError(f"bad band {item!r} in --bands (use centre[/fwhm] in nm): {e}") from None
+        out.append(band)
     return as_bands(out)
 
 
@@ -126,21 +160,38 @@ def band_integrate(values: torch.Tensor, grid: torch.Tensor, bands: Sequence[Ban
     return values @ response_matrix(grid, bands)
 
 
-def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype=None, device=None):
+def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype=None, device=None,
+                  within: tuple[float, float] | None = None):
     """A wavelength grid that samples every band and the matrix that averages it back to bands.
 
     Returns ``(grid, W)``; evaluate a model on ``grid`` and multiply by ``W`` to get band values.
-    Monochromatic bands contribute their centre only.
+    Monochromatic bands contribute their centre only. Every band's response must lie ``within`` (lo, hi) nm,
+    by default the skin model's 400-1700 nm, and the grid may hold at most ``MAX_GRID_POINTS`` wavelengths:
+    both are checked before anything is allocated.
     """
     bands = as_bands(bands)
-    pts: list[float] = []
+    if isinstance(step_nm, bool) or not isinstance(step_nm, (int, float)) or not (
+            math.isfinite(step_nm) and step_nm > 0):
+        raise ValueError(f"step_nm must be a positive finite number of nm, got {step_nm!r}")
+    lo, hi = _model_range() if within is None else within
+    counts = []
     for b in bands:
+        check_band_within(b, lo, hi)
+        span = (b.support[1] - b.support[0]) / step_nm
+        counts.append(1 if b.fwhm_nm == 0 else (max(math.ceil(span), 8) + 1 if span <= MAX_GRID_POINTS else span))
+    if sum(counts) > MAX_GRID_POINTS:
+        raise ValueError(f"band sampling at {step_nm:g} nm steps would need {sum(counts):.3g} wavelengths; at most "
+                         f"{MAX_GRID_POINTS} (use fewer or narrower bands, or a larger step)")
+    if sum(counts) * len(bands) > 16 * MAX_GRID_POINTS:
+        raise ValueError(f"band sampling of {len(bands)} bands would need a {sum(counts):.3g} x {len(bands)} weight "
+                         f"matrix; at most {16 * MAX_GRID_POINTS} entries (use fewer or narrower bands)")
+    pts: list[float] = []
+    for b, n in zip(bands, counts):
         if b.fwhm_nm == 0:
             pts.append(b.center_nm)
         else:
             s_lo, s_hi = b.support
-            n = max(int(math.ceil((s_hi - s_lo) / step_nm)), 8) + 1
-            pts.extend(torch.linspace(s_lo, s_hi, n, dtype=torch.float64).tolist())
+            pts.extend(torch.linspace(s_lo, s_hi, int(n), dtype=torch.float64).tolist())
     uniq = sorted(set(round(p, 9) for p in pts))
     grid = torch.tensor(uniq, dtype=dtype or torch.get_default_dtype(), device=device)
     cols = []

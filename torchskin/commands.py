@@ -12,6 +12,7 @@ import torch
 from . import __version__, tissue
 from .bands import DEFAULT_BANDS, band_sampling, parse_bands
 from .detect import DEFAULT_BOX, indices, rules_detector
+from .errors import Parser, check_input_file, check_output_file, check_output_folder
 from .optics import DEFAULT_SURFACE, SURFACE_MODELS
 
 SURFACE_HELP = ("skin surface model of eq 3.1.1's diffuse term: thesis (default; rho_d includes the front surface, "
@@ -77,8 +78,10 @@ def _skins(args) -> tuple[tissue.SkinParams, list[str]]:
 
 
 def cmd_spectra(args) -> int:
-    if args.sample is not None and args.sample < 1:
-        raise ValueError(f"--sample must be >= 1, got {args.sample}")
+    if args.plot:
+        check_output_file(args.plot, "--plot", (".png",))
+    if args.sample is not None and not (1 <= args.sample <= MAX_SAMPLE):
+        raise ValueError(f"--sample must lie in [1, {MAX_SAMPLE}], got {args.sample}")
     if not (0.0 <= args.incidence_deg < 90.0):
         raise ValueError(f"--incidence-deg must lie in [0, 90), got {args.incidence_deg}")
     skins, labels = _skins(args)
@@ -106,12 +109,17 @@ def cmd_spectra(args) -> int:
         ], "incidence_deg": args.incidence_deg, "box": DEFAULT_BOX.as_dict()}
         print(json.dumps(out))
     else:
+        # the table shows the requested bands (--bands), else the four index bands; NDGRI and NDSI always come
+        # from 544, 633, 1080 and 1580 nm
+        cols, vals = (wl_out.tolist(), R) if args.bands else ([b.center_nm for b in DEFAULT_BANDS], Rb)
+        if len(cols) > 12:
+            cols, vals = [b.center_nm for b in DEFAULT_BANDS], Rb  # a long grid: see --json or --plot
         head = f"{'skin':<14}{'mel':>6}{'blood':>6}{'oxy':>6}  " + "".join(
-            f"{b.center_nm:>7g}" for b in DEFAULT_BANDS) + f"{'NDGRI':>9}{'NDSI':>8}  box"
+            f"{c:>7g}" for c in cols) + f"{'NDGRI':>9}{'NDSI':>8}  box"
         print(head)
         for k in range(min(len(labels), 50)):
             print(f"{labels[k]:<14}{pdict['melanosome'][k]:>6.3f}{pdict['blood'][k]:>6.2f}"
-                  f"{pdict['oxygenation'][k]:>6.2f}  " + "".join(f"{x:>7.3f}" for x in Rb[k].tolist())
+                  f"{pdict['oxygenation'][k]:>6.2f}  " + "".join(f"{x:>7.3f}" for x in vals[k].tolist())
                   + f"{float(g[k]):>9.3f}{float(s[k]):>8.3f}  {'in' if inside[k] else 'OUT'}")
         if len(labels) > 50:
             print(f"... {len(labels) - 50} more (use --json)")
@@ -152,24 +160,76 @@ def _scene_from_args(args):
 
 
 def _check_angle(name, v, lo, hi):
-    if not (lo <= v <= hi):
+    if not (lo <= v <= hi):  # NaN fails too
         raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}] degrees, got {v:g}")
 
 
+def _check_number(name, v, lo=-math.inf, hi=math.inf, what="a number"):
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ValueError(f"{name} must be {what} in [{lo:g}, {hi:g}], got {v:g}")
+
+
+#: the largest frame `render` and `experiment` make unless --max-megapixels raises it, and the largest --sample
+MAX_MEGAPIXELS = 16.0
+MAX_SAMPLE = 10_000_000
+
+
+def _check_frame(args, bands: int, suns: int = 1) -> None:
+    """Resolution within the cap and an estimate of the memory the frame needs within what the machine has."""
+    import os
+
+    _check_number("--max-megapixels", args.max_megapixels, 1e-6, 1e6, "a positive number")
+    for name, v in (("--width", args.width), ("--height", args.height)):
+        if v < 16:
+            raise ValueError(f"{name} must be at least 16 pixels (camera resolution), got {v}")
+    mp = args.width * args.height / 1e6
+    if mp > args.max_megapixels:
+        raise ValueError(f"--width x --height is {mp:.1f} megapixels, above the cap of {args.max_megapixels:g} "
+                         "(--max-megapixels raises it)")
+    need = args.width * args.height * (400 + 64 * bands * suns)  # G-buffer, shading, sensor and ELM temporaries
+    try:
+        have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return
+    if need > 0.8 * have:
+        raise ValueError(f"a {args.width} x {args.height} frame needs about {need / 2**30:.1f} GiB, more than this "
+                         f"machine's {have / 2**30:.1f} GiB allows")
+
+
 def cmd_render(args) -> int:
+    from .devices import check_device
     from .render import Sensor, render, write_outputs
 
+    check_output_folder(args.out, "--out")
     _check_angle("--source-zenith", args.source_zenith, 0, 90)
     _check_angle("--camera-zenith", args.camera_zenith, 0, 180)
+    _check_number("--source-azimuth", args.source_azimuth, -360, 360)
+    _check_number("--camera-azimuth", args.camera_azimuth, -360, 360)
+    _check_number("--sky", args.sky, 0, 1)
+    _check_number("--range", args.range, 0.1, 1e5, "a distance in m")
+    _check_number("--fov", args.fov, 0.01, 179, "an angle in degrees")
+    if args.mesh:
+        check_input_file(args.mesh, "--mesh", (".obj", ".ply"))
+    _check_frame(args, len(parse_bands(args.bands)) if args.bands else len(DEFAULT_BANDS))
+    device = check_device(args.device)
     sc = _scene_from_args(args)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed)
-    res = render(sc, device=args.device, sensor=sensor, elm=args.elm)
+    res = render(sc, device=device, sensor=sensor, elm=args.elm)
     info = write_outputs(res, sc, args.out)
+    if not info["elm_valid"]:
+        print(f"torchskin render: warning: the reference panels are not sunlit (sunlit share of their interiors "
+              f"{', '.join(f'{v:.2f}' for v in info['panel_sunlit_fraction'])}; the sun is behind or below them, or "
+              "the subject shadows them): the empirical line is set by sky light and the reflectance is not "
+              "physical (elm_valid false)", file=sys.stderr)
     if args.json:
         print(json.dumps({"timing_s": res.timing, "skin_pixels": info["skin_pixels"],
                           "detected_fraction": info["detected_fraction"], "panels": res.panels,
                           "sunlit_skin_pixels": info["sunlit_skin_pixels"],
-                          "detected_fraction_sunlit": info["detected_fraction_sunlit"]}))
+                          "detected_fraction_sunlit": info["detected_fraction_sunlit"],
+                          "elm_valid": info["elm_valid"], "panel_sunlit_fraction": info["panel_sunlit_fraction"]}))
+    elif not info["rules_detector"]:
+        print(f"skin pixels {info['skin_pixels']} (sunlit {info['sunlit_skin_pixels']}); no rules detector (the "
+              f"bands lack 544, 633, 1080 or 1580 nm); {res.timing['total_s']:.2f} s; wrote {args.out}")
     else:
         print(f"skin pixels {info['skin_pixels']} (sunlit {info['sunlit_skin_pixels']}), inside the rules box "
               f"{info['detected_fraction']:.3f} (sunlit {info['detected_fraction_sunlit']:.3f}); "
@@ -179,12 +239,14 @@ def cmd_render(args) -> int:
 
 def cmd_experiment(args) -> int:
     from . import experiment
+    from .devices import check_device
     from .render import Sensor
 
-    if args.width < 16 or args.height < 16:
-        raise ValueError("--width and --height must be at least 16 pixels")
+    check_output_folder(args.out, "--out")
+    _check_frame(args, 4, len(experiment.ANGLES_DEG) * len(experiment.MODELS))
+    device = check_device(args.device)
     res = experiment.run(args.out, width=args.width, height=args.height, sensor=Sensor(noise=not args.no_noise),
-                         device=args.device, panels=args.panels, surface=args.surface)
+                         device=device, panels=args.panels, surface=args.surface)
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "surface_energy"}))
     else:
@@ -207,7 +269,13 @@ def cmd_experiment(args) -> int:
 def cmd_fit_skin(args) -> int:
     from . import fit
 
-    names, R, wl = fit.read_spectra_csv(args.spectra)
+    check_output_file(args.out, "--out", (".csv",))
+    if args.plot:
+        check_output_folder(args.plot, "--plot")
+    _check_number("--r0", args.r0, 0, 0.5, "a front-surface reflectance")
+    if args.noise is not None:
+        _check_number("--noise", args.noise, 1e-9, 1, "a reflectance standard deviation")
+    names, R, wl = fit.read_spectra_csv(check_input_file(args.spectra, "SPECTRA", (".csv",)))
     res = fit.fit_skin(R, wl, r0=args.r0, noise=args.noise)
     fit.write_params_csv(args.out, names, res)
     if args.plot:
@@ -235,7 +303,10 @@ def cmd_fit_brdf(args) -> int:
     from .io import write_text
     from .optics import rho0_to_n
 
-    (ti, tr, dp), f, bands = fit.read_brdf_csv(args.data)
+    check_output_file(args.out, "--out", (".json",))
+    if args.plot:
+        check_output_file(args.plot, "--plot", (".png",))
+    (ti, tr, dp), f, bands = fit.read_brdf_csv(check_input_file(args.data, "DATA", (".csv",)))
     res = fit.fit_brdf(ti, tr, dp, f, diffuse=not args.no_diffuse)
     doc = {"bands_nm": bands, "sigma2": res.sigma2.tolist(), "rho0": res.rho0.tolist(),
            "n": rho0_to_n(res.rho0).tolist(), "rho_d": res.rho_d.tolist(), "rmse": res.rmse.tolist(),
@@ -263,12 +334,24 @@ def cmd_fit_brdf(args) -> int:
 def cmd_generate(args) -> int:
     from .dataset.config import load_config
     from .dataset.generate import generate
+    from .devices import check_device
 
     if args.resume and args.overwrite:
         raise ValueError("--resume and --overwrite exclude each other")
+    check_output_folder(args.out, "--out")
+    if args.config:
+        check_input_file(args.config, "--config", (".toml",))
     cfg = load_config(args.config)
     if args.surface:
         cfg["skin"]["surface"] = args.surface  # one of SURFACE_MODELS (argparse choices)
+    for p in cfg["subject"]["meshes"]:
+        check_input_file(p, "subject.meshes", (".obj", ".ply"))
+    if args.backend == "local":
+        check_device(args.device)
+    if args.seed < 0:
+        raise ValueError(f"--seed must be a non-negative integer, got {args.seed}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
     man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
                    quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
                    workers=args.workers, images=args.images)
@@ -276,7 +359,7 @@ def cmd_generate(args) -> int:
     if args.json:
         print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
                           "shards": len(man["shards"]), "rows": rows}))
-    elif not args.quiet:
+    else:  # --quiet hides the progress bar, not the result
         print(f"wrote {len(man['shards'])} shards, {rows} rows ({man['groups']} pose groups) to {args.out}")
     return 0
 
@@ -297,6 +380,10 @@ def cmd_dataset_verify(args) -> int:
 def cmd_train(args) -> int:
     from . import boundaries as Bd
 
+    check_output_file(args.out, "--out", (".pt",))
+    if args.steps < 1:
+        raise ValueError(f"--steps must be >= 1 (0 would write an untrained model), got {args.steps}")
+    _check_number("--pfa-budget", args.pfa_budget, 0, 0.999, "a false-alarm probability")
     if args.method == "classifier":
         return _train_classifier(args)
     X, Y = Bd.load_skin_rows(args.data)
@@ -363,6 +450,9 @@ def cmd_export(args) -> int:
     from .classifier import SkinClassifier
     from .export import export, write_model_cards
 
+    check_output_folder(args.out, "--out")
+    if args.metrics:
+        check_input_file(args.metrics, "--metrics", (".json",))
     model, train = _checkpoint(args.model, "--model")
     if isinstance(model, SkinClassifier):
         raise ValueError(f"--model {args.model!r} is a classifier; boundaries.onnx needs a box model (pass the "
@@ -404,6 +494,10 @@ def cmd_evaluate(args) -> int:
     from .evaluate import boxes_plot, compare_plot, evaluate, plots, table
     from .io import write_text
 
+    if args.plots:
+        check_output_folder(args.plots, "--plots")
+    if args.save:
+        check_output_file(args.save, "--save", (".json",))
     res = evaluate(args.data, args.model)
     res["data"] = str(args.data)
     res["data_manifest_sha256"] = manifest_sha256(args.data)
@@ -440,9 +534,11 @@ def cmd_bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="torchskin", description="Physics-based multispectral skin toolkit")
+    ap = Parser(prog="torchskin", description="Physics-based multispectral skin toolkit. Errors "
+                                 "print one line (status 2: bad input; 1: a failure); --debug (anywhere on the "
+                                 "command line) shows the traceback instead.")
     ap.add_argument("--version", action="version", version=f"torchskin {__version__}")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
 
     sp = sub.add_parser("spectra", help="diffuse skin reflectance spectra, indices and the rules box",
                         description="Diffuse-model skin reflectance (9-layer Kubelka-Munk + front surface).")
@@ -479,10 +575,13 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
     rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")
     rp.add_argument("--fov", type=float, default=14.0, help="horizontal field of view, degrees (default 14)")
-    rp.add_argument("--width", type=int, default=512)
-    rp.add_argument("--height", type=int, default=512)
+    rp.add_argument("--width", type=int, default=512, help="frame width in pixels (default 512)")
+    rp.add_argument("--height", type=int, default=512, help="frame height in pixels (default 512)")
+    rp.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
+                    help=f"refuse frames larger than this (default {MAX_MEGAPIXELS:g}; memory is checked too)")
     rp.add_argument("--bands", metavar="C[/FWHM],...", help="bands in nm (default 544,633,1080,1580)")
-    rp.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian")
+    rp.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian",
+                    help="reference panels: Lambertian 0.97/0.03 (default), Spectralon Table 3 DHR, or with its BRDF")
     rp.add_argument("--elm", choices=["dhr", "brdf"], default="dhr",
                     help="calibrate with the panels' DHR (ELM) or their BRDF at the geometry (BRDF-ELM)")
     rp.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
@@ -491,7 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--no-ground", action="store_true", help="no ground plane")
     rp.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, mps)")
     rp.add_argument("--seed", type=int, default=0, help="noise seed")
-    rp.add_argument("--json", action="store_true")
+    rp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     rp.set_defaults(func=cmd_render)
 
     ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, every skin model",
@@ -503,6 +602,8 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--out", required=True, help="output folder for figures and experiment.json")
     ep.add_argument("--width", type=int, default=512, help="image width in pixels (default 512)")
     ep.add_argument("--height", type=int, default=512, help="image height in pixels (default 512)")
+    ep.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
+                    help=f"refuse frames larger than this (default {MAX_MEGAPIXELS:g}; memory is checked too)")
     ep.add_argument("--surface", choices=SURFACE_MODELS, default=DEFAULT_SURFACE,
                     help="the combined model reported as detected_fraction_combined (both are always rendered); "
                          + SURFACE_HELP)
@@ -510,28 +611,35 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--panels", choices=["lambertian", "spectralon", "spectralon-brdf"], default="lambertian",
                     help="reference panels; spectralon-brdf calibrates with BRDF-ELM and reports the error of "
                          "assuming Lambertian panels")
-    ep.add_argument("--device", default="cpu")
-    ep.add_argument("--json", action="store_true")
+    ep.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, cuda:N, mps; default cpu)")
+    ep.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     ep.set_defaults(func=cmd_experiment)
 
-    fp = sub.add_parser("fit-skin", help="fit the skin parameters to measured reflectance spectra")
+    fp = sub.add_parser("fit-skin", help="fit the skin parameters to measured reflectance spectra",
+                        description="Fit the six skin parameters to reflectance spectra (CSV) by minimising the RMSE of "
+                                    "eq 2.4.14; parameters the data cannot determine are left empty.")
     fp.add_argument("spectra", help="CSV: header row of wavelengths (nm), one spectrum per row")
     fp.add_argument("--out", required=True, help="output CSV of fitted parameters")
     fp.add_argument("--r0", type=float, default=0.04, help="front-surface reflectance of the measurement")
     fp.add_argument("--noise", type=float, default=None, help="measurement noise for the uncertainties")
     fp.add_argument("--plot", metavar="DIR", help="write measured vs fitted spectra (fits.png) here")
-    fp.add_argument("--json", action="store_true")
+    fp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     fp.set_defaults(func=cmd_fit_skin)
 
-    bf = sub.add_parser("fit-brdf", help="fit microfacet sigma2 and rho0 per band to goniometric data")
+    bf = sub.add_parser("fit-brdf", help="fit microfacet sigma2 and rho0 per band to goniometric data",
+                        description="Fit the Gaussian microfacet lobe (sigma2, rho0) and a diffuse reflectance per band "
+                                    "to goniometric BRDF samples (CSV).")
     bf.add_argument("data", help="CSV: theta_i_deg,theta_r_deg,delta_phi_deg,<band nm>,... (BRDF in 1/sr)")
     bf.add_argument("--out", required=True, help="output JSON of fitted parameters")
     bf.add_argument("--no-diffuse", action="store_true", help="fit the lobe alone (no diffuse term)")
     bf.add_argument("--plot", metavar="PNG", help="measured and fitted in-plane curves (Fig 21 style)")
-    bf.add_argument("--json", action="store_true")
+    bf.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     bf.set_defaults(func=cmd_fit_brdf)
 
-    gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)")
+    gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)",
+                        description="Draw random sun/camera/subject/skin configurations (TOML config, see "
+                                    "torchskin/dataset/config.py), render them and write balanced labelled skin / "
+                                    "non-skin pixels as Parquet shards with a checksummed manifest.")
     gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
     gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
     gp.add_argument("--surface", choices=SURFACE_MODELS,
@@ -541,23 +649,25 @@ def build_parser() -> argparse.ArgumentParser:
     gp.add_argument("--out", required=True, help="output folder")
     gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
     gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
-    gp.add_argument("--quiet", action="store_true", help="no progress bar")
-    gp.add_argument("--device", default="cpu")
+    gp.add_argument("--quiet", action="store_true", help="no progress bar (the one-line summary is still printed)")
+    gp.add_argument("--device", default="cpu", help="torch device for shading (cpu, cuda, cuda:N, mps; default cpu)")
     gp.add_argument("--images", action="store_true", help="also store full reflectance cubes (images-*.npy)")
     gp.add_argument("--backend", choices=["local", "ray"], default="local", help="run shards here or on Ray")
     gp.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
     gp.add_argument("--workers", type=int, help="CPUs of the local Ray cluster (default: all)")
-    gp.add_argument("--json", action="store_true")
+    gp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     gp.set_defaults(func=cmd_generate)
 
-    dp = sub.add_parser("dataset", help="dataset utilities")
+    dp = sub.add_parser("dataset", help="dataset utilities", description="Dataset utilities: verify.")
     dsub = dp.add_subparsers(dest="dataset_command", required=True)
     vp = dsub.add_parser("verify", help="check shards against the manifest (non-zero exit on problems)")
     vp.add_argument("dir")
-    vp.add_argument("--json", action="store_true")
+    vp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     vp.set_defaults(func=cmd_dataset_verify)
 
-    tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset")
+    tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset",
+                        description="Learn configuration-dependent rules boxes (or a classifier) from a generated "
+                                    "dataset, calibrated to a false-alarm budget on the earthlib train spectra.")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     tp.add_argument("--out", required=True, help="checkpoint (.pt)")
     tp.add_argument("--method", choices=("boxes", "quantiles", "classifier"), default="boxes",
@@ -576,15 +686,17 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--no-ndvn-rule", action="store_true",
                     help="boxes and quantiles: no visible/NIR rule (NDVN >= d1, d1 just below the training skin's "
                          "NDVN): the thesis's two indices alone")
-    tp.add_argument("--steps", type=int, default=1500)
+    tp.add_argument("--steps", type=int, default=1500, help="optimisation steps (default 1500)")
     tp.add_argument("--hidden", type=int, default=32, help="MLP width (0: one constant box; default 32)")
-    tp.add_argument("--seed", type=int, default=0)
+    tp.add_argument("--seed", type=int, default=0, help="seed of the initial weights and batches (default 0)")
     tp.add_argument("--pfa-budget", type=float, default=1e-3,
                     help="false-alarm budget on the earthlib train partition (default 1e-3)")
-    tp.add_argument("--json", action="store_true")
+    tp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     tp.set_defaults(func=cmd_train)
 
-    xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx")
+    xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx",
+                        description="Export checkpoints to ONNX (boundaries.onnx, baseline_box.onnx, detector.onnx) with "
+                                    "metadata and model cards.")
     xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train")
     xp.add_argument("--out", required=True, help="output folder (e.g. exports/)")
     xp.add_argument("--baseline", metavar="PT", help="a single-box checkpoint (train --hidden 0) exported as "
@@ -594,10 +706,12 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--detector-reason", metavar="TEXT", help="why that model: recorded in detector.onnx's "
                                                               "metadata and model card")
     xp.add_argument("--metrics", metavar="EVAL.json", help="torchskin evaluate --save output for the model cards")
-    xp.add_argument("--json", action="store_true")
+    xp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     xp.set_defaults(func=cmd_export)
 
-    ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data")
+    ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data",
+                        description="Compare models (checkpoints or ONNX exports) with the static thesis box on a "
+                                    "held-out dataset: Pd by skin category, Pfa, decision-region areas; one table.")
     ev.add_argument("--data", required=True, help="held-out dataset folder")
     ev.add_argument("--model", required=True, action="append",
                     help="a model to evaluate (repeatable; one table row each, the static thesis box always last): "
@@ -605,16 +719,19 @@ def build_parser() -> argparse.ArgumentParser:
                          "detector.onnx")
     ev.add_argument("--plots", metavar="DIR", help="write roc.png, pd_heatmap.png and boxes.png here")
     ev.add_argument("--save", metavar="FILE", help="write the full result (JSON, with ROC points) here")
-    ev.add_argument("--json", action="store_true")
+    ev.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     ev.set_defaults(func=cmd_evaluate)
 
     sub.add_parser("detect", help="skin mask of a cube with detector.onnx (numpy + onnxruntime only; "
-                                  "see torchskin detect --help)")
+                                  "see torchskin detect --help)",
+                   description="Run by the torch-free onboard runtime: torchskin detect --help.")
     sub.add_parser("calibrate", help="signals to reflectance with ELM through panel regions (numpy only; "
-                                     "see torchskin calibrate --help)")
+                                     "see torchskin calibrate --help)",
+                   description="Run by the torch-free onboard runtime: torchskin calibrate --help.")
 
-    bp = sub.add_parser("bench", help="benchmarks (JSON with --json)")
-    bp.add_argument("--json", action="store_true")
+    bp = sub.add_parser("bench", help="benchmarks (JSON with --json)",
+                        description="Throughput benchmarks: km, render, fit, dataset, detector_onnx.")
+    bp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     bp.add_argument("--only", metavar="NAMES", help="comma-separated benchmark names (default: all)")
     bp.add_argument("--compile", action="store_true", help="also measure the torch.compile path (slow start)")
     bp.set_defaults(func=cmd_bench)
@@ -622,13 +739,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Parse and run one command; errors propagate to ``torchskin.cli.main`` (``errors.run_command``)."""
     ap = build_parser()
     args = ap.parse_args(argv)
-    try:
-        return args.func(args)
-    except ValueError as e:
-        print(f"torchskin {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    return args.func(args)
 
 
 if __name__ == "__main__":

@@ -43,6 +43,16 @@ def _band_index(bands: Sequence[Band], center: float, tol: float = 30.0) -> int:
     return i
 
 
+def has_index_bands(bands: Sequence[Band]) -> bool:
+    """Whether ``bands`` hold one band within 30 nm of each of 544, 633, 1080 and 1580 nm (the indices' bands)."""
+    try:
+        for c in (544.0, 633.0, 1080.0, 1580.0):
+            _band_index(bands, c)
+    except ValueError:
+        return False
+    return True
+
+
 def indices(reflectance: torch.Tensor, bands: Sequence[Band] | None = None, band_dim: int = -1):
     """``(ndgri, ndsi)`` of a reflectance tensor whose ``band_dim`` axis holds ``bands`` (default: the four
     thesis bands in order 544, 633, 1080, 1580 nm)."""

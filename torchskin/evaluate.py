@@ -436,7 +436,7 @@ def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 
         g, s, sz = g[pick], s[pick], sz[pick]
     conf = confuser_indices("test").numpy()
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.0, 5.2))
+    fig, ax = plt.subplots(figsize=(7.4, 5.2), layout="constrained")
     sc = ax.scatter(g, s, c=sz, s=2, alpha=0.35, cmap="viridis", vmin=0, vmax=90, rasterized=True)
     ax.scatter(conf[:, 0], conf[:, 1], s=5, c="k", marker="x", lw=0.6, label="earthlib test spectra")
     b = DEFAULT_BOX
@@ -452,9 +452,9 @@ def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 
     ax.set_xlabel("NDGRI (544, 633 nm)")
     ax.set_ylabel("NDSI (1080, 1580 nm)")
     ax.set_title("held-out sunlit skin (colour: sun zenith, deg) and confusers")
-    fig.colorbar(sc, ax=ax, fraction=0.04)
+    cb = fig.colorbar(sc, ax=ax, fraction=0.04, label="sun zenith (deg)")
+    cb.solids.set_alpha(1.0)  # the key at full colour, not at the points' transparency
     ax.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
     save_figure(fig, path)
 
 
@@ -476,12 +476,13 @@ def plots(result: dict, out_dir) -> None:
     ax.set_xlabel("false-alarm probability (0 drawn at 1e-5)")
     ax.set_ylabel("Pd, sunlit skin")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7)
+    if "roc" in result:
+        ax.legend(fontsize=7)
     ax.set_title(f"ROC: boxes scaled about their centres\n(learned: {first})" if "roc" in result
                  else "ROC: the first model has no boxes to scale", fontsize=9)
     fig.tight_layout()
     save_figure(fig, out / "roc.png")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(10.5, 4.4), layout="constrained")
     for ax, name in zip(axes, ("learned", "static")):
         grid = np.full((len(SUN_BINS) - 1, len(CAMERA_BINS) - 1), np.nan)
         for b in result["bins"]:
@@ -493,11 +494,12 @@ def plots(result: dict, out_dir) -> None:
         ax.set_yticks(range(len(SUN_BINS) - 1), [f"{a:g}-{b:g}" for a, b in zip(SUN_BINS, SUN_BINS[1:])])
         ax.set_xlabel("camera zenith (deg)")
         ax.set_ylabel("sun zenith (deg)")
-        ax.set_title(f"Pd sunlit skin, {name}")
+        ax.set_title(f"Pd sunlit skin, {name}" + (f" ({first})" if name == "learned" else " box (thesis)"),
+                     fontsize=10)
         for (i, j), v in np.ndenumerate(grid):
             if np.isfinite(v):
                 ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="k" if v > 0.6 else "w", fontsize=7)
-    fig.colorbar(im, ax=axes, fraction=0.03)
+    fig.colorbar(im, ax=axes, fraction=0.03, label="Pd, sunlit skin (fraction detected)")
     save_figure(fig, out / "pd_heatmap.png")
 
 

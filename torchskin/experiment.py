@@ -175,14 +175,19 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
     # reflectance images of the chosen combined model: rows = angles, columns = bands, like Figs 29/35
     r = res[surface]
     B = r.reflectance.shape[-1]
-    fig, axes = plt.subplots(len(angles), B, figsize=(3.0 * B, 3.0 * len(angles)), squeeze=False)
+    fig, axes = plt.subplots(len(angles), B, figsize=(3.0 * B + 1.0, 3.0 * len(angles)), squeeze=False,
+                             layout="constrained")
+    lo, hi = float(r.reflectance[:, 0].min()), float(r.reflectance[:, 0].max())
     for si, a in enumerate(angles):
         for k in range(B):
             ax = axes[si, k]
             im = ax.imshow(r.reflectance[si, 0, :, :, k].cpu().float().numpy(), cmap="jet", vmin=0, vmax=1)
             ax.set_title(f"{r.bands[k].center_nm:g} nm, source {a:g}°", fontsize=9)
             ax.axis("off")
-    fig.colorbar(im, ax=axes, fraction=0.02, label=f"reflectance (ELM; {_LABELS[surface]}; clipped to [0, 1])")
+    fig.colorbar(im, ax=axes, fraction=0.02, extend={(False, False): "neither", (True, False): "min",
+                                                     (False, True): "max", (True, True): "both"}[(lo < 0, hi > 1)],
+                 label=f"reflectance (ELM; {_LABELS[surface]}); colour clipped to [0, 1];\n"
+                       f"images min {lo:.3g}, max {hi:.3g}")
     plots.save_figure(fig, out / "reflectance_combined.png")
     # rules scatter, Fig 32/37 style: one row per model
     fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles), 3.4 * len(MODELS)),
@@ -194,11 +199,13 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
             plots.rules_scatter(axes[mi, si], rr.ndgri[si, 0][lit], rr.ndsi[si, 0][lit], DEFAULT_BOX, color=_COLORS[m])
             axes[mi, si].set_title(f"{_LABELS[m]}, {a:g}°: {summary[f'detected_fraction_{m}'][si]:.2f} in box",
                                    fontsize=9)
+            axes[mi, si].label_outer()
+    fig.suptitle("Sunlit skin pixels in the rules-detector plane (black: rules box, eq 2.5.10)", fontsize=10)
     fig.tight_layout()
     plots.save_figure(fig, out / "rules_scatter.png")
     # 2-D histograms, Fig 33/38 style: counts per bin (log colour scale), the box drawn
     fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles) + 1.0, 3.2 * len(MODELS)),
-                             sharex=True, sharey=True, squeeze=False)
+                             sharex=True, sharey=True, squeeze=False, layout="constrained")
     ext = [*HIST_RANGE_NDGRI, *HIST_RANGE_NDSI]
     vmax = max(float(h.max()) for h in hists.values()) or 1.0
     b = DEFAULT_BOX
@@ -208,13 +215,17 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
             ax = axes[mi, si]
             im = ax.imshow(np.ma.masked_equal(h, 0), origin="lower", extent=ext, aspect="auto", cmap="viridis",
                            norm=LogNorm(vmin=1, vmax=vmax))
-            ax.add_patch(Rectangle((b.b1, b.c1), b.b2 - b.b1, b.c2 - b.c1, fill=False, ec="r", lw=1.2))
+            ax.add_patch(Rectangle((b.b1, b.c1), b.b2 - b.b1, b.c2 - b.c1, fill=False, ec="r", lw=1.2,
+                                   label="rules box (eq 2.5.10)"))
+            ax.grid(alpha=0.25)
             ax.set_title(f"{_LABELS[m]}, {a:g}°", fontsize=9)
             if mi == len(MODELS) - 1:
                 ax.set_xlabel("NDGRI")
             if si == 0:
                 ax.set_ylabel("NDSI")
-    fig.colorbar(im, ax=axes, fraction=0.02, label="sunlit skin pixels per bin")
+    axes[0, 0].legend(fontsize=7, loc="lower left")
+    fig.colorbar(im, ax=axes, fraction=0.02, label="sunlit skin pixels per bin (count, log scale; empty bins white)")
+    fig.suptitle(f"NDSI x NDGRI histograms of sunlit skin ({h.shape[1]} x {h.shape[0]} bins)", fontsize=10)
     plots.save_figure(fig, out / "histograms.png")
     # detected fraction and Bhattacharyya coefficient vs angle, Fig 39 style
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 3.9))

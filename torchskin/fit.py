@@ -3,9 +3,11 @@ to goniometric BRDF data (section 3.3.3). Batched over spectra / bands, with aut
 
 Skin fits: every free parameter is bounded through a sigmoid; starts come from a look-up table of model
 spectra across the Fitzpatrick ranges (a multi-start: the best few per spectrum), then Adam on all starts,
-then L-BFGS on the best start of each spectrum. Parameters the data cannot determine (the Fisher
-information at the solution gives them a large uncertainty, e.g. the NIR-only parameters of a visible-only
-spectrum) are flagged rather than reported as if measured.
+then L-BFGS on the best start of each spectrum. Parameters the data cannot determine are flagged rather than
+reported as if measured: those the Fisher information at the solution gives a large uncertainty (e.g. the
+NIR-only parameters of a visible-only spectrum) and those in the null space of the Jacobian (a design with
+fewer wavelengths than parameters, or parameters whose effects the wavelengths cannot tell apart), whose
+uncertainty is infinite.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from . import tissue
-from ._checks import as_tensor
+from ._checks import as_tensor, check_range
 from .optics import microfacet_brdf_cos
 
 #: search range of each skin parameter (inside tissue.PARAM_BOUNDS)
@@ -82,6 +84,12 @@ def check_spectra(reflectance, wavelengths) -> tuple[torch.Tensor, torch.Tensor]
         i, j = (int(x) for x in bad.nonzero()[0])
         raise ValueError(f"row {i}, column {j} ({float(wl[j]):g} nm): reflectance {float(R[i, j]):g} is NaN or "
                          "outside [0, 1]")
+    if R.numel() == 0:
+        raise ValueError("no spectra to fit: need at least one spectrum at one wavelength")
+    dead = ((R == 0) | (R == 1)).all(1)  # dark or saturated readings: no skin reflects 0 or 100 % everywhere
+    if bool(dead.any()):
+        i = int(dead.nonzero()[0])
+        raise ValueError(f"row {i}: every reflectance is 0 or 1 (a dark or saturated measurement); nothing to fit")
     return R, wl
 
 
@@ -94,7 +102,8 @@ class SkinFit:
     fitted: torch.Tensor  # (n, W) model spectra
     converged: torch.Tensor  # (n,) bool
     identifiable: torch.Tensor  # (n, 6) bool, parameter order tissue.PARAM_NAMES
-    std: torch.Tensor  # (n, 6) 1-sigma uncertainty from the Fisher information
+    std: torch.Tensor  # (n, 6) 1-sigma uncertainty from the Fisher information (inf: in the Jacobian's null
+    #                    space, NaN: the Jacobian is not finite)
     seconds: float
 
     def reported(self) -> list[dict]:
@@ -130,6 +139,40 @@ def _jacobian(p: torch.Tensor, wl, r0) -> torch.Tensor:
     return torch.stack(cols, -1)
 
 
+#: singular values of the range-scaled Jacobian below this fraction of the largest count as zero (the
+#: central-difference Jacobian is accurate to ~1e-9 relative; the smallest genuine ratio seen, a visible-only
+#: spectrum's, is ~3e-4)
+RANK_RTOL = 1e-6
+#: a parameter whose unit vector has more than this squared share in the null space is undetermined
+NULL_SHARE = 1e-6
+
+
+def fisher_std(J: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """1-sigma uncertainties ``(n, k)`` of least-squares parameters from the Jacobian ``J`` ``(n, W, k)`` of
+    the model and the measurement noise ``sigma`` ``(n,)``; ``scale`` ``(k,)`` are the parameters' natural
+    ranges (the rank test works on the Jacobian in those units).
+
+    The Fisher information J^T J / σ² is not inverted blindly: from the SVD of the scaled Jacobian, singular
+    values below ``RANK_RTOL`` of the largest are zero, and a parameter with a share above ``NULL_SHARE`` in
+    that null space (which W < k wavelengths always leave) gets an infinite uncertainty; the others get the
+    pseudo-inverse's. Spectra whose Jacobian is not finite get NaN.
+    """
+    n, W, k = J.shape
+    Js = J.double() * scale.double() / sigma.double()[:, None, None]
+    finite = torch.isfinite(Js).all(-1).all(-1)
+    Js = torch.where(finite[:, None, None], Js, torch.zeros_like(Js))
+    _, S, Vh = torch.linalg.svd(Js, full_matrices=True)  # S (n, min(W, k)), Vh (n, k, k)
+    S = torch.cat([S, S.new_zeros(n, k - S.shape[1])], 1)
+    live = S > RANK_RTOL * S[:, :1]
+    inv_s2 = torch.where(live, 1.0 / torch.where(live, S, torch.ones_like(S)) ** 2, torch.zeros_like(S))
+    V2 = Vh.transpose(1, 2) ** 2  # (n, k params, k directions)
+    var = (V2 * inv_s2[:, None, :]).sum(-1)
+    null = (V2 * (~live)[:, None, :].to(V2.dtype)).sum(-1)
+    std = torch.sqrt(var) * scale.double()
+    std = torch.where(null > NULL_SHARE, torch.full_like(std, math.inf), std)
+    return torch.where(finite[:, None], std, torch.full_like(std, math.nan))
+
+
 def fit_skin(
     reflectance,
     wavelengths,
@@ -151,12 +194,17 @@ def fit_skin(
     ``reflectance`` (n, W) in [0, 1] at ``wavelengths`` (W,) nm anywhere in 400-1700 nm. ``noise`` is the
     measurement noise (reflectance units) for the uncertainty estimate; default: the fit's own RMSE (at
     least 0.002). A parameter is *identifiable* when its 3-sigma uncertainty is within ``rel_tol`` of its
-    value. Stages: look-up-table multi-start, Adam on all starts, L-BFGS on the best start of every spectrum
-    (one joint problem), then per-spectrum Levenberg-Marquardt; a spectrum has *converged* when the
+    value; parameters in the null space of the Jacobian (always some of them with fewer wavelengths than
+    the six parameters) have an infinite uncertainty (``fisher_std``). Stages: look-up-table multi-start,
+    Adam on all starts, L-BFGS on the best start of every spectrum (one joint problem), then per-spectrum
+    Levenberg-Marquardt; a spectrum has *converged* when the
     Gauss-Newton decrement left (the loss a further Newton step would still remove) is below 1e-3 of its
-    loss.
+    loss; degenerate spectra (a singular Gauss-Newton system) are reported as not converged.
     """
     t0 = time.perf_counter()
+    check_range("r0 (front-surface reflectance)", r0, 0.0, 1.0, hi_open=True)
+    if noise is not None:
+        check_range("noise", noise, 0.0, math.inf, lo_open=True, hi_open=True)
     R, wl = check_spectra(reflectance, wavelengths)
     device = device or R.device
     R = R.to(device=device, dtype=dtype)
@@ -187,10 +235,8 @@ def fit_skin(
         e = rmse(fitted, R)
         J = _jacobian(p, wl, r0)  # (n, W, 6)
         sigma = torch.full_like(e, noise) if noise is not None else e.clamp_min(0.002)
-        F = J.transpose(1, 2) @ J / (sigma.double() ** 2)[:, None, None]
-        cov = torch.linalg.pinv(F, hermitian=True)
-        std = torch.sqrt(torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0)).to(dtype)
-        identifiable = 3 * std <= rel_tol * p.abs()
+        std = fisher_std(J, sigma, hi - lo).to(dtype)
+        identifiable = torch.isfinite(std) & (3 * std <= rel_tol * p.abs())
     return SkinFit(_skins(p.detach()), e, fitted, converged, identifiable, std, time.perf_counter() - t0)
 
 
@@ -237,13 +283,17 @@ def _gauss_newton(z, R, wl, r0, lo, hi, steps):
             g = (J.transpose(1, 2) @ r[..., None])  # (n, 6, 1)
             H = J.transpose(1, 2) @ J
             damp = torch.diagonal(H, dim1=1, dim2=2).mean(-1)[:, None, None] * 1e-6 * eye  # flat directions
-            decrement = (g.transpose(1, 2) @ torch.linalg.solve(H + damp, g)).reshape(-1) / (2 * W)
-            converged = torch.isfinite(loss) & (decrement <= 1e-3 * loss + 1e-14)
+            # solve_ex: a degenerate spectrum (a singular or non-finite system) must not stop the others
+            sol, info = torch.linalg.solve_ex(H + damp, g)
+            decrement = (g.transpose(1, 2) @ sol).reshape(-1) / (2 * W)
+            converged = torch.isfinite(loss) & (info == 0) & (decrement <= 1e-3 * loss + 1e-14)
             if bool(converged.all()) or _ == steps:
                 break
             diag = torch.diagonal(H, dim1=1, dim2=2)
             A = H + lam[:, None, None] * torch.diag_embed(diag + 1e-12)
-            step = -torch.linalg.solve(A, g).squeeze(-1)
+            sol, info = torch.linalg.solve_ex(A, g)
+            ok = (info == 0) & torch.isfinite(sol).all(1).squeeze(-1)
+            step = torch.where(ok[:, None], -sol.squeeze(-1), torch.zeros_like(z))
             z_try = z + step
             r_try = _model(_to_params(z_try, lo, hi), wl, r0) - R
             better = torch.isfinite(r_try).all(-1) & ((r_try * r_try).mean(-1) < loss)
@@ -375,8 +425,11 @@ def _csv_rows(path, what: str) -> tuple[str, list[list[str]]]:
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{what} file {str(p)!r} does not exist")
-    with open(p, newline="", encoding="utf-8") as fh:
-        return p.name, [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    try:
+        with open(p, newline="", encoding="utf-8") as fh:
+            return p.name, [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise ValueError(f"{p.name}: not a readable CSV text file ({e})") from None
 
 
 def _numbers(fname: str, i: int, cells: list[str], n: int) -> list[float]:
@@ -392,9 +445,12 @@ def _numbers(fname: str, i: int, cells: list[str], n: int) -> list[float]:
     return out
 
 
-def read_spectra_csv(path) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+def read_spectra_csv(path, min_wavelengths: int = 1) -> tuple[list[str], torch.Tensor, torch.Tensor]:
     """Spectra CSV: header row = wavelengths in nm (optionally a first non-numeric column of names), one
-    spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)); errors name row and column."""
+    spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)), validated as ``check_spectra``
+    does; errors name the file, row and column. At least ``min_wavelengths`` wavelengths (default 1: with fewer
+    wavelengths than skin parameters some can never be determined, and ``fit_skin`` reports them undetermined,
+    e.g. a 4-band camera's 544, 633, 1080 and 1580 nm)."""
     fname, rows = _csv_rows(path, "spectra")
     if len(rows) < 2:
         raise ValueError(f"{fname}: needs a header row of wavelengths and at least one spectrum")
@@ -402,12 +458,23 @@ def read_spectra_csv(path) -> tuple[list[str], torch.Tensor, torch.Tensor]:
     named = not _is_float(head[0])
     if named:
         head = head[1:]
-    if not all(_is_float(c) for c in head):
-        raise ValueError(f"{fname}: the header must hold wavelengths in nm, got {head}")
+    if not head:
+        raise ValueError(f"{fname}: the header holds no wavelength columns (wavelengths in nm expected)")
+    bad = [j for j, c in enumerate(head) if not _is_float(c)]
+    if bad:
+        raise ValueError(f"{fname}: the header must hold wavelengths in nm; column {bad[0]} is "
+                         f"{head[bad[0]][:40]!r} ({len(bad)} of {len(head)} columns not numbers)")
     wl = [float(c) for c in head]
     names = [r[0].strip() if named else str(i) for i, r in enumerate(rows[1:])]
     vals = [_numbers(fname, i, r[1:] if named else r, len(wl)) for i, r in enumerate(rows[1:])]
-    return names, torch.tensor(vals, dtype=torch.float64), torch.tensor(wl, dtype=torch.float64)
+    try:
+        R, w = check_spectra(torch.tensor(vals, dtype=torch.float64), torch.tensor(wl, dtype=torch.float64))
+    except ValueError as e:
+        raise ValueError(f"{fname}: {e}") from None
+    if len(wl) < min_wavelengths:
+        raise ValueError(f"{fname}: {len(wl)} wavelength(s) cannot determine the {len(NAMES)} skin parameters; "
+                         f"need at least {min_wavelengths} wavelengths in 400-1700 nm")
+    return names, R, w
 
 
 def _is_float(c) -> bool:
@@ -437,11 +504,30 @@ def read_brdf_csv(path):
     head = [c.strip() for c in rows[0]] if rows else []
     if head[:3] != ["theta_i_deg", "theta_r_deg", "delta_phi_deg"] or len(head) < 4:
         raise ValueError(f"{fname}: header must start theta_i_deg,theta_r_deg,delta_phi_deg then band columns")
-    if not all(_is_float(c) for c in head[3:]):
-        raise ValueError(f"{fname}: band columns must be named by wavelength in nm, got {head[3:]}")
+    bad = [j for j, c in enumerate(head[3:], 3) if not (_is_float(c) and 0 < float(c) < math.inf)]
+    if bad:
+        raise ValueError(f"{fname}: band columns must be named by wavelength in nm; column {bad[0]} is "
+                         f"{head[bad[0]][:40]!r}")
     data = [_numbers(fname, i, r, len(head)) for i, r in enumerate(rows[1:])]
     if not data:
         raise ValueError(f"{fname}: no data rows")
     a = torch.tensor(data, dtype=torch.float64)
+    for j, (name, lo, hi) in enumerate((("theta_i_deg", 0.0, 90.0), ("theta_r_deg", 0.0, 90.0),
+                                        ("delta_phi_deg", -math.inf, math.inf))):
+        badr = ~torch.isfinite(a[:, j]) | (a[:, j] < lo) | (a[:, j] > hi)
+        if bool(badr.any()):
+            i = int(badr.nonzero()[0])
+            raise ValueError(f"{fname}: row {i}, column {j} ({name}): {float(a[i, j]):g} must be a finite angle"
+                             + (f" in [{lo:g}, {hi:g}] degrees" if math.isfinite(lo) else " in degrees"))
+    f = a[:, 3:]
+    badv = ~torch.isfinite(f) | (f < 0)
+    if bool(badv.any()):
+        i, j = (int(x) for x in badv.nonzero()[0])
+        raise ValueError(f"{fname}: row {i}, column {j + 3} ({head[j + 3]} nm): BRDF value {float(f[i, j]):g} is "
+                         "NaN, infinite or negative")
+    dead = (f == 0).all(0)
+    if bool(dead.any()):
+        j = int(dead.nonzero()[0])
+        raise ValueError(f"{fname}: column {j + 3} ({head[j + 3]} nm): every BRDF value is 0; nothing to fit")
     deg = math.pi / 180
     return (a[:, 0] * deg, a[:, 1] * deg, a[:, 2] * deg), a[:, 3:], [float(c) for c in head[3:]]

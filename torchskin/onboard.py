@@ -21,8 +21,13 @@ import threading
 
 import numpy as np
 
+from .errors import Parser, check_input_file, check_output_file, one_line
+
 
 class _Model:
+    KIND = "torchskin"
+    IO: tuple[set, set] = (set(), set())
+
     def __init__(self, path, threads: int | None = None):
         import os
 
@@ -37,6 +42,11 @@ class _Model:
             self.session = ort.InferenceSession(self.path, so, providers=["CPUExecutionProvider"])
         except Exception as e:  # onnxruntime raises its own exception types
             raise ValueError(f"cannot load ONNX model {self.path!r}: {e}") from None
+        names = ({i.name for i in self.session.get_inputs()}, {o.name for o in self.session.get_outputs()})
+        if names != self.IO:
+            want = f"inputs {sorted(self.IO[0])} and outputs {sorted(self.IO[1])}"
+            raise ValueError(f"{self.path!r} is not a {self.KIND} model: it has inputs {sorted(names[0])} and outputs "
+                             f"{sorted(names[1])}, expected {want}")
         meta = self.session.get_modelmeta().custom_metadata_map
         self.meta = dict(meta)
         self.features = json.loads(meta.get("features", "[]"))
@@ -50,11 +60,14 @@ class _Model:
             c = c[None]
         if c.ndim != 2 or c.shape[1] != len(self.features):
             raise ValueError(f"config must be (N, {len(self.features)}) with features {self.features}, got {c.shape}")
+        if np.issubdtype(c.dtype, np.integer):
+            c = c.astype(np.float64)  # whole degrees are fine
         if not np.issubdtype(c.dtype, np.floating):
-            raise ValueError(f"config must be floating point, got {c.dtype}")
+            raise ValueError(f"config must hold numbers (degrees, metres), got {c.dtype}")
+        with np.errstate(over="ignore"):
+            c = c.astype(np.float32)
         if not np.isfinite(c).all():
-            raise ValueError("config holds NaN or infinite values")
-        c = c.astype(np.float32)
+            raise ValueError("config holds NaN, infinite or out-of-float32-range values")
         ood = ((c < self.domain[:, 0]) | (c > self.domain[:, 1])).any(1) if len(self.domain) else np.zeros(len(c), bool)
         return c, ood
 
@@ -74,6 +87,9 @@ class Boundaries(_Model):
     """``boundaries.onnx``: configuration (N, k) -> boxes (N, 5) (b1, b2, c1, c2, d1; see ``box_order`` in the
     metadata; models exported before the NDVN rule give (N, 4))."""
 
+    KIND = "boundaries (configuration -> boxes)"
+    IO = ({"config"}, {"boxes"})
+
     def __call__(self, config) -> dict:
         c, ood = self._config(config)
         (boxes,) = self.session.run(None, {"config": c})
@@ -88,6 +104,9 @@ class Detector(_Model):
     pull from a shared queue, outputs bound straight into the result arrays, so the intermediates stay in
     cache: the frame is read from memory about once. A Detector keeps its tile buffers and pool between
     calls: create it once, and use one per calling thread (calls on one object must not overlap)."""
+
+    KIND = "detector (cube + configuration -> mask, score)"
+    IO = ({"cube", "config"}, {"mask", "score"})
 
     def __init__(self, path, threads: int | None = None, tile: int = 65536):
         super().__init__(path, threads)
@@ -127,6 +146,8 @@ class Detector(_Model):
             io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(mask[b, lo:hi].reshape(1, 1, n)))
             io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(score[b, lo:hi].reshape(1, 1, n)))
             self.session.run_with_iobinding(io)
+            if not np.isfinite(score[b, lo:hi].min()):  # +inf in a band gives a -inf (or NaN) score
+                low = np.nan
             if floor > 0:
                 mask[b, lo:hi] &= t[0, :, 0, :].sum(0) > floor
             if t is not buf:
@@ -156,7 +177,7 @@ class Detector(_Model):
     @staticmethod
     def _check_low(low) -> None:
         if np.isnan(low):
-            raise ValueError("cube holds NaN reflectance")
+            raise ValueError("cube holds NaN or infinite reflectance")
         if low < 0:
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
@@ -215,6 +236,8 @@ class Detector(_Model):
                 x = np.maximum(x, 0)
             self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
+            if not np.isfinite(score.min()):
+                self._check_low(np.nan)
             if floor > 0:
                 mask &= x.sum(1) > floor
             if out is not None:
@@ -341,12 +364,10 @@ def elm_apply(cube, gain, offset) -> np.ndarray:
 def cli_calibrate(argv: list[str]) -> int:
     """``torchskin calibrate --cube DN.npy (--panel Y0:Y1:X0:X1=REFL ... | --coefficients ELM.json) --out
     REFL.npy [--save-coefficients ELM.json] [--erode PX] [--json]`` (numpy only)."""
-    import argparse
-    import sys
 
     from .io import save_npy, write_text
 
-    ap = argparse.ArgumentParser(prog="torchskin calibrate", description="Signals (DN or radiance) to reflectance "
+    ap = Parser(prog="torchskin calibrate", description="Signals (DN or radiance) to reflectance "
                                  "with the empirical line through reference panels in the frame (numpy only).")
     ap.add_argument("--cube", required=True, help=".npy signal cube (bands, H, W), or (B, bands, H, W) with "
                     "--coefficients")
@@ -359,58 +380,75 @@ def cli_calibrate(argv: list[str]) -> int:
     ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    try:
-        if bool(args.panel) == bool(args.coefficients):
-            raise ValueError("give either --panel (at least twice) or --coefficients")
+    if bool(args.panel) == bool(args.coefficients):
+        raise ValueError("give either --panel (at least twice) or --coefficients")
+    out = check_output_file(args.out, "--out", (".npy",))
+    save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
+        if args.save_coefficients else None
+    cube = load_cube(args.cube, "--cube")
+    if args.coefficients:
+        coef_path = check_input_file(args.coefficients, "--coefficients", (".json",))
         try:
-            cube = np.load(args.cube)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"cannot read cube {args.cube!r}: {e}") from None
-        if not np.issubdtype(cube.dtype, np.number):
-            raise ValueError(f"cube must be numeric, got {cube.dtype}")
-        if args.coefficients:
+            doc = json.loads(coef_path.read_text())
+            gain, offset = np.asarray(doc["gain"], np.float64), np.asarray(doc["offset"], np.float64)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"cannot read --coefficients {args.coefficients!r}: {one_line(e)}") from None
+        fit = None
+    else:
+        panels = []  # (region, reflectance)
+        for p in args.panel:
+            roi, sep, rho = p.partition("=")
             try:
-                doc = json.loads(open(args.coefficients).read())
-                gain, offset = np.asarray(doc["gain"], np.float64), np.asarray(doc["offset"], np.float64)
-            except (OSError, ValueError, KeyError, TypeError) as e:
-                raise ValueError(f"cannot read coefficients {args.coefficients!r}: {e}") from None
-            fit = None
-        else:
-            panels = []  # (region, reflectance)
-            for p in args.panel:
-                roi, sep, rho = p.partition("=")
-                try:
-                    vals = [float(v) for v in rho.split(",")] if sep else []
-                except ValueError:
-                    vals = []
-                if not vals:
-                    raise ValueError(f"--panel must be Y0:Y1:X0:X1=REFL[,REFL...], got {p!r}")
-                panels.append((parse_roi(roi), vals[0] if len(vals) == 1 else vals))
-            if cube.ndim != 3:
-                raise ValueError(f"fitting panels needs one frame (bands, H, W), got shape {cube.shape}")
-            fit = elm_fit(cube, panels, args.erode)
-            gain, offset = fit["gain"], fit["offset"]
-        refl = elm_apply(cube, gain, offset)
-        coef = {"gain": gain.tolist(), "offset": offset.tolist()}
-        if fit is not None:
-            coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
-                              for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
-            coef["residual"] = fit["residual"].tolist()
-        save_npy(args.out, refl)
-        if args.save_coefficients:
-            write_text(args.save_coefficients, json.dumps(coef, indent=1))
-        res = {**coef, "out": args.out, "shape": list(refl.shape),
-               "reflectance_range": [float(np.nanmin(refl)), float(np.nanmax(refl))]}
-        if args.json:
-            print(json.dumps(res))
-        else:
-            print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
-                  f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
-                  + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
-        return 0
-    except ValueError as e:
-        print(f"torchskin calibrate: error: {e}", file=sys.stderr)
-        return 2
+                vals = [float(v) for v in rho.split(",")] if sep else []
+            except ValueError:
+                vals = []
+            if not vals or not all(np.isfinite(vals)):
+                raise ValueError(f"--panel must be Y0:Y1:X0:X1=REFL[,REFL...] with finite reflectances, got {p!r}")
+            panels.append((parse_roi(roi), vals[0] if len(vals) == 1 else vals))
+        if cube.ndim != 3:
+            raise ValueError(f"fitting panels needs one frame (bands, H, W), got shape {cube.shape}")
+        fit = elm_fit(cube, panels, args.erode)
+        gain, offset = fit["gain"], fit["offset"]
+    refl = elm_apply(cube, gain, offset)
+    if not np.isfinite(refl).all():
+        raise ValueError("the calibrated cube holds NaN or infinite values (check the coefficients)")
+    coef = {"gain": gain.tolist(), "offset": offset.tolist()}
+    if fit is not None:
+        coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
+                          for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
+        coef["residual"] = fit["residual"].tolist()
+    coef_text = json.dumps(coef, indent=1)  # everything prepared before the first file is written
+    save_npy(out, refl)
+    if save_coef is not None:
+        write_text(save_coef, coef_text)
+    res = {**coef, "out": args.out, "shape": list(refl.shape),
+           "reflectance_range": [float(refl.min()), float(refl.max())]}
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
+              f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
+              + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
+    return 0
+
+
+def load_cube(path, option: str = "--cube") -> np.ndarray:
+    """A numeric, non-empty, finite array from a ``.npy`` file (no pickles, no ``.npz`` archives), with a
+    one-line ``ValueError`` naming ``option`` and the file otherwise."""
+    p = check_input_file(path, option, (".npy",))
+    try:
+        x = np.load(p, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
+    if not isinstance(x, np.ndarray):
+        raise ValueError(f"{option} {str(p)!r} is not a single .npy array")
+    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
+        raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {x.dtype}")
+    if x.size == 0:
+        raise ValueError(f"{option} {str(p)!r} is empty (shape {x.shape})")
+    if np.issubdtype(x.dtype, np.floating) and not np.isfinite(x).all():
+        raise ValueError(f"{option} {str(p)!r} holds NaN or infinite values")
+    return x
 
 
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
@@ -439,10 +477,8 @@ def write_png(path, mask: np.ndarray) -> None:
 def cli_detect(argv: list[str]) -> int:
     """``torchskin detect --model detector.onnx --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
     --relative-azimuth DEG [--range M] [--out MASK.png] [--json]`` (numpy + onnxruntime only)."""
-    import argparse
-    import sys
 
-    ap = argparse.ArgumentParser(prog="torchskin detect", description="Skin mask of a reflectance cube with the "
+    ap = Parser(prog="torchskin detect", description="Skin mask of a reflectance cube with the "
                                  "exported detector (numpy + onnxruntime, no torch).")
     ap.add_argument("--model", required=True, help="detector.onnx")
     ap.add_argument("--cube", required=True, help=".npy reflectance cube (4, H, W) or (B, 4, H, W), float32")
@@ -460,37 +496,34 @@ def cli_detect(argv: list[str]) -> int:
                          "min_reflectance; 0 for models without it)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    try:
-        det = Detector(args.model)
-        try:
-            cube = np.load(args.cube)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"cannot read cube {args.cube!r}: {e}") from None
-        if cube.ndim == 3:
-            cube = cube[None]
-        values = []
-        for f in det.features:
-            v = getattr(args, FLAG_FOR_FEATURE.get(f, f), None)
-            if v is None:
-                raise ValueError(f"the model needs --{FLAG_FOR_FEATURE.get(f, f).replace('_', '-')} ({f})")
-            values.append(v)
-        out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
-                  negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
-        if args.out:
-            write_png(args.out, out["mask"][0])
-        frac = float(out["mask"].mean())
-        clipped = out.get("clipped_values")
-        if args.json:
-            res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
-                   "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
-            if clipped is not None:
-                res["clipped_values"] = clipped.tolist()
-            print(json.dumps(res))
-        else:
-            flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
-            clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
-            print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
-        return 0
-    except ValueError as e:
-        print(f"torchskin detect: error: {e}", file=sys.stderr)
-        return 2
+    mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
+    det = Detector(check_input_file(args.model, "--model", (".onnx",)))
+    cube = load_cube(args.cube, "--cube")
+    if cube.ndim == 3:
+        cube = cube[None]
+    values = []
+    for f in det.features:
+        flag = FLAG_FOR_FEATURE.get(f, f)
+        v = getattr(args, flag, None)
+        if v is None:
+            raise ValueError(f"the model needs --{flag.replace('_', '-')} ({f})")
+        if not np.isfinite(v):
+            raise ValueError(f"--{flag.replace('_', '-')} must be a finite number, got {v}")
+        values.append(v)
+    out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
+              negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
+    if mask_path is not None:
+        write_png(mask_path, out["mask"][0])
+    frac = float(out["mask"].mean())
+    clipped = out.get("clipped_values")
+    if args.json:
+        res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
+               "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
+        if clipped is not None:
+            res["clipped_values"] = clipped.tolist()
+        print(json.dumps(res))
+    else:
+        flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
+        clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
+        print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
+    return 0

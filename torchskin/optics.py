@@ -18,6 +18,27 @@ from ._checks import as_tensor, check_range
 from .bands import Band, as_bands
 
 _EPS_COS = 1e-12
+_HALF_PI = math.pi / 2 * (1 + 1e-6)  # π/2 with room for its float32 rounding (1.5707964 > π/2)
+
+
+def _check_surface_params(sigma2=None, rho0=None, rho_d=None, r_sub=None) -> None:
+    """Validate the material parameters of the public BRDFs (σ² > 0 finite, ρ0 in [0, 1), ρ_d and R_sub in
+    [0, 1]); the ``*_cos`` kernels, the renderer's per-frame path, skip this (see ``_check_numbers``)."""
+    if sigma2 is not None:
+        check_range("sigma2", sigma2, 0.0, math.inf, lo_open=True, hi_open=True)
+    if rho0 is not None:
+        check_range("rho0", rho0, 0.0, 1.0, hi_open=True)
+    if rho_d is not None:
+        check_range("rho_d", rho_d, 0.0, 1.0)
+    if r_sub is not None:
+        check_range("r_sub", r_sub, 0.0, 1.0)
+
+
+def _check_numbers(**values) -> None:
+    """``_check_surface_params`` for the arguments that are Python numbers (free: no tensor, no device sync)."""
+    nums = {k: v for k, v in values.items() if isinstance(v, (int, float))}
+    if nums:
+        _check_surface_params(**nums)
 
 
 # ------------------------------------------------------------------------------------------------ Fresnel
@@ -108,7 +129,9 @@ def _smith_g1(cos_v, m2):
 
 def microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
     """Eq 2.3.4 from cosines: cos θi, cos θr and cos 2β = ω_i · ω_r (the angle between the directions to
-    the source and to the viewer). The vector form used by the renderer; see ``microfacet_brdf``."""
+    the source and to the viewer). The vector form used by the renderer; see ``microfacet_brdf``. Tensor
+    parameters are not validated here (no device synchronisation on the hot path)."""
+    _check_numbers(sigma2=sigma2, rho0=rho0)
     cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
     ct = ((cos_i + cos_r) / (2 * cos_b)).clamp(-1.0, 1.0)  # cos of the facet tilt θ, eq 2.3.6
     ct2 = (ct * ct).clamp_min(_EPS_COS)
@@ -128,14 +151,15 @@ def microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, *, shadowing: boo
     Cook-Torrance with a Beckmann distribution of slope variance m² = 2σ² and Schlick Fresnel at the facet
     incidence β; no shadowing by default (the thesis's form). ``shadowing=True`` multiplies by the separable
     Smith masking-shadowing G = G1(θi) G1(θr), which keeps the lobe energy-bounded at grazing angles.
-    Returns 0 for directions below the horizon.
+    Returns 0 for directions below the horizon. ``sigma2`` must be > 0 (finite), ``rho0`` in [0, 1).
     """
     theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
                                                           as_tensor(delta_phi))
     ci, cr = torch.cos(theta_i), torch.cos(theta_r)
     cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)  # eq 2.3.5
-    return microfacet_brdf_cos(ci, cr, cos2b, as_tensor(sigma2, like=ci), as_tensor(rho0, like=ci),
-                               shadowing=shadowing)
+    sigma2, rho0 = as_tensor(sigma2, like=ci), as_tensor(rho0, like=ci)
+    _check_surface_params(sigma2=sigma2, rho0=rho0)
+    return microfacet_brdf_cos(ci, cr, cos2b, sigma2, rho0, shadowing=shadowing)
 
 
 # ------------------------------------------------------------------------------ per-band specular defaults
@@ -172,6 +196,7 @@ THESIS_SPECULAR = SpecularParams()
 
 def combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
     """Eq 3.1.1 from cosines (see ``microfacet_brdf_cos``); the renderer's form of ``combined_brdf``."""
+    _check_numbers(rho_d=rho_d)
     fs = microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, shadowing=shadowing)
     cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
     fd = (1 - schlick_cos(rho0, cos_b)) * rho_d / math.pi
@@ -182,14 +207,16 @@ def combined_brdf(theta_i, theta_r, delta_phi, rho_d, sigma2, rho0, *, shadowing
     """Combined skin BRDF, eq 3.1.1: f_s + (1 - ρ_Schlick(ρ0, β)) ρ_d / π (sr^-1).
 
     ``rho_d`` is the diffuse (subsurface) reflectance, e.g. ``tissue.diffuse_reflectance`` at the local
-    incidence; all inputs broadcast, the band axis last.
+    incidence; all inputs broadcast, the band axis last. ``rho_d`` must lie in [0, 1], ``sigma2`` > 0
+    (finite), ``rho0`` in [0, 1).
     """
     theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
                                                           as_tensor(delta_phi))
     ci, cr = torch.cos(theta_i), torch.cos(theta_r)
     cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
-    return combined_brdf_cos(ci, cr, cos2b, as_tensor(rho_d, like=ci), as_tensor(sigma2, like=ci),
-                             as_tensor(rho0, like=ci), shadowing=shadowing)
+    rho_d, sigma2, rho0 = (as_tensor(x, like=ci) for x in (rho_d, sigma2, rho0))
+    _check_surface_params(sigma2=sigma2, rho0=rho0, rho_d=rho_d)
+    return combined_brdf_cos(ci, cr, cos2b, rho_d, sigma2, rho0, shadowing=shadowing)
 
 
 # ------------------------------------------------------------------------------------ skin surface models
@@ -240,6 +267,7 @@ def skin_diffuse(r_sub, r0, front=1.0):
 def skin_brdf_cos(cos_i, cos_r, cos_2beta, r_sub, sigma2, rho0, front=1.0, *, shadowing: bool = False):
     """The combined skin BRDF of eq 3.1.1 from cosines, with ρ_d from ``skin_diffuse`` at R0 = Schlick(ρ0, θi)
     (``front``: 1 thesis, 0 conserving). All inputs broadcast, band axis last; sr^-1."""
+    _check_numbers(r_sub=r_sub)
     rho_d = skin_diffuse(r_sub, schlick_cos(rho0, cos_i.clamp(0.0, 1.0)), front)
     return combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, shadowing=shadowing)
 
@@ -248,14 +276,16 @@ def skin_brdf(theta_i, theta_r, delta_phi, r_sub, sigma2, rho0, surface: str = D
               shadowing: bool = False) -> torch.Tensor:
     """The combined skin BRDF of eq 3.1.1 (sr^-1) from the subsurface reflectance ``r_sub``: the specular lobe
     (eq 2.3.4) plus (1 - ρ_Schlick(β)) ρ_d / π with ρ_d from the skin surface model ``surface`` ("thesis" or
-    "conserving", see ``skin_diffuse``). Angles in radians (Δφ = π forward); inputs broadcast, band axis last."""
+    "conserving", see ``skin_diffuse``). Angles in radians (Δφ = π forward); inputs broadcast, band axis last.
+    ``r_sub`` must lie in [0, 1], ``sigma2`` > 0 (finite), ``rho0`` in [0, 1)."""
     front = surface_front(surface)
     theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
                                                           as_tensor(delta_phi))
     ci, cr = torch.cos(theta_i), torch.cos(theta_r)
     cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
-    return skin_brdf_cos(ci, cr, cos2b, as_tensor(r_sub, like=ci), as_tensor(sigma2, like=ci),
-                         as_tensor(rho0, like=ci), front, shadowing=shadowing)
+    r_sub, sigma2, rho0 = (as_tensor(x, like=ci) for x in (r_sub, sigma2, rho0))
+    _check_surface_params(sigma2=sigma2, rho0=rho0, r_sub=r_sub)
+    return skin_brdf_cos(ci, cr, cos2b, r_sub, sigma2, rho0, front, shadowing=shadowing)
 
 
 def observed_reflectance(brdf, theta_r, solid_angle) -> torch.Tensor:
@@ -282,9 +312,12 @@ def dhr(brdf_fn, theta_i, n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
     ``brdf_fn(theta_i, theta_r, delta_phi)`` receives tensors broadcasting to ``S + (n_theta, n_phi)``, where
     S is ``theta_i``'s shape, and returns the BRDF there (parameters inside it must broadcast the same way,
     e.g. per-band values shaped ``(B, 1, 1)`` with ``theta_i`` of shape ``(B,)``). Returns shape S.
-    Gauss-Legendre in θr, the periodic trapezoid rule in Δφ.
+    Gauss-Legendre in θr, the periodic trapezoid rule in Δφ. ``theta_i`` must lie in [0, π/2].
     """
     theta_i = as_tensor(theta_i)
+    check_range("theta_i", theta_i, 0.0, _HALF_PI, "rad")
+    if n_theta < 1 or n_phi < 1:
+        raise ValueError(f"n_theta and n_phi must be >= 1, got {n_theta}, {n_phi}")
     tr, wt = gauss_legendre(n_theta, 0.0, math.pi / 2, dtype=theta_i.dtype, device=theta_i.device)
     phi = torch.arange(n_phi, dtype=theta_i.dtype, device=theta_i.device) * (2 * math.pi / n_phi)
     f = brdf_fn(theta_i[..., None, None], tr[:, None], phi[None, :])

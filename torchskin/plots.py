@@ -23,10 +23,16 @@ def plot_spectra(
     box: RulesBox = DEFAULT_BOX,
     title: str = "Diffuse skin reflectance (normal incidence)",
     shade: torch.Tensor | None = None,
+    shade_label: str = "melanosome volume fraction",
+    shade_max: float = 0.45,
 ) -> None:
     """Write a PNG: reflectance spectra (left) and the skins in the rules-detector plane (right).
 
-    ``shade`` (one value per skin in [0, 1], e.g. melanosome fraction / 0.45) colours the curves.
+    ``shade`` (one value per skin in [0, 1], e.g. melanosome fraction / 0.45) colours the curves and points;
+    a colour bar beside the plane is the key: ``shade_label`` from 0 to ``shade_max`` (shade 1), and when the
+    label names the melanosome fraction, the Fitzpatrick types' melanosome ranges
+    (``tissue.FITZPATRICK_RANGES``) marked on its other side. Without ``shade`` the skins are coloured in
+    order: named in a legend when there are at most 12, else keyed by a colour bar of the skin's index.
     """
     import matplotlib
 
@@ -41,8 +47,12 @@ def plot_spectra(
     n = R.shape[0]
     c = (shade.detach().cpu().reshape(-1).clamp(0, 1).numpy() if shade is not None
          else [k / max(n - 1, 1) for k in range(n)])
-    colors = [plt.get_cmap("copper_r")(0.1 + 0.85 * float(x)) for x in c]
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.6), gridspec_kw={"width_ratios": [1.6, 1]})
+    from matplotlib.colors import ListedColormap, Normalize
+
+    cmap = ListedColormap(plt.get_cmap("copper_r")([0.1 + 0.85 * k / 255 for k in range(256)]))
+    colors = [cmap(float(x)) for x in c]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12.6, 4.6), gridspec_kw={"width_ratios": [1.6, 1]},
+                                 layout="constrained")
     for k in range(n):
         kw = {"lw": 0.6, "alpha": 0.35} if many else {"lw": 1.6, "label": names[k]}
         ax.plot(wl, R[k], color=colors[k], **kw)
@@ -72,7 +82,23 @@ def plot_spectra(
     bx.grid(alpha=0.3)
     bx.legend(fontsize=8, loc="lower left")
     bx.set_title("Rules-detector plane")
-    fig.tight_layout()
+    if shade is not None or many:  # the colour key (a few skins without shade are named in the legend)
+        top = shade_max if shade is not None else n - 1
+        sm = plt.cm.ScalarMappable(norm=Normalize(0, top), cmap=cmap)
+        cb = fig.colorbar(sm, ax=bx, fraction=0.06, pad=0.02,
+                          label=shade_label if shade is not None else "skin (order given)")
+        if shade is not None and shade_label.startswith("melanosome"):
+            from .tissue import FITZPATRICK_RANGES
+
+            cb.ax.yaxis.set_label_position("left")
+            cb.ax.yaxis.set_ticks_position("left")
+            ty = cb.ax.secondary_yaxis("right")
+            ranges = {t: r["melanosome"] for t, r in FITZPATRICK_RANGES.items() if r["melanosome"][0] < top}
+            ty.set_yticks([(a + min(b, top)) / 2 for a, b in ranges.values()], list(ranges), fontsize=8)
+            ty.tick_params(length=0)
+            ty.set_ylabel("Fitzpatrick type", fontsize=9)
+            for a, _ in ranges.values():
+                cb.ax.axhline(a, color="w", lw=0.8)
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
@@ -93,17 +119,26 @@ def save_figure(fig, path) -> None:
     _plt().close(fig)
 
 
-def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: float = 1.0) -> None:
-    """False-colour reflectance image of one band (like the thesis's Figs 29 and 35)."""
+def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: float = 1.0,
+               label: str = "reflectance") -> None:
+    """False-colour reflectance image of one band (like the thesis's Figs 29 and 35). The colour scale is
+    clipped to [``vmin``, ``vmax``]; the colour bar's label says so and gives the image's own min and max, and
+    the bar's ends are arrows on the side(s) where pixels lie outside the scale."""
+    import numpy as np
+
     plt = _plt()
     img = image.detach().cpu().float().numpy()
     h, w = img.shape
-    fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w + 0.4))
+    finite = img[np.isfinite(img)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (float("nan"), float("nan"))
+    extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[
+        (bool(lo < vmin), bool(hi > vmax))]
+    fig, ax = plt.subplots(figsize=(5.6, 5.2 * h / w + 0.4), layout="constrained")
     im = ax.imshow(img, cmap="jet", vmin=vmin, vmax=vmax, interpolation="nearest")
     ax.set_title(title)
     ax.axis("off")
-    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, label="reflectance")
-    fig.tight_layout()
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, extend=extend,
+                 label=f"{label} (colour clipped to [{vmin:g}, {vmax:g}];\nimage min {lo:.3g}, max {hi:.3g})")
     save_figure(fig, path)
 
 
@@ -113,32 +148,94 @@ def _numpy(x):
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
-def _mask_rgb(mask, truth=None):
-    """RGB of a detector mask: detected skin green, missed skin red, false alarms yellow (white without truth)."""
+#: 8-bit RGB of the mask classes, shared by ``mask_png`` (the pixel-aligned mask) and the annotated figures
+MASK_COLORS = {"hit": (26, 217, 51), "missed": (230, 38, 26), "false_alarm": (255, 230, 26),
+               "detected": (255, 255, 255), "background": (0, 0, 0)}
+_MASK_NAMES = {"hit": "detected skin", "missed": "missed skin", "false_alarm": "false alarm",
+               "detected": "detected", "background": "background"}
+
+
+def _mask_classes(mask, truth=None) -> dict:
+    """Boolean (H, W) arrays per mask class: hit / missed / false_alarm with ``truth``, else detected."""
+    m = _numpy(mask).astype(bool)
+    if truth is None:
+        return {"detected": m}
+    t = _numpy(truth).astype(bool)
+    return {"hit": m & t, "missed": ~m & t, "false_alarm": m & ~t}
+
+
+def _mask_rgb8(mask, truth=None):
+    """(H, W, 3) uint8 RGB of a detector mask in ``MASK_COLORS``: detected skin green, missed skin red, false
+    alarms yellow, the rest black (without truth: detected white)."""
     import numpy as np
 
     m = _numpy(mask).astype(bool)
-    rgb = np.zeros(m.shape + (3,))
-    if truth is None:
-        rgb[m] = (1, 1, 1)
-    else:
-        t = _numpy(truth).astype(bool)
-        rgb[m & t] = (0.1, 0.85, 0.2)
-        rgb[~m & t] = (0.9, 0.15, 0.1)
-        rgb[m & ~t] = (1.0, 0.9, 0.1)
+    rgb = np.zeros(m.shape + (3,), np.uint8)
+    for name, sel in _mask_classes(m, truth).items():
+        rgb[sel] = MASK_COLORS[name]
     return rgb
 
 
+def _mask_rgb(mask, truth=None):
+    """``_mask_rgb8`` as floats in [0, 1] (for imshow)."""
+    return _mask_rgb8(mask, truth) / 255.0
+
+
+def _mask_legend(fig_or_ax, classes, **kw) -> None:
+    """A colour key of the mask classes: ``classes`` a list of class names, or a dict of class name to its
+    boolean array (the key then gives each class's pixel count)."""
+    from matplotlib.patches import Patch
+
+    def label(k):
+        return f"{_MASK_NAMES[k]} ({int(classes[k].sum())} px)" if isinstance(classes, dict) else _MASK_NAMES[k]
+
+    handles = [Patch(fc=[v / 255 for v in MASK_COLORS[k]], ec="0.5", label=label(k)) for k in classes]
+    fig_or_ax.legend(handles=handles, **kw)
+
+
+def write_rgb_png(path, rgb) -> None:
+    """An 8-bit RGB PNG of an (H, W, 3) uint8 array, one PNG pixel per array element (stdlib zlib), written
+    atomically."""
+    import struct
+    import zlib
+
+    import numpy as np
+
+    from .io import write_bytes
+
+    a = np.ascontiguousarray(rgb, dtype=np.uint8)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) array, got shape {a.shape}")
+    h, w = a.shape[:2]
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, 3 * w)], 1).tobytes()  # filter 0 per row
+
+    def chunk(tag, data):
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    write_bytes(path, b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+                + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def mask_png(path, mask: torch.Tensor, truth: torch.Tensor | None = None) -> None:
+    """The detector mask as a pixel-aligned RGB PNG of the frame's size (one PNG pixel per frame pixel, no
+    axes or title), colour-coded with ``MASK_COLORS``: with ``truth`` detected skin green (26, 217, 51), missed
+    skin red (230, 38, 26), false alarms yellow (255, 230, 26); without it detected pixels white; everything else
+    black."""
+    write_rgb_png(path, _mask_rgb8(mask, truth))
+
+
 def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, title: str = "rules detector") -> None:
-    """Detector mask: detected skin (green), missed skin (red), false alarms (yellow)."""
+    """Annotated figure of a detector mask: detected skin (green), missed skin (red), false alarms (yellow),
+    with a colour key giving each class's pixel count (``mask_png`` writes the bare, pixel-aligned mask)."""
     plt = _plt()
     rgb = _mask_rgb(mask, truth)
     h, w = rgb.shape[:2]
-    fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w))
+    fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w + 0.9), layout="constrained")
     ax.imshow(rgb, interpolation="nearest")
-    ax.set_title(title)
-    ax.axis("off")
-    fig.tight_layout()
+    ax.set_title(title, fontsize=10)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    _mask_legend(fig, _mask_classes(mask, truth), loc="outside lower center", ncol=3, fontsize=8, frameon=False)
     save_figure(fig, path)
 
 
@@ -158,15 +255,19 @@ def mask_comparison(path, image, masks: dict, truth, image_title: str = "reflect
         xs = slice(max(0, int(cols[0] - dx)), min(t.shape[1], int(cols[-1] + 1 + dx)))
     else:
         ys, xs = slice(None), slice(None)
-    fig, axes = plt.subplots(1, 1 + len(masks), figsize=(3.6 * (1 + len(masks)), 4.2))
-    axes[0].imshow(img, cmap="gray", vmin=0.0, vmax=max(float(img.max()), 1e-6), interpolation="nearest")
+    fig, axes = plt.subplots(1, 1 + len(masks), figsize=(3.6 * (1 + len(masks)) + 0.6, 4.4), layout="constrained")
+    im = axes[0].imshow(img, cmap="gray", vmin=0.0, vmax=max(float(img.max()), 1e-6), interpolation="nearest")
     axes[0].set_title(image_title, fontsize=9)
+    cb = fig.colorbar(im, ax=axes[0], fraction=0.046, pad=0.02, extend="min" if float(img.min()) < 0 else "neither")
+    cb.set_label("reflectance (0 to image max)", fontsize=8)
+    cb.ax.tick_params(labelsize=7)
     for ax, (title, m) in zip(axes[1:], masks.items()):
         ax.imshow(_mask_rgb(_numpy(m)[ys, xs], t[ys, xs]), interpolation="nearest")
         ax.set_title(title, fontsize=9)
     for ax in axes:
         ax.axis("off")
-    fig.tight_layout()
+    _mask_legend(fig, ["hit", "missed", "false_alarm"], loc="outside lower center", ncol=3, fontsize=8,
+                 frameon=False)
     save_figure(fig, path)
 
 

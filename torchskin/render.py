@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from . import tissue
 from .bands import Band, band_sampling
 from .calibrate import elm_coefficients
-from .detect import DEFAULT_BOX, RulesBox, indices, rules_detector
+from .detect import DEFAULT_BOX, RulesBox, has_index_bands, indices, rules_detector
 from .optics import THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
 from .raycast import GBuffer, Raycaster, rowsum
 from .scene import Scene, TriMesh
@@ -28,11 +28,17 @@ H_PLANCK = 6.62607015e-34
 C_LIGHT = 2.99792458e8
 
 
-def _per_band(name: str, value, n: int) -> list[float]:
-    vals = list(value) if isinstance(value, (list, tuple)) else [value] * n
-    if len(vals) != n:
-        raise ValueError(f"sensor {name} has {len(vals)} values for {n} bands")
-    return [float(v) for v in vals]
+def _per_band(name: str, value, bands: tuple[Band, ...]) -> list[float]:
+    """One value per band: a scalar for all, a list of one per band, or four values at 544, 633, 1080 and
+    1580 nm (the defaults' bands) interpolated linearly in wavelength for other bands."""
+    n = len(bands)
+    vals = [float(v) for v in value] if isinstance(value, (list, tuple)) else [float(value)] * n
+    if len(vals) == n:
+        return vals
+    if len(vals) == 4:
+        return [float(v) for v in np.interp([b.center_nm for b in bands], [544.0, 633.0, 1080.0, 1580.0], vals)]
+    raise ValueError(f"sensor {name} needs one value, one per band ({n}) or four (at 544, 633, 1080, 1580 nm), "
+                     f"got {len(vals)}")
 
 
 @dataclass
@@ -76,16 +82,15 @@ class Sensor:
             raise ValueError(f"sensor adc_bits must lie in [1, 32], got {self.adc_bits}")
 
     def tables(self, bands: tuple[Band, ...], dtype, device) -> dict[str, torch.Tensor]:
-        n = len(bands)
         widths = self.band_width_nm
         if widths is None:
             widths = [b.fwhm_nm if b.fwhm_nm > 0 else 10.0 for b in bands]
         t = {
-            "qe": _per_band("quantum_efficiency", self.quantum_efficiency, n),
-            "filter": _per_band("filter_transmittance", self.filter_transmittance, n),
-            "width": _per_band("band_width_nm", widths, n),
-            "tau": _per_band("atmosphere_transmittance", self.atmosphere_transmittance, n),
-            "path": _per_band("path_radiance", self.path_radiance, n),
+            "qe": _per_band("quantum_efficiency", self.quantum_efficiency, bands),
+            "filter": _per_band("filter_transmittance", self.filter_transmittance, bands),
+            "width": _per_band("band_width_nm", widths, bands),
+            "tau": _per_band("atmosphere_transmittance", self.atmosphere_transmittance, bands),
+            "path": _per_band("path_radiance", self.path_radiance, bands),
             "wavelength_m": [b.center_nm * 1e-9 for b in bands],
         }
         for k in ("qe", "filter", "tau"):
@@ -535,8 +540,12 @@ def render(scene: Scene, device="cpu", dtype=torch.float32, sensor: Sensor | Non
     pv = panel_values(signal, pix)  # (S, C, P, B)
     refs = panel_references(scene, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
     refl = apply_elm(signal, pv, refs)
-    g, s = indices(refl, bands)
-    mask = rules_detector(g, s, box) & gb.hit
+    if has_index_bands(bands):
+        g, s = indices(refl, bands)
+        mask = rules_detector(g, s, box) & gb.hit
+    else:  # the rules need 544, 633, 1080 and 1580 nm: reflectance only
+        g = s = torch.full(refl.shape[:-1], math.nan, dtype=refl.dtype, device=refl.device)
+        mask = torch.zeros_like(gb.hit).expand(refl.shape[:-1])
     skin_mat = torch.tensor([scene.materials[n].kind == "skin" for n in gb.material_names], device=device)
     skin = gb.hit & skin_mat[gb.material.clamp_min(0)]
     _sync(device)
@@ -559,29 +568,51 @@ def _sync(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
+#: a frame's ELM is physical when at least this share of every reference panel's interior is sunlit (the rule
+#: of the dataset generator's ``elm_valid``)
+ELM_MIN_SUNLIT = 0.5
+
+
+def panel_sunlit_fraction(result: RenderResult, s: int = 0, c: int = 0) -> list[float]:
+    """Per reference panel (``result.panels`` order), the sunlit share of its interior pixels for sun ``s``
+    and camera ``c`` (a full-frame render)."""
+    lit = result.lit[s, c].reshape(-1)
+    pix = panel_pixels(result.gbuffer, list(result.panels))
+    return [float(lit.index_select(0, per_cam[c]).float().mean()) for per_cam in pix]
+
+
 def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
-    """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``."""
+    """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``; whether the
+    frame's ELM is physical (``elm_valid``: every reference panel at least ``ELM_MIN_SUNLIT`` sunlit; without
+    sunlit panels the empirical line is set by sky light and reflectance can exceed 1)."""
     skin = result.skin[c]
     lit = skin & result.lit[s, c]
     det = result.mask[s, c]
     n, nl = int(skin.sum()), int(lit.sum())
+    sunlit = panel_sunlit_fraction(result, s, c)
     return {
         "skin_pixels": n,
         "sunlit_skin_pixels": nl,
         "detected_fraction": float(det[skin].float().mean()) if n else 0.0,
         "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
         "false_alarm_pixels": int((det & ~skin).sum()),
+        "rules_detector": has_index_bands(result.bands),  # false: the bands lack 544/633/1080/1580 nm
+        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit),
+        "panel_sunlit_fraction": sunlit,
     }
 
 
 def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: int = 0) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
-    sensor signal cube before ELM (``signal.npy``, digital numbers), the detector mask PNG and ``render.json``
-    (scene, timing, panels with their pixel regions, detections). Returns the summary."""
+    sensor signal cube before ELM (``signal.npy``, digital numbers), the rules detector's mask, ``mask.png``: an
+    RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
+    detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
+    everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
+    ``render.json`` (scene, timing, panels with their pixel regions, detections). Returns the summary."""
     from pathlib import Path
 
     from .io import save_npy, write_text
-    from .plots import band_image, mask_image
+    from .plots import band_image, mask_image, mask_png
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -592,8 +623,9 @@ def write_outputs(result: RenderResult, scene: Scene, out_dir, s: int = 0, c: in
     for k, b in enumerate(result.bands):
         band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")
-    mask_image(out / "mask.png", result.mask[s, c], result.skin[c],
-               "rules detector: green hit, red missed skin, yellow false alarm")
+    mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
+    mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
+               f"rules detector mask ({result.mask.shape[-1]} x {result.mask.shape[-2]} px)")
     info = summary(result, s, c)
     dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
     import json

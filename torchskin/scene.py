@@ -16,6 +16,7 @@ import io
 import json
 import math
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +27,18 @@ from . import tissue
 from .bands import DEFAULT_BANDS, Band, as_bands
 from .io import write_text
 from .optics import check_surface
+
+
+def _finite(what: str, **values) -> None:
+    """``ValueError`` naming the first value that is not a finite number."""
+    for k, v in values.items():
+        try:
+            ok = math.isfinite(float(v))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{what} {k} must be a finite number, got {v!r}")
+
 
 # ------------------------------------------------------------------------------------------------ materials
 #: Spectralon reference panels, directional-hemispherical reflectance per band (thesis Table 3)
@@ -96,9 +109,14 @@ class Material:
             return out
         if self.kind == "lambertian":
             if isinstance(self.reflectance, list):
-                if len(self.reflectance) != len(bands):
-                    raise ValueError(f"reflectance has {len(self.reflectance)} values for {len(bands)} bands")
-                return [float(x) for x in self.reflectance]
+                vals = [float(x) for x in self.reflectance]
+                if len(vals) == len(bands):
+                    return vals
+                if len(vals) == len(DEFAULT_BANDS):  # a spectrum at 544, 633, 1080, 1580 nm: linear in wavelength
+                    xp = [b.center_nm for b in DEFAULT_BANDS]
+                    return [float(v) for v in np.interp([b.center_nm for b in bands], xp, vals)]
+                raise ValueError(f"a lambertian reflectance list needs one value per band ({len(bands)}) or four (at "
+                                 f"544, 633, 1080, 1580 nm, interpolated), got {len(vals)}")
             return [float(self.reflectance)] * len(bands)
         raise ValueError("band_reflectance is for lambertian and spectralon materials")
 
@@ -225,9 +243,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None,
         if not (0.0 <= float(v) <= 1.0):
             raise ValueError(f"anny phenotype {k!r} must lie in [0, 1], got {v}")
     try:
-        import warp
-
-        warp.config.quiet = True  # anny compiles warp kernels; keep their banner off stdout (JSON output)
+        _init_warp_quietly()
         import anny
     except ImportError as e:  # pragma: no cover - dependency missing
         raise ValueError("the anny package is needed for anny subjects: pip install 'torchskin[render]'") from e
@@ -274,6 +290,29 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None,
 
 
 @functools.lru_cache(maxsize=1)
+def _init_warp_quietly() -> None:
+    """Initialise warp (anny compiles its kernels with it) without its banner on stdout (JSON output) and, on a
+    machine without CUDA, without the "Warp CUDA warning" its native library prints on stderr at start-up."""
+    import warp
+
+    if hasattr(warp, "LOG_WARNING"):  # warp >= 1.x: the start-up banner is info-level
+        warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)
+    warp.config.quiet = True  # older warp
+    if torch.cuda.is_available():
+        warp.init()
+        return
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        warp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+@functools.lru_cache(maxsize=1)
 def _anny_model():
     import anny
 
@@ -281,8 +320,15 @@ def _anny_model():
         return anny.Anny().to(dtype=torch.float32)
 
 
+#: plausible extent (largest side of the bounding box, m) of a mesh file: outside it a warning names the file
+MESH_EXTENT_M = (0.05, 50.0)
+
+
 def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles of an OBJ or PLY file (open3d's reader)."""
+    """Vertices and triangles of an OBJ or PLY file (open3d's reader). Units are metres, +z is up and the
+    subject should stand on z = 0 facing +x (as anny bodies do; ``MeshSpec`` can yaw and move it): a mesh whose
+    extent is implausible for metres (``MESH_EXTENT_M``, e.g. a millimetre-scale scan) gets a warning on
+    stderr."""
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"mesh file {str(p)!r} does not exist")
@@ -294,6 +340,11 @@ def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(m.vertices, dtype=np.float64)
     f = np.asarray(m.triangles, dtype=np.int64)
     _check_mesh(p.name, v, f) if len(v) and len(f) else _raise_empty(p)
+    extent = float((v.max(0) - v.min(0)).max())
+    if not (MESH_EXTENT_M[0] <= extent <= MESH_EXTENT_M[1]):
+        print(f"torchskin: warning: mesh {str(p)!r} spans {extent:.4g} units; torchskin reads metres with +z up "
+              f"(a person spans about 1.5-2 m): a millimetre or centimetre file renders as a speck or a giant "
+              "(scale it to metres)", file=sys.stderr)
     return v.astype(np.float32), f.astype(np.int32)
 
 
@@ -403,6 +454,12 @@ class Camera:
     focal_px: float | None = None
 
     def __post_init__(self):
+        _finite("camera", width=self.width, height=self.height, zenith_deg=self.zenith_deg,
+                azimuth_deg=self.azimuth_deg, range_m=self.range_m)
+        if len(self.target) != 3 or not all(math.isfinite(float(v)) for v in self.target):
+            raise ValueError(f"camera target must be 3 finite coordinates (m), got {self.target}")
+        if int(self.width) != self.width or int(self.height) != self.height:
+            raise ValueError(f"camera width and height must be whole pixels, got {self.width} x {self.height}")
         if int(self.width) < 1 or int(self.height) < 1:
             raise ValueError(f"camera resolution must be at least 1 x 1 pixels, got {self.width} x {self.height}")
         if not (0.0 <= self.zenith_deg <= 180.0):
@@ -486,6 +543,8 @@ class Sun:
     sky_fraction: float = 0.0
 
     def __post_init__(self):
+        _finite("sun", zenith_deg=self.zenith_deg, azimuth_deg=self.azimuth_deg, temperature_k=self.temperature_k,
+                scale=self.scale, sky_fraction=self.sky_fraction)
         if not (0.0 <= self.zenith_deg <= 180.0):
             raise ValueError(f"source zenith must lie in [0, 180] degrees, got {self.zenith_deg}")
         if not self.temperature_k > 0 or not self.scale > 0:
@@ -563,6 +622,19 @@ class Scene:
 
     @classmethod
     def from_dict(cls, d: dict) -> Scene:
+        """A scene from ``to_dict``'s form; a missing or malformed entry raises ``ValueError`` naming it."""
+        if not isinstance(d, dict):
+            raise ValueError(f"a scene must be a JSON object, got {type(d).__name__}")
+        try:
+            return cls._from_dict(d)
+        except KeyError as e:
+            raise ValueError(f"scene lacks the entry {e.args[0]!r} (materials, meshes, cameras and suns are "
+                             "required)") from None
+        except (TypeError, AttributeError) as e:
+            raise ValueError(f"malformed scene: {' '.join(str(e).split())}") from None
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> Scene:
         return cls(
             materials={k: Material(**v) for k, v in d["materials"].items()},
             meshes=[MeshSpec(**m) for m in d["meshes"]],
@@ -576,9 +648,18 @@ class Scene:
     @classmethod
     def from_json(cls, text_or_path: str | os.PathLike) -> Scene:
         s = str(text_or_path)
+        where = "scene JSON"
         if not s.lstrip().startswith("{"):
-            s = Path(s).read_text(encoding="utf-8")
-        return cls.from_dict(json.loads(s))
+            where = f"scene file {s!r}"
+            try:
+                s = Path(s).read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as e:
+                raise ValueError(f"cannot read {where}: {e}") from None
+        try:
+            d = json.loads(s)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{where} is not valid JSON: {e}") from None
+        return cls.from_dict(d)
 
 
 PANEL_KINDS = ("lambertian", "spectralon", "spectralon-brdf")
@@ -608,9 +689,10 @@ def default_scene(
     ground: bool = True,
     surface: str = "thesis",
 ) -> Scene:
-    """The thesis's layout: a subject at the origin facing +x, reference panels either side of it, a camera
-    in front at 31 ft (9.449 m). ``panels``: see ``panel_materials``; ``surface``: the skin surface model
-    (``Material``)."""
+    """The thesis's layout: a subject at the origin facing +x, reference panels either side of it facing the
+    camera (vertical for the default horizontal camera in front at 31 ft, 9.449 m; level for a camera overhead;
+    turned with the camera's azimuth), 0.9 m off the subject's axis. ``panels``: see ``panel_materials``;
+    ``surface``: the skin surface model (``Material``). Metres, z up."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
@@ -625,11 +707,16 @@ def default_scene(
         body = MeshSpec("subject", "file", "skin", params={"path": str(mesh_path)})
     else:
         raise ValueError(f"subject must be 'anny' or 'file', got {subject!r}")
-    meshes = [
-        body,
-        MeshSpec("panel_white", "plane", "white", params={"width": 0.6, "height": 0.6}, position=[0.0, 0.9, 0.9]),
-        MeshSpec("panel_dark", "plane", "dark", params={"width": 0.6, "height": 0.6}, position=[0.0, -0.9, 0.9]),
-    ]
+    cam = camera or Camera()
+    # the panels stand either side of the subject across the view and face the camera, wherever it is: vertical
+    # for a horizontal camera (the thesis's layout), level for one overhead, tilted towards it in between
+    az = math.radians(cam.azimuth_deg)
+    side = (-math.sin(az), math.cos(az))
+    tilt = float(np.clip(90.0 - cam.zenith_deg, 0.0, 90.0))
+    meshes = [body] + [
+        MeshSpec(name, "plane", mat, params={"width": 0.6, "height": 0.6},
+                 position=[sign * 0.9 * side[0], sign * 0.9 * side[1], 0.9], yaw_deg=cam.azimuth_deg, tilt_deg=tilt)
+        for name, mat, sign in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
     if ground:
         meshes.append(MeshSpec("ground", "ground", "ground", params={"size": 4000.0}))
-    return Scene(mats, meshes, [camera or Camera()], [sun or Sun()])
+    return Scene(mats, meshes, [cam], [sun or Sun()])

@@ -37,7 +37,8 @@ import torch
 
 from . import data
 from ._checks import as_tensor, broadcast_shapes, check_range
-from .optics import DEFAULT_SURFACE, schlick, skin_diffuse, surface_front
+from .bands import MAX_GRID_POINTS
+from .optics import DEFAULT_SURFACE, schlick_cos, skin_diffuse, surface_front
 
 #: wavelengths covered by every table the model uses (nm)
 MODEL_RANGE_NM = (400.0, 1700.0)
@@ -510,8 +511,26 @@ _COMPILED = {}
 CPU_BLOCK = 1 << 17
 
 
+#: dtypes too coarse for the model's recursion (float16 gives 0.38 instead of 0.30 for I-II at 544 nm): skins
+#: in these are evaluated in float32 and the result returned in their dtype
+HALF_DTYPES = (torch.float16, torch.bfloat16)
+
+
+def _working(params: SkinParams) -> tuple[SkinParams, torch.dtype]:
+    """``(params in the dtype the model is evaluated in, the dtype to return)``: float32 for half types."""
+    if params.dtype in HALF_DTYPES:
+        return params.to(dtype=torch.float32), params.dtype
+    return params, params.dtype
+
+
+def _check_angles(theta_i: torch.Tensor, rho0: torch.Tensor) -> None:
+    check_range("theta_i", theta_i, 0.0, math.pi / 2 * (1 + 1e-6), "rad")
+    check_range("rho0", rho0, 0.0, 1.0)
+
+
 def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -> torch.Tensor:
     """R_sub (``r0`` None) or the total reflectance with a front surface of reflectance ``r0``."""
+    params, out_dtype = _working(params)
     wl, sp = _prepare(params, wavelengths)
     h = _hot_tensors(params.layers, wl, sp)
     shape = params.shape
@@ -533,7 +552,7 @@ def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -
     else:
         out = torch.cat([fn(*(c[i : i + block] for c in cols), h, r0) for i in range(0, n, block)])
     out = out.reshape(shape + wl.shape)
-    return out if late_r0 is None else surface_total(late_r0, out)
+    return (out if late_r0 is None else surface_total(late_r0, out)).to(out_dtype)
 
 
 def subsurface_reflectance(params: SkinParams, wavelengths, *, compile: bool = False) -> torch.Tensor:
@@ -611,15 +630,20 @@ def diffuse_reflectance(
     energy-conserving. See ``optics.skin_diffuse``.
     ``angular="exact"`` (default) uses the closed form in R0; ``"polynomial"`` the thesis's per-band fit of
     ρ_d against R0 (Fig 18). ``theta_i`` (rad) and ``rho0`` broadcast with ``P + (W,)``.
+    ``theta_i`` must lie in [0, π/2] and ``rho0`` in [0, 1]. Half-precision skins are evaluated in float32.
     """
     surface_front(surface)  # validates
     if angular not in ("exact", "polynomial"):
         raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+    params, out_dtype = _working(params)
+    theta = as_tensor(theta_i, dtype=params.dtype, device=params.device)
+    rho0 = as_tensor(rho0, dtype=params.dtype, device=params.device)
+    _check_angles(theta, rho0)
     R_sub = subsurface_reflectance(params, wavelengths)
-    r0 = schlick(as_tensor(rho0, like=R_sub), as_tensor(theta_i, like=R_sub))
+    r0 = schlick_cos(rho0, torch.cos(theta).clamp(0.0, 1.0))  # a float32 π/2 rounds above π/2
     if angular == "exact":
-        return diffuse_from_subsurface(R_sub, r0, surface)
-    return polyval(fit_r0_polynomial(R_sub, degree, surface=surface), r0)
+        return diffuse_from_subsurface(R_sub, r0, surface).to(out_dtype)
+    return polyval(fit_r0_polynomial(R_sub, degree, surface=surface), r0).to(out_dtype)
 
 
 def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular: str = "exact", *,
@@ -627,20 +651,39 @@ def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular
     """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i`` (rad).
 
     At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that set the rules-detector box.
+    ``theta_i`` must lie in [0, π/2] and ``rho0`` in [0, 1]. Half-precision skins are evaluated in float32.
     """
     if angular not in ("exact", "polynomial"):
         raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
+    params, out_dtype = _working(params)
     wl = as_tensor(wavelengths, dtype=params.dtype, device=params.device)
-    r0 = schlick(as_tensor(rho0, like=wl), as_tensor(theta_i, like=wl))
+    theta, rho0 = as_tensor(theta_i, like=wl), as_tensor(rho0, like=wl)
+    _check_angles(theta, rho0)
+    r0 = schlick_cos(rho0, torch.cos(theta).clamp(0.0, 1.0))  # a float32 π/2 rounds above π/2
     if angular == "exact":
-        return _evaluate(params, wl, r0, compile)
+        return _evaluate(params, wl, r0, compile).to(out_dtype)
     R_sub = subsurface_reflectance(params, wl, compile=compile)
-    return r0 + polyval(fit_r0_polynomial(R_sub), r0)
+    return (r0 + polyval(fit_r0_polynomial(R_sub), r0)).to(out_dtype)
 
 
 def wavelength_grid(start: float = 400.0, stop: float = 1700.0, step: float = 5.0, dtype=None, device=None):
-    """An inclusive wavelength grid in nm."""
+    """An inclusive wavelength grid in nm, of at most ``bands.MAX_GRID_POINTS`` wavelengths (checked before
+    anything is allocated)."""
+    vals = []
+    for name, v in (("start", start), ("stop", stop), ("step", step)):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            f = math.nan
+        if isinstance(v, bool) or not math.isfinite(f):
+            raise ValueError(f"wavelength grid {name} must be a finite number of nm, got {v!r}")
+        vals.append(f)
+    start, stop, step = vals
     if step <= 0 or stop < start:
         raise ValueError(f"need start <= stop and step > 0, got {start}:{stop}:{step}")
-    n = int(math.floor((stop - start) / step + 1e-9)) + 1
+    span = (stop - start) / step
+    if span + 1 > MAX_GRID_POINTS:
+        raise ValueError(f"wavelength grid {start:g}:{stop:g}:{step:g} nm would have {span + 1:.3g} points; at most "
+                         f"{MAX_GRID_POINTS} (use a larger step)")
+    n = int(math.floor(span + 1e-9)) + 1
     return start + step * torch.arange(n, dtype=dtype or torch.get_default_dtype(), device=device)

@@ -85,12 +85,26 @@ def default_config() -> dict:
     return {s: {k: copy.deepcopy(v[0]) for k, v in keys.items()} for s, keys in SCHEMA.items()}
 
 
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _refuse_non_finite(name: str, value) -> None:
+    """``ValueError`` naming ``section.key`` if ``value`` is, or holds, a NaN or infinite number (TOML has
+    ``nan`` and ``inf`` literals; every comparison with NaN is false, so a range check alone lets it through)."""
+    items = value if isinstance(value, (list, tuple)) else [value]
+    for x in items:
+        if _is_number(x) and not math.isfinite(x):
+            raise ValueError(f"{name} must hold finite numbers, got {value!r}")
+
+
 def _check(section: str, key: str, value, domain):
     name = f"{section}.{key}"
+    _refuse_non_finite(name, value)
     if isinstance(domain, tuple) and len(domain) == 2 and all(isinstance(x, (int, float)) for x in domain):
         lo_d, hi_d = domain
         if isinstance(value, (list, tuple)):
-            if len(value) != 2 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value):
+            if len(value) != 2 or not all(_is_number(x) for x in value):
                 raise ValueError(f"{name} must be [min, max], got {value!r}")
             lo, hi = float(value[0]), float(value[1])
             if lo > hi:

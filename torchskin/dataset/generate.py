@@ -270,11 +270,25 @@ def shard_name(k: int) -> str:
 
 
 def write_images(out_dir: Path, k: int, cubes: list) -> dict:
-    """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images-NNNNN.npy``."""
+    """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images/images-NNNNN.npy``
+    (a subfolder, so that Parquet readers of the dataset folder see only shards)."""
     arr = np.stack(cubes)
-    path = out_dir / f"images-{k:05d}.npy"
+    (out_dir / IMAGES_DIR).mkdir(exist_ok=True)
+    path = out_dir / IMAGES_DIR / f"images-{k:05d}.npy"
     save_npy(path, arr, suffix=".tmp")
-    return {"name": path.name, "shape": list(arr.shape), "sha256": sha256_file(path), "bytes": path.stat().st_size}
+    return {"name": f"{IMAGES_DIR}/{path.name}", "shape": list(arr.shape), "sha256": sha256_file(path),
+            "bytes": path.stat().st_size}
+
+
+IMAGES_DIR = "images"  # --images cubes live here, out of the way of Parquet readers of the dataset folder
+
+
+def _dataset_files(out: Path) -> list[Path]:
+    """The files of a dataset folder and of its images subfolder."""
+    files = [p for p in out.iterdir() if p.is_file()]
+    if (out / IMAGES_DIR).is_dir():
+        files += [p for p in (out / IMAGES_DIR).iterdir() if p.is_file()]
+    return files
 
 
 def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
@@ -332,8 +346,10 @@ def _intact(out: Path, entry: dict) -> bool:
 
 
 def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
+    per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
     return {"schema_version": SCHEMA_VERSION, "package_version": __version__, "config": cfg, "master_seed": seed,
-            "configs": n_configs, "groups": n_groups, "n_shards": n_shards, "images": images,
+            "configs": n_groups * per_group, "requested_configs": n_configs, "groups": n_groups,
+            "n_shards": n_shards, "images": images,
             "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
             "shards": [done[k] for k in sorted(done)]}
 
@@ -357,7 +373,8 @@ def verify(out_dir) -> dict:
                 missing.append(e["name"])
             elif not _intact(out, e):
                 corrupted.append(e["name"])
-    partial = sorted(p.name for p in out.iterdir() if p.name.startswith((".shard-", ".images-")) or p.name.endswith(".tmp"))
+    partial = sorted(str(p.relative_to(out)) for p in _dataset_files(out)
+                     if p.name.startswith((".shard-", ".images-")) or p.name.endswith(".tmp"))
     return {"ok": not (missing or corrupted or partial), "shards": man["n_shards"], "missing": missing,
             "corrupted": corrupted, "partial": partial,
             "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
@@ -388,24 +405,42 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = Fa
         raise ValueError(f"output folder {str(out)!r} is not empty: pass --resume to continue or --overwrite")
     done: dict[int, dict] = {}
     if existing and overwrite and not resume:
-        for p in existing:
+        for p in _dataset_files(out):
             if p.name == MANIFEST or p.name.startswith(("shard-", ".shard-", "images-", ".images-")):
                 p.unlink()
+        if (out / IMAGES_DIR).is_dir() and not any((out / IMAGES_DIR).iterdir()):
+            (out / IMAGES_DIR).rmdir()
     if existing and resume and (out / MANIFEST).is_file():
         old = json.loads((out / MANIFEST).read_text())
-        if old.get("config") != cfg or old.get("master_seed") != seed or old.get("configs") != n_configs:
+        if (old.get("config") != cfg or old.get("master_seed") != seed
+                or old.get("requested_configs", old.get("configs")) != n_configs):
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
         if bool(old.get("images")) != images:
             raise ValueError("--resume needs the same --images setting as the interrupted run")
         for s in old["shards"]:
             if all(_intact(out, e) for e in (s, s.get("images")) if e):
                 done[int(s["name"][6:11])] = s
-    for p in (out.iterdir() if out.is_dir() else []):
+    for p in (_dataset_files(out) if out.is_dir() else []):
         if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
+    created = not out.exists()
+    had_manifest = (out / MANIFEST).exists()  # else a failure before the first shard leaves the folder as it was
     out.mkdir(parents=True, exist_ok=True)
     if not os.access(out, os.W_OK):
         raise ValueError(f"output folder {str(out)!r} is not writable")
+    try:
+        return _generate_into(out, cfg, n_configs, seed, n_groups, n_shards, done, quiet, device, backend, address,
+                              workers, images)
+    except BaseException:
+        if not had_manifest and not done:  # no shard finished: remove the manifest (and the folder we made)
+            (out / MANIFEST).unlink(missing_ok=True)
+            if created and not any(out.iterdir()):
+                out.rmdir()
+        raise
+
+
+def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, quiet, device, backend, address,
+                   workers, images) -> dict:
     write_text(out / MANIFEST, json.dumps(_manifest(cfg, seed, n_configs, n_groups, n_shards, done, images),
                                           indent=1))
     from tqdm import tqdm

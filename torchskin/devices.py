@@ -1,0 +1,36 @@
+"""Devices named on the command line (``--device``): check them before any work, with a message that says which
+devices this machine has."""
+
+from __future__ import annotations
+
+import torch
+
+
+def available_devices() -> list[str]:
+    """The torch devices this machine can use: "cpu", then "cuda:0".. and "mps" when present."""
+    out = ["cpu"]
+    if torch.cuda.is_available():
+        out += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        out.append("mps")
+    return out
+
+
+def check_device(name, option: str = "--device") -> torch.device:
+    """``torch.device(name)`` if this machine has it, else ``ValueError`` naming the option and the devices
+    that exist (a bare "cuda" means "cuda:0")."""
+    have = available_devices()
+    try:
+        dev = torch.device(str(name))
+    except (RuntimeError, ValueError):
+        raise ValueError(f"{option} {name!r} is not a device name; this machine has {', '.join(have)}") from None
+    if dev.type == "cpu":
+        return dev
+    label = f"{dev.type}:{dev.index or 0}" if dev.type == "cuda" else dev.type
+    if label not in have:
+        raise ValueError(f"{option} {name!r} is not available on this machine; it has {', '.join(have)}")
+    return dev
+
+
+__all__ = ["available_devices", "check_device"]

@@ -1,0 +1,148 @@
+"""One error path for every ``torchskin`` command (torch-free: the onboard commands use it too).
+
+Every command runs inside ``run_command``: bad input (``ValueError``, argparse usage) prints one line,
+``torchskin <command>: error: <what, which file or parameter, what was expected>``, and exits with status 2;
+a failure while working (a full disk, a permission refused while writing, an unexpected exception) prints one
+line the same way and exits with status 1; never a traceback unless ``--debug`` (or ``TORCHSKIN_DEBUG=1``) asks
+for it. Output paths are checked before any work (``check_output_file``, ``check_output_folder``), so a failed
+command leaves its output location as it found it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+EXIT_USAGE = 2
+EXIT_FAILURE = 1
+
+
+class Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose usage errors are one line, ``<prog>: error: <message> (see <prog> --help)``,
+    with exit status 2 (argparse prints the whole usage block first)."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def one_line(e: BaseException) -> str:
+    """The exception's message on one line (at most 600 characters)."""
+    text = " ".join(str(e).split()) or type(e).__name__
+    return text if len(text) <= 600 else text[:597] + "..."
+
+
+def _describe_os_error(e: OSError) -> str:
+    what = e.strerror or one_line(e)
+    return f"{what}: {e.filename!r}" if e.filename else what
+
+
+def run_command(name: str, fn, debug: bool = False) -> int:
+    """Run ``fn()`` (returning an exit status) with the error path described above."""
+    debug = debug or os.environ.get("TORCHSKIN_DEBUG", "") not in ("", "0")
+    try:
+        return int(fn() or 0)
+    except SystemExit as e:  # argparse (--help, usage errors: already printed): its status as the return value
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else EXIT_USAGE)
+    except KeyboardInterrupt:
+        print(f"torchskin {name}: interrupted", file=sys.stderr)
+        return 130
+    except ValueError as e:
+        if debug:
+            raise
+        print(f"torchskin {name}: error: {one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        if debug:
+            raise
+        print(f"torchskin {name}: error: out of memory (reduce the resolution, the batch or the number of "
+              "configurations)", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as e:
+        if debug:
+            raise
+        print(f"torchskin {name}: error: {_describe_os_error(e)}", file=sys.stderr)
+        return EXIT_FAILURE
+    except Exception as e:  # anything unforeseen: still one line, and the way to the traceback
+        if debug:
+            raise
+        print(f"torchskin {name}: error: unexpected {type(e).__name__}: {one_line(e)} (run with --debug for the "
+              "traceback)", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+def _writable_dir(d: Path, option: str, what: str) -> None:
+    if not d.exists():
+        raise ValueError(f"{option} {what}: folder {str(d)!r} does not exist")
+    if not d.is_dir():
+        raise ValueError(f"{option} {what}: {str(d)!r} is a file, not a folder")
+    if not os.access(d, os.W_OK | os.X_OK) or not _can_create_in(d):
+        raise ValueError(f"{option} {what}: folder {str(d)!r} is not writable")
+
+
+def _can_create_in(d: Path) -> bool:
+    """Whether a file can really be created in ``d`` (a probe, removed at once: permission bits do not tell for
+    root, read-only mounts or pseudo file systems)."""
+    import tempfile
+
+    try:
+        with tempfile.NamedTemporaryFile(dir=d, prefix=".torchskin-probe-"):
+            return True
+    except OSError:
+        return False
+
+
+def check_output_file(path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
+    """Check before any work that ``path`` can be written as a file: not an existing folder, its folder exists
+    and is writable, and (when given) it ends in one of ``suffixes``. Returns it as a Path."""
+    if path is None or str(path).strip() == "":
+        raise ValueError(f"{option} needs a file path")
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{option} {str(p)!r} is an existing folder; a file path is expected")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {str(p)!r} must end in {' or '.join(suffixes)}")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"{option} {str(p)!r} exists and is not writable")
+    _writable_dir(p.parent if str(p.parent) else Path("."), option, str(p))
+    return p
+
+
+def check_output_folder(path, option: str) -> Path:
+    """Check before any work that ``path`` can be (or is) a writable folder: an existing folder, or a new one
+    whose nearest existing ancestor is a writable folder (not a file). Nothing is created here."""
+    if path is None or str(path).strip() == "":
+        raise ValueError(f"{option} needs a folder path")
+    p = Path(path)
+    if p.exists():
+        if not p.is_dir():
+            raise ValueError(f"{option} {str(p)!r} is an existing file; a folder is expected")
+        if not os.access(p, os.W_OK | os.X_OK) or not _can_create_in(p):
+            raise ValueError(f"{option} folder {str(p)!r} is not writable")
+        return p
+    q = p.parent
+    while not q.exists() and q != q.parent:
+        q = q.parent
+    if q.exists() and not q.is_dir():
+        raise ValueError(f"{option} {str(p)!r} lies under {str(q)!r}, which is a file")
+    _writable_dir(q, option, str(p))
+    return p
+
+
+def check_input_file(path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
+    """An existing, readable file (ending in one of ``suffixes`` when given)."""
+    p = Path(str(path))
+    if not p.exists():
+        raise ValueError(f"{option} {str(p)!r} does not exist")
+    if p.is_dir():
+        raise ValueError(f"{option} {str(p)!r} is a folder; a file is expected")
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {str(p)!r} must be a {' or '.join(suffixes)} file")
+    if not os.access(p, os.R_OK):
+        raise ValueError(f"{option} {str(p)!r} is not readable")
+    return p
+
+
+__all__ = ["EXIT_FAILURE", "EXIT_USAGE", "Parser", "check_input_file", "check_output_file", "check_output_folder", "one_line",
+           "run_command"]
