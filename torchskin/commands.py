@@ -434,11 +434,11 @@ def _checkpoint(path, what: str):
 
     from . import boundaries as Bd
     from . import classifier as Cl
-    from .evaluate import _load_checkpoint
+    from .evaluate import load_checkpoint
 
     if not Path(path).is_file():
         raise ValueError(f"{what} {str(path)!r} does not exist")
-    ck = _load_checkpoint(path)
+    ck = load_checkpoint(path)
     try:
         model = Cl.load(path) if ck.get("kind") == "classifier" else Bd.load(path)
     except (KeyError, RuntimeError, TypeError) as e:

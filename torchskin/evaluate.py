@@ -83,7 +83,7 @@ def load_candidate(spec) -> Candidate:
         b = Boundaries(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
         return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
-    ck = _load_checkpoint(p)
+    ck = load_checkpoint(p)
     if ck.get("kind") == "classifier":
         from .classifier import load as load_classifier
 
@@ -97,7 +97,7 @@ def load_candidate(spec) -> Candidate:
     return Candidate(name, "boxes", list(m.features), _box_decide(boxes_of), boxes_of, p, ck.get("meta", {}))
 
 
-def _load_checkpoint(path) -> dict:
+def load_checkpoint(path) -> dict:
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for junk files
