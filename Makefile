@@ -42,8 +42,10 @@ demo: setup
 	$(PY) scripts/pipeline_export.py --work $(OUT)/pipeline --exports $(EXPORTS)
 	$(PY) scripts/pipeline_verify.py --exports $(EXPORTS)
 
+# ruff, then mypy (its settings: [tool.mypy] in pyproject.toml; cache in .mypy_cache)
 lint: setup
-	$(VENV)/bin/ruff check torchskin tests scripts
+	$(VENV)/bin/ruff check torchskin tests scripts examples
+	$(VENV)/bin/mypy
 
 test: lint
 	@$(PY) -m pytest -q; rc=$$?; \
@@ -53,4 +55,4 @@ bench: setup
 	$(VENV)/bin/torchskin bench
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache

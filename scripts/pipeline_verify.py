@@ -31,9 +31,8 @@ def run(argv=None) -> int:
 
     from torchskin import boundaries as Bd
     from torchskin import classifier as Cl
-    from torchskin.export import ClassifierDetector
-    from torchskin.export import Detector as TorchDetector
-    from torchskin.onboard import Boundaries, Detector
+    from torchskin.export import BoxDetector, ClassifierDetector
+    from torchskin.onboard import Boundaries, OnboardDetector
 
     out = Path(a.exports)
     missing = [f for f in FILES if not (out / f).is_file()]
@@ -71,13 +70,13 @@ def run(argv=None) -> int:
     check(det_meta.get("detector_model") == sel["detector"] and src.is_file(),
           f"detector.onnx made from {sel['detector']} (selection.json)")
     ck = torch.load(src, map_location="cpu", weights_only=True)
-    reference = ClassifierDetector(Cl.load(src)) if ck.get("kind") == "classifier" else TorchDetector(Bd.load(src))
+    reference = ClassifierDetector(Cl.load(src)) if ck.get("kind") == "classifier" else BoxDetector(Bd.load(src))
     rng = np.random.default_rng(0)
     skin = np.array([0.30, 0.55, 0.55, 0.07], dtype=np.float32)[:, None, None]
     cube = (rng.random((2, 4, 256, 256)) * 0.6).astype(np.float32)
     cube[:, :, 64:192, 64:192] = skin * (0.8 + 0.4 * rng.random((2, 1, 128, 128))).astype(np.float32)
     c2 = cfg[:2].numpy()
-    res = Detector(out / "detector.onnx")(cube, c2, min_reflectance=0.0)
+    res = OnboardDetector(out / "detector.onnx")(cube, c2, min_reflectance=0.0)
     with torch.no_grad():
         mt, st = reference(torch.from_numpy(cube), torch.from_numpy(c2))
     serr = float(np.abs(res["score"] - st.numpy()).max())

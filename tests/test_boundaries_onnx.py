@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from torchskin import boundaries as Bd
-from torchskin.export import Detector, export
+from torchskin.export import BoxDetector, export
+
+pytestmark = pytest.mark.slow  # most tests train boundaries or share the module fixture that does
 
 
 def synthetic(n=4000, seed=0):
@@ -27,7 +29,7 @@ def trained():
     return X, Y, Bd.train_quantiles(X, Y, q=0.05, steps=1500)
 
 
-def test_learned_boxes_are_calibrated_conditional_quantiles(trained):
+def test_learned_boxes_are_accurate_conditional_quantiles(trained):
     X, Y, res = trained
     Xt, Yt = synthetic(20000, seed=1)
     with torch.no_grad():
@@ -64,7 +66,7 @@ def test_onnx_matches_torch_and_runs_without_torch(trained, tmp_path):
     cube = (torch.rand(3, 4, 17, 23, generator=g) * 0.6 + 0.02).float()
     cfg = X[:3].float()
     with torch.no_grad():
-        mask_t, score_t = Detector(res.model)(cube, cfg)
+        mask_t, score_t = BoxDetector(res.model)(cube, cfg)
         boxes_t = res.model(X[:200])
     np.save(tmp_path / "cube.npy", cube.numpy())
     np.save(tmp_path / "cfg.npy", cfg.numpy())
@@ -73,8 +75,8 @@ def test_onnx_matches_torch_and_runs_without_torch(trained, tmp_path):
 import sys, json
 sys.modules["torch"] = None  # importing torch must fail here
 import numpy as np
-from torchskin.onboard import Boundaries, Detector
-d = Detector({paths['detector']!r}); b = Boundaries({paths['boundaries']!r})
+from torchskin.onboard import Boundaries, OnboardDetector
+d = OnboardDetector({paths['detector']!r}); b = Boundaries({paths['boundaries']!r})
 out = d(np.load({str(tmp_path / 'cube.npy')!r}), np.load({str(tmp_path / 'cfg.npy')!r}))
 np.save({str(tmp_path / 'mask.npy')!r}, out["mask"]); np.save({str(tmp_path / 'score.npy')!r}, out["score"])
 np.save({str(tmp_path / 'boxes.npy')!r}, b(np.load({str(tmp_path / 'x.npy')!r}))["boxes"])
@@ -93,7 +95,7 @@ print(json.dumps({{"torch_loaded": "torch" in sys.modules and sys.modules["torch
 
 
 def test_onboard_rejects_bad_input_and_flags_out_of_domain(trained, tmp_path):
-    from torchskin.onboard import Detector as OnboardDetector
+    from torchskin.onboard import OnboardDetector
 
     _, _, res = trained
     paths = export(res.model, tmp_path)
@@ -118,11 +120,11 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     from torchskin.cli import main
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
-    from torchskin.scene import sphere_mesh
+    from torchskin.render.meshes import sphere_mesh, write_obj
 
     v, f = sphere_mesh(0.35, 3)
     obj = tmp_path / "head.obj"
-    obj.write_text("".join(f"v {a} {b} {c + 0.9}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    write_obj(obj, v + [0.0, 0.0, 0.9], f)
     cfg = resolve_config({"camera": {"width": 48, "height": 48, "range_m": [5.0, 20.0]}, "sun": {"per_pose": 4},
                           "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]}, "confusers": {"count": [0, 0]},
                           "sampling": {"groups_per_shard": 2, "pixels_per_class": 32}})
@@ -161,12 +163,12 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     assert clipped["clipped_values"] == [12] and clipped["skin_pixels"] == out["skin_pixels"] - 3  # 3 black pixels
 
 
-def test_false_alarm_calibration_and_evaluation(tmp_path, trained, capsys):
+def test_false_alarm_tuning_and_evaluation(tmp_path, trained, capsys):
     X, Y, res = trained
     model = res.model
     pts = torch.tensor([[-0.30, 0.70], [-0.25, 0.72], [0.4, 0.1]])  # two confusers inside typical boxes
     before = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
-    scale = Bd.calibrate_false_alarms(model, X[:200], pts, budget=0.0)
+    scale = Bd.tune_false_alarms(model, X[:200], pts, budget=0.0)
     after = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
     assert before > 0 and after == 0.0 and 0.0 <= scale < 1.0
     model.scale.fill_(1.0)
@@ -254,11 +256,11 @@ def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
     with torch.no_grad():
         pd = float(Bd.soft_inside(res.model(Xt), Yt, 1e-9).mean())
         pd_flat = float(Bd.soft_inside(flat.model(Xt), Yt, 1e-9).mean())
-        grid = Bd.calibration_configs(res.model, X, grid=12)
+        grid = Bd.tuning_configs(res.model, X, grid=12)
         boxes = res.model(grid)
-    # no confuser within the margin of any box over the whole training domain (no calibration needed)
+    # no confuser within the margin of any box over the whole training domain (no tuning needed)
     assert float(Bd.margin_violation(boxes, C, 0.0).max()) == 0.0
-    assert Bd.calibrate_false_alarms(res.model, grid, C, budget=0.0) == 1.0
+    assert Bd.tune_false_alarms(res.model, grid, C, budget=0.0) == 1.0
     # the configuration-dependent box covers the walk; one constant box cannot without a confuser inside
     assert pd > 0.95 and pd_flat < 0.8, (pd, pd_flat)
     assert bool((boxes[:, 1] > boxes[:, 0]).all() and (boxes[:, 3] > boxes[:, 2]).all())
@@ -290,18 +292,18 @@ def test_coverage_training_is_deterministic():
 
 
 def test_detector_edge_forms_equal_the_index_rules():
-    from torchskin.detect import indices
-
+    """The division-free torch reference of detector.onnx (``BoxDetector``: edge forms) decides as the index rules
+    (``ratio_indices`` + ``inside_box``) but on the edges, and its score is the weighted index margin."""
     g = torch.Generator().manual_seed(7)
     X, _ = synthetic(8, seed=3)
     model = Bd.BoundaryModel()
     cube = torch.rand(8, 4, 32, 32, generator=g) * 0.7
     cube[0, :, 0, 0] = 0.0  # undefined indices: never skin
     with torch.no_grad():
-        mask, score = Detector(model)(cube, X)
+        mask, score = BoxDetector(model)(cube, X)
         box = model(X)[:, :, None, None]
-    ndgri, ndsi = indices(cube.movedim(1, -1))
-    inside = (ndgri > box[:, 0]) & (ndgri < box[:, 1]) & (ndsi > box[:, 2]) & (ndsi < box[:, 3])
+    ndgri, ndsi, _ = Bd.ratio_indices(cube.movedim(1, -1))
+    inside = Bd.inside_box(box, ndgri, ndsi)
     margin = torch.minimum(torch.minimum(ndgri - box[:, 0], box[:, 1] - ndgri),
                            torch.minimum(ndsi - box[:, 2], box[:, 3] - ndsi))
     differ = mask != inside
@@ -315,7 +317,7 @@ def test_detector_edge_forms_equal_the_index_rules():
 
 
 def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
-    from torchskin.onboard import Detector as OnboardDetector
+    from torchskin.onboard import OnboardDetector
 
     X, _, res = trained
     paths = export(res.model, tmp_path)
@@ -328,7 +330,7 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
     # Gemm may round the last bit differently for the two batch sizes
     assert np.array_equal(whole["mask"], tiled["mask"]) and np.allclose(whole["score"], tiled["score"], rtol=0, atol=1e-6)
     with torch.no_grad():
-        mask_t, score_t = Detector(res.model)(torch.from_numpy(cube), torch.from_numpy(cfg).float())
+        mask_t, score_t = BoxDetector(res.model)(torch.from_numpy(cube), torch.from_numpy(cfg).float())
     assert np.abs(tiled["score"] - score_t.numpy()).max() < 1e-5 and tiled["mask"].any()
     det = OnboardDetector(paths["detector"], threads=2, tile=1024)
     out = (np.zeros((2, 96, 70), dtype=bool), np.zeros((2, 96, 70), dtype=np.float32))
@@ -355,7 +357,7 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
 def test_onboard_clips_negative_noise_only_when_asked(trained, tmp_path, tile):
     """negative="clip": the mask and score equal those of the cube with negatives set to 0, the count of
     clipped values per frame comes back, the caller's cube is untouched and NaN is still refused."""
-    from torchskin.onboard import Detector as OnboardDetector
+    from torchskin.onboard import OnboardDetector
 
     X, _, res = trained
     paths = export(res.model, tmp_path)
@@ -416,7 +418,7 @@ def test_ndvn_rule_in_the_detector_in_training_and_in_the_budget():
     # the detector's fifth edge form is the NDVN margin times g + r + n + s
     cube = torch.rand(4, 4, 16, 16, generator=g) * 0.7
     with torch.no_grad():
-        mask, score = Detector(model)(cube, X[:4])
+        mask, score = BoxDetector(model)(cube, X[:4])
         box = model(X[:4])[:, :, None, None]
     ng, ns, nv = Bd.ratio_indices(cube.movedim(1, -1))
     inside = Bd.inside_box(box, ng, ns, nv)

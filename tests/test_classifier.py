@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from torchskin import classifier as Cl
-from torchskin.boundaries import calibration_configs
+from torchskin.boundaries import tuning_configs
+
+pytestmark = pytest.mark.slow  # the module fixture trains the classifier
 
 
 def synthetic(n=3000, seed=0):
@@ -26,7 +28,7 @@ def synthetic(n=3000, seed=0):
 @pytest.fixture(scope="module")
 def trained():
     X, R, label, sunlit = synthetic()
-    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, max_calibration_configs=50)
+    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, max_tuning_configs=50)
     return X, R, label, model, info
 
 
@@ -43,9 +45,9 @@ def test_classifier_separates_and_holds_the_budget(trained):
     keep = model.decide(R, X)
     assert float(keep[label].float().mean()) > 0.9 and float(keep[~label].float().mean()) < 0.01
     assert info["train_coverage"] == pytest.approx(float(keep[label].float().mean()))
-    # the calibrated threshold: at most budget x m of the train spectra pass in any calibration configuration
+    # the tuned threshold: at most budget x m of the train spectra pass in any tuning configuration
     C = Cl._earthlib_reflectance("train")
-    cfg = calibration_configs(model, X[:1])[1:][::37]  # a subset of the lattice the threshold was set on
+    cfg = tuning_configs(model, X[:1])[1:][::37]  # a subset of the lattice the threshold was set on
     m = C.shape[0]
     hits = model.decide(C.repeat(len(cfg), 1), cfg.repeat_interleave(m, 0)).reshape(len(cfg), m).sum(1)
     assert int(hits.max()) <= int(np.floor(1e-3 * m)), hits.max()
@@ -57,7 +59,7 @@ def test_classifier_separates_and_holds_the_budget(trained):
 
 def test_checkpoint_round_trip_and_onnx_detector(trained, tmp_path):
     from torchskin.export import ClassifierDetector, detector_graph, metadata, write_graphs
-    from torchskin.onboard import Detector
+    from torchskin.onboard import OnboardDetector
 
     X, R, _, model, info = trained
     Cl.save(model, tmp_path / "c.pt", info)
@@ -73,7 +75,7 @@ def test_checkpoint_round_trip_and_onnx_detector(trained, tmp_path):
     cube = (rng.random((2, 4, 24, 30)) * 0.7).astype(np.float32)
     cube[:, :, 5:15, 5:15] = np.array([0.3, 0.6, 0.53, 0.08], dtype=np.float32)[:, None, None]
     cfg = X[:2].numpy()
-    out = Detector(paths["detector"], tile=1024)(cube, cfg, min_reflectance=0.0)
+    out = OnboardDetector(paths["detector"], tile=1024)(cube, cfg, min_reflectance=0.0)
     with torch.no_grad():
         mt, st = ClassifierDetector(model)(torch.from_numpy(cube), torch.from_numpy(cfg))
     assert np.abs(out["score"] - st.numpy()).max() < 1e-4

@@ -53,6 +53,7 @@ def test_spectra_sample_matches_library_sampling(capsys):
     assert [s["params"]["melanosome"] for s in out["skins"]] == pytest.approx(skins.melanosome.tolist())
 
 
+@pytest.mark.slow
 def test_spectra_plot_writes_png(tmp_path, capsys):
     png = tmp_path / "p.png"
     assert main(["spectra", "--all-presets", "--plot", str(png)]) == 0
@@ -79,6 +80,7 @@ def test_plot_into_missing_folder_fails_cleanly(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_console_script_runs_bench_json():
     r = subprocess.run([sys.executable, "-m", "torchskin.cli", "bench", "--only", "km", "--json"],
                        capture_output=True, text=True, timeout=300)

@@ -57,8 +57,10 @@ def test_register_table_replaces_a_table():
         data.register_table("collagen_approx", [400, 1700], [1.0, 1.0])
         torch.testing.assert_close(data.collagen(torch.tensor([600.0], dtype=DT)), torch.ones(1, dtype=DT))
     finally:
-        data._TABLES.pop("collagen_approx")
+        data.unregister_table("collagen_approx")
     torch.testing.assert_close(data.collagen(torch.tensor([600.0], dtype=DT)), before)
+    with pytest.raises(ValueError, match="no registered table 'collagen_approx'"):
+        data.unregister_table("collagen_approx")
 
 
 def test_band_integration_is_a_normalised_average():

@@ -7,6 +7,7 @@ from torchskin import tissue
 from torchskin.dataset import config as C
 
 
+@pytest.mark.slow
 def test_defaults_validate_and_cover_declared_ranges():
     cfg = C.resolve_config({"sun": {"zenith_deg": [10.0, 60.0]}, "sampling": {"groups_per_shard": 2}})
     groups = [C.sample_group(cfg, 7, i) for i in range(400)]
@@ -20,15 +21,16 @@ def test_defaults_validate_and_cover_declared_ranges():
     assert cam.min() >= 0.0 and cam.max() <= 90.0 and cam.max() - cam.min() > 80.0
     rng_m = np.array([g.camera["range_m"] for g in groups])
     assert rng_m.min() >= 5.0 and rng_m.max() <= 100.0
-    types = [s["type"] for g in groups for s in g.skins]
+    types = [t for g in groups for t in g.skin_types]
     assert set(types) == set(tissue.FITZPATRICK_TYPES)
     for g in groups[:50]:
-        for s in g.skins:
-            lo, hi = tissue.FITZPATRICK_RANGES[s["type"]]["melanosome"]
-            assert lo <= s["melanosome"] <= hi
-        assert len(g.suns) == 16 and len(g.skins) == 3 and 0 <= len(g.confusers) <= 3
+        for t, mel in zip(g.skin_types, g.skins.melanosome.tolist()):
+            lo, hi = tissue.FITZPATRICK_RANGES[t]["melanosome"]
+            assert lo <= mel <= hi
+        assert len(g.suns) == 16 and g.skins.shape == (3,) and len(g.skin_types) == 3 and 0 <= len(g.confusers) <= 3
 
 
+@pytest.mark.slow
 def test_confusers_come_from_the_configured_partition_only():
     from torchskin.confusers import partition
 

@@ -13,14 +13,14 @@ import pytest
 from torchskin.cli import main
 from torchskin.dataset.config import resolve_config
 from torchskin.dataset.generate import MANIFEST, generate, verify
-from torchskin.scene import sphere_mesh
+from torchskin.render.meshes import sphere_mesh, write_obj
 
 
 @pytest.fixture(scope="module")
 def subject_obj(tmp_path_factory):
     v, f = sphere_mesh(0.35, 3)
     p = tmp_path_factory.mktemp("mesh") / "head.obj"
-    p.write_text("".join(f"v {a} {b} {c + 0.9}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    write_obj(p, v + [0.0, 0.0, 0.9], f)
     return p
 
 
@@ -37,6 +37,7 @@ def checksums(d):
     return {s["name"]: s["sha256"] for s in json.loads((d / MANIFEST).read_text())["shards"]}
 
 
+@pytest.mark.slow
 def test_same_seed_same_bytes_and_balanced_classes(tmp_path, subject_obj):
     cfg = small_cfg(subject_obj)
     a = generate(cfg, 18, 1, tmp_path / "a", quiet=True)
@@ -62,6 +63,7 @@ def test_same_seed_same_bytes_and_balanced_classes(tmp_path, subject_obj):
     assert all(partition(n) == "train" for n in conf.confuser.unique())
 
 
+@pytest.mark.slow
 def test_verify_and_resume_repair_shards(tmp_path, subject_obj, capsys):
     cfg = small_cfg(subject_obj)
     d = tmp_path / "ds"
@@ -88,6 +90,7 @@ def test_verify_and_resume_repair_shards(tmp_path, subject_obj, capsys):
     assert json.loads(capsys.readouterr().out)["ok"]
 
 
+@pytest.mark.slow
 def test_sigkill_mid_run_then_resume_gives_the_same_dataset(tmp_path, subject_obj):
     cfgfile = tmp_path / "cfg.toml"
     cfgfile.write_text(
@@ -151,6 +154,7 @@ def test_full_disk_stops_with_a_clear_error_and_no_partial_shard(tmp_path, subje
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]  # no manifest, shard or temporary left
 
 
+@pytest.mark.slow
 def test_ray_backend_with_two_workers_matches_local(tmp_path, subject_obj):
     cfg = small_cfg(subject_obj)
     generate(cfg, 24, 9, tmp_path / "local", quiet=True)
@@ -167,6 +171,7 @@ def test_ray_backend_with_two_workers_matches_local(tmp_path, subject_obj):
         ray.shutdown()
 
 
+@pytest.mark.slow
 def test_peak_memory_does_not_grow_with_the_number_of_configurations(tmp_path, subject_obj):
     cfgfile = tmp_path / "cfg.toml"
     cfgfile.write_text(
@@ -185,6 +190,7 @@ def test_peak_memory_does_not_grow_with_the_number_of_configurations(tmp_path, s
     assert peaks[1] < 1.2 * peaks[0], peaks
 
 
+@pytest.mark.slow
 def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj):
     import numpy as np
     import pandas as pd
@@ -215,8 +221,7 @@ def test_elm_validity_follows_panel_sunlight(tmp_path, subject_obj):
 
     from torchskin.dataset.config import sample_group
     from torchskin.dataset.generate import group_scene, panels_sunlit
-    from torchskin.raycast import Raycaster
-    from torchskin.render import build_meshes
+    from torchskin.render.raycast import Raycaster
 
     g = sample_group(small_cfg(subject_obj, camera={"zenith_deg": [30.0, 30.0]}), 0, 0)
     sc = group_scene(g)
@@ -227,8 +232,7 @@ def test_elm_validity_follows_panel_sunlight(tmp_path, subject_obj):
                      [*(math.sin(math.radians(60)) * np.array([math.cos(az), math.sin(az)])), 0.5],
                      [*(-side[:2] * math.sin(zen)), math.cos(zen)],             # grazing, behind the subject
                      [0.6, 0.0, -0.8]])                                         # below the horizon
-    meshes, names = build_meshes(sc)
-    gb = Raycaster(meshes, names).gbuffer(sc.cameras, dirs)
+    gb = Raycaster.from_scene(sc).gbuffer(sc.cameras, dirs)
     ok = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32))
     assert ok.tolist() == [True, True, False, False]
 
@@ -246,8 +250,8 @@ def test_panels_stay_visible_down_to_a_horizontal_camera(subject_obj, camera_zen
 
     from torchskin.dataset.config import sample_group
     from torchskin.dataset.generate import PANEL_MAX_VIEW_DEG, group_scene, panel_tilt_deg, panels_sunlit
-    from torchskin.raycast import Raycaster
-    from torchskin.render import build_meshes, panel_pixels
+    from torchskin.render.elm import panel_pixels
+    from torchskin.render.raycast import Raycaster
 
     g = sample_group(small_cfg(subject_obj, camera={"zenith_deg": [camera_zenith] * 2, "range_m": [60.0, 60.0],
                                                     "width": 96, "height": 96}), 0, 0)
@@ -257,8 +261,7 @@ def test_panels_stay_visible_down_to_a_horizontal_camera(subject_obj, camera_zen
     behind_camera = [*(math.sin(math.radians(40.0)) * to_cam), math.cos(math.radians(40.0))]
     low_behind_panels = [*(-math.sin(math.radians(85.0)) * to_cam), math.cos(math.radians(85.0))]
     dirs = np.array([behind_camera, low_behind_panels])
-    meshes, names = build_meshes(sc)
-    gb = Raycaster(meshes, names).gbuffer(sc.cameras, dirs)
+    gb = Raycaster.from_scene(sc).gbuffer(sc.cameras, dirs)
     view_deg = []
     for per_cam in panel_pixels(gb, list(sc.panels)):
         ix = per_cam[0]
@@ -272,6 +275,7 @@ def test_panels_stay_visible_down_to_a_horizontal_camera(subject_obj, camera_zen
     assert ok == [True, camera_zenith <= PANEL_MAX_VIEW_DEG]  # a level panel is lit by any sun above the horizon
 
 
+@pytest.mark.slow
 def test_clothing_is_a_measured_spectrum_of_the_partition():
     """The subject's clothing is an earthlib spectrum from the clothing families of the configured partition,
     recorded per row; its pixels are labelled "clothing" and, being Lambertian, ELM returns that spectrum up to

@@ -5,10 +5,10 @@ import math
 import pytest
 import torch
 
-from torchskin import calibrate as C
 from torchskin import detect as D
 from torchskin import optics as O
 from torchskin.bands import Band
+from torchskin.render import elm as C
 
 DT = torch.float64
 
@@ -66,6 +66,17 @@ def test_bhattacharyya_limits_and_symmetry():
         D.bhattacharyya(torch.zeros(3, 3), torch.ones(3, 3))
 
 
+def elm(L, L1, L2, ref1, ref2):
+    """ELM through ``render.elm``: the line through two panels (signals ``L1``, ``L2``; references ``ref1``, ``ref2``),
+    applied to ``L`` as the renderer applies it (``apply_elm`` on (S, C, H, W, B) frames)."""
+    L, L1, L2, ref1, ref2 = (torch.as_tensor(x, dtype=DT) for x in (L, L1, L2, ref1, ref2))
+    shape = torch.broadcast_shapes(L.shape, L1.shape)
+    frame = L.expand(shape).reshape(1, 1, 1, -1, shape[-1] if len(shape) else 1)
+    panels = torch.stack([L1.reshape(-1), L2.reshape(-1)])[None, None]  # (S, C, P, B)
+    refs = torch.stack([ref1.expand(L1.shape).reshape(-1), ref2.expand(L1.shape).reshape(-1)])[None, None]
+    return C.apply_elm(frame, panels, refs).reshape(shape)
+
+
 def test_elm_recovers_reflectance_of_a_linear_sensor():
     g = torch.Generator().manual_seed(3)
     gain = torch.rand(4, generator=g, dtype=DT) * 100 + 10
@@ -76,7 +87,7 @@ def test_elm_recovers_reflectance_of_a_linear_sensor():
     a, b = C.elm_coefficients(gain * ref1 + offset, gain * ref2 + offset, ref1, ref2)
     torch.testing.assert_close(a, gain)
     torch.testing.assert_close(b, offset)
-    torch.testing.assert_close(C.elm(L, gain * ref1 + offset, gain * ref2 + offset, ref1, ref2), rho)
+    torch.testing.assert_close(elm(L, gain * ref1 + offset, gain * ref2 + offset, ref1, ref2), rho)
     with pytest.raises(ValueError, match="differ"):
         C.elm_coefficients(L[0], L[1], ref1, ref1)
 
@@ -86,7 +97,7 @@ def test_appendix_c_panels_map_middle_panel_to_040():
     a path radiance offset: ELM gives 0.40 for the middle panel."""
     E, tau, La = 1000.0, 0.9, 3.0
     radiance = lambda rho: tau * rho / math.pi * E + La  # noqa: E731 (eq 2.5.1)
-    est = C.elm(radiance(0.40), radiance(0.97), radiance(0.02), 0.97, 0.02)
+    est = elm(radiance(0.40), radiance(0.97), radiance(0.02), 0.97, 0.02)
     assert abs(float(est) - 0.40) < 1e-6
 
 
@@ -102,7 +113,7 @@ def test_brdf_elm_corrects_a_specular_panel_where_dhr_elm_fails():
     f_target = torch.tensor(0.25 / math.pi, dtype=DT)  # a Lambertian target
     L = lambda f: f * E * torch.cos(ti) + 2.0  # noqa: E731
     f1, f2 = panel_brdf(0.97), panel_brdf(0.03)
-    rho_brdf = C.brdf_elm(L(f_target), L(f1), L(f2), f1, f2, f_to_reflectance=math.pi)
-    rho_dhr = C.elm(L(f_target), L(f1), L(f2), 0.97, 0.03)
+    rho_brdf = math.pi * elm(L(f_target), L(f1), L(f2), f1, f2)  # BRDF-ELM: the line through the panels' BRDF
+    rho_dhr = elm(L(f_target), L(f1), L(f2), 0.97, 0.03)
     assert abs(float(rho_brdf) - 0.25) < 1e-12
     assert abs(float(rho_dhr) - 0.25) > 0.01

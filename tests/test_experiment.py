@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from torchskin import experiment
-from torchskin.render import Sensor
-from torchskin.scene import anny_body
+from torchskin.render.meshes import anny_body
+from torchskin.render.sensor import Sensor
+
+pytestmark = [pytest.mark.anny, pytest.mark.slow]  # renders anny subjects
 
 
 @pytest.fixture(scope="module")

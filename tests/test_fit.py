@@ -23,6 +23,7 @@ def round_trip():
     return wl, true, noisy, fit.fit_skin(noisy, wl)
 
 
+@pytest.mark.slow
 def test_skin_round_trip_rmse_and_identifiable_parameters(round_trip):
     wl, true, noisy, res = round_trip
     assert float(res.rmse.max()) <= 0.006
@@ -39,6 +40,7 @@ def test_skin_round_trip_rmse_and_identifiable_parameters(round_trip):
     assert float(rel[ident].max()) <= 0.05
 
 
+@pytest.mark.slow
 def test_skin_fit_bounds_always_hold(round_trip):
     _, _, _, res = round_trip
     for k in fit.NAMES:
@@ -47,6 +49,7 @@ def test_skin_fit_bounds_always_hold(round_trip):
         assert bool(((v >= lo) & (v <= hi)).all()), k
 
 
+@pytest.mark.slow
 def test_visible_only_spectra_leave_nir_parameters_undetermined():
     wl = tissue.wavelength_grid(400, 700, 10, dtype=DT)
     true, _ = tissue.sample(12, 3, dtype=DT)
@@ -86,6 +89,7 @@ def _in_plane(incidences=(0.0, 60.0), step=0.5):
     return ti, t_r, dp
 
 
+@pytest.mark.slow
 def test_brdf_fit_recovers_thesis_parameters_exactly():
     ti, tr, dp = _in_plane()
     s2, r0 = torch.tensor(THESIS["sigma2"], dtype=DT), torch.tensor(THESIS["rho0"], dtype=DT)
@@ -100,6 +104,7 @@ def test_brdf_fit_recovers_thesis_parameters_exactly():
     assert bool(res.converged.all())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("diffuse", [False, True])
 def test_brdf_fit_from_noisy_in_plane_data_within_2_percent(diffuse):
     ti, tr, dp = _in_plane()
@@ -123,6 +128,7 @@ def test_brdf_fit_bad_input():
         fit.fit_brdf(torch.tensor([0.1, 100 * math.pi / 180]), torch.zeros(2), torch.zeros(2), torch.ones(2))
 
 
+@pytest.mark.slow
 def test_cli_fit_skin_and_fit_brdf(tmp_path, capsys):
     wl = tissue.wavelength_grid(450, 1650, 50, dtype=DT)
     R = tissue.total_reflectance(tissue.preset(["I-II", "V-VI"], dtype=DT), wl)

@@ -195,3 +195,44 @@ def test_brdf_zero_below_horizon_and_devices(device):
     ti = torch.tensor([0.3, 1.7], dtype=dt, device=device)
     f = O.combined_brdf(ti, torch.tensor(0.2, dtype=dt, device=device), math.pi, 0.5, 0.02, 0.04)
     assert f.device.type == device.type and float(f[1]) == 0.0 and float(f[0]) > 0
+
+
+def test_local_angles_from_vectors_agree_with_the_cosines_from_angles():
+    """``local_angles`` (unit vectors -> θi, θr, Δφ) and ``cosines_from_angles`` (angles -> cosines) are
+    consistent: cos 2β from the angles is ω_i · ω_r, and the mirror direction has Δφ = π."""
+    g = torch.Generator().manual_seed(3)
+    n = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=DT), dim=-1)
+    s = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=DT), dim=-1)
+    v = torch.nn.functional.normalize(torch.randn(500, 3, generator=g, dtype=DT), dim=-1)
+    ti, tr, dp = O.local_angles(n, s, v)
+    ci, cr, c2b = O.cosines_from_angles(ti, tr, dp)
+    torch.testing.assert_close(ci, (n * s).sum(-1), rtol=0, atol=1e-12)
+    torch.testing.assert_close(cr, (n * v).sum(-1), rtol=0, atol=1e-12)
+    torch.testing.assert_close(c2b, (s * v).sum(-1), rtol=0, atol=1e-12)
+    mirror = 2 * (n * s).sum(-1, keepdim=True) * n - s
+    torch.testing.assert_close(O.local_angles(n, s, mirror)[2], torch.full((500,), math.pi, dtype=DT), rtol=0,
+                               atol=1e-6)
+    torch.testing.assert_close(O.half_angle_cos(c2b), torch.cos(0.5 * torch.acos(c2b)), rtol=0, atol=1e-12)
+
+
+def test_relative_azimuth_on_floats_numpy_and_tensors():
+    """One formula, |φa − φb| folded to [0, 180] degrees, for floats, numpy arrays and tensors alike."""
+    import numpy as np
+
+    from torchskin.angles import relative_azimuth_deg
+
+    a, b = [350.0, 20.0, -90.0, 10.0, 725.0], [10.0, 200.0, 90.0, 10.0, 0.0]
+    want = [20.0, 180.0, 180.0, 0.0, 5.0]
+    assert [relative_azimuth_deg(x, y) for x, y in zip(a, b)] == want
+    assert relative_azimuth_deg(np.array(a), np.array(b)).tolist() == want
+    assert relative_azimuth_deg(torch.tensor(a, dtype=DT), torch.tensor(b, dtype=DT)).tolist() == want
+
+
+def test_shadowed_lobe_takes_a_python_number_sigma2():
+    """``microfacet_brdf_cos(..., shadowing=True)`` with σ² as a Python number equals the tensor form (it raised
+    TypeError in Smith's term before)."""
+    ci, cr, c2b = torch.tensor([0.8, 0.3]), torch.tensor([0.7, 0.9]), torch.tensor([0.5, -0.2])
+    a = O.microfacet_brdf_cos(ci, cr, c2b, 0.1, 0.04, shadowing=True)
+    b = O.microfacet_brdf_cos(ci, cr, c2b, torch.tensor(0.1), 0.04, shadowing=True)
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert bool((a < O.microfacet_brdf_cos(ci, cr, c2b, 0.1, 0.04)).all())  # shadowing only removes light

@@ -52,6 +52,8 @@ def keys(obj) -> set[str]:
     return set()
 
 
+@pytest.mark.anny
+@pytest.mark.slow
 def test_readme_examples_run_and_print_what_the_readme_shows(tmp_path):
     (tmp_path / "exports").symlink_to(ROOT / "exports")
     last: dict[str, list[str]] = {}

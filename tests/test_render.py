@@ -7,8 +7,11 @@ import pytest
 import torch
 
 from torchskin import tissue
-from torchskin.render import Sensor, render
-from torchskin.scene import Camera, Material, MeshSpec, Scene, Sun, direction
+from torchskin.render.light import sun_irradiance
+from torchskin.render.meshes import build_mesh
+from torchskin.render.pipeline import render, render_pixels
+from torchskin.render.scene import Camera, Material, MeshSpec, Scene, Sun, direction
+from torchskin.render.sensor import Sensor
 
 DEG = math.pi / 180
 
@@ -68,7 +71,7 @@ def test_lambertian_sphere_radiance_follows_cosine():
     n_true = gb.position[0][px] - torch.tensor(centre)
     n_true = n_true / n_true.norm(dim=-1, keepdim=True)  # the sphere's own normal at the hit point
     cos_true = n_true @ torch.tensor(sun.direction)
-    E = float(sun.irradiance(torch.tensor([633.0], dtype=torch.float64)))
+    E = float(sun_irradiance(sun, torch.tensor([633.0], dtype=torch.float64)))
     L = res.radiance[0, 0][px][:, 1]
     sel = cos_true > 0.05  # away from the terminator
     rel = (L[sel] / (0.5 / math.pi * E) - cos_true[sel]) / cos_true[sel]
@@ -89,7 +92,7 @@ def test_occluded_surface_keeps_only_the_sky_term():
     lit = ~res.gbuffer.shadow[0, 0] & floor
     assert int(shadow.sum()) > 20 and int(lit.sum()) > 100
     rho = torch.tensor([0.2, 0.37, 0.55, 0.8], dtype=torch.float64)
-    E = torch.stack([sc.suns[0].irradiance(torch.tensor(b, dtype=torch.float64)) for b in (544., 633., 1080., 1580.)])
+    E = torch.stack([sun_irradiance(sc.suns[0], torch.tensor(b, dtype=torch.float64)) for b in (544., 633., 1080., 1580.)])
     sky_only = rho / math.pi * 0.2 * E  # horizontal floor: full sky view
     torch.testing.assert_close(res.radiance[0, 0][shadow], sky_only.expand(int(shadow.sum()), 4), rtol=1e-6, atol=0)
     torch.testing.assert_close(res.radiance[0, 0][lit], (rho / math.pi * 1.2 * E).expand(int(lit.sum()), 4),
@@ -211,15 +214,15 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="at least 1 x 1"):
         Camera(width=0)
     with pytest.raises(ValueError, match="does not exist"):
-        MeshSpec("m", "file", "skin", params={"path": str(tmp_path / "missing.obj")}).build()
+        build_mesh(MeshSpec("m", "file", "skin", params={"path": str(tmp_path / "missing.obj")}))
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing\n")
     with pytest.raises(ValueError, match="no triangles"):
-        MeshSpec("m", "file", "skin", params={"path": str(empty)}).build()
+        build_mesh(MeshSpec("m", "file", "skin", params={"path": str(empty)}))
     broken = tmp_path / "broken.obj"
     broken.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")  # one degenerate triangle
     with pytest.raises(ValueError, match="degenerate"):
-        MeshSpec("m", "file", "skin", params={"path": str(broken)}).build()
+        build_mesh(MeshSpec("m", "file", "skin", params={"path": str(broken)}))
     sc = panel_scene()
     sc.cameras = [Camera(width=32, height=32, zenith_deg=0.0, target=[0.0, 0.0, 20.0], range_m=5.0)]  # sky only
     with pytest.raises(ValueError, match="ELM impossible"):
@@ -229,11 +232,11 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
 
 
 def test_mesh_file_subject_renders(tmp_path):
-    from torchskin.scene import sphere_mesh
+    from torchskin.render.meshes import sphere_mesh, write_obj
 
     v, f = sphere_mesh(0.3, 3)
     path = tmp_path / "ball.obj"
-    path.write_text("".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    write_obj(path, v, f)
     sc = panel_scene(sun_az=10.0, extra=[MeshSpec("scan", "file", "skin", params={"path": str(path)},
                                                   position=[1.0, 0.0, 1.4])])
     res = render(sc, sensor=Sensor(noise=False))
@@ -305,6 +308,7 @@ def test_flat_skin_panel_matches_each_surface_model_closed_form(surface):
         assert float((want - (1 - (rho0 + (1 - rho0) * (1 - cos_b) ** 5)) * sub).min()) > 0.03
 
 
+@pytest.mark.slow
 def test_spectralon_brdf_panel_behaviour():
     """Lambertian at normal incidence; the BRDF seen at θr = 0 drops by the thesis's 4.1 % (VIS) and 7.4 %
     (NIR) at 75° incidence; the lobe takes the diffuse energy, so the DHR stays within 1.5 % of ρ."""
@@ -352,12 +356,13 @@ def test_pixel_subset_render_matches_full_frame_with_ideal_sensor():
     sc.suns = [Sun(zenith_deg=90.0, azimuth_deg=a) for a in (10.0, 40.0)]
     full = render(sc, sensor=Sensor(noise=False, quantize=False, integration_time_s=1e-4))
     idx = full.gbuffer.hit[0].flatten().nonzero().flatten()[::7]
-    sub = render(sc, sensor=Sensor(noise=False, quantize=False, integration_time_s=1e-4), pixels=idx)
+    sub = render_pixels(sc, idx, sensor=Sensor(noise=False, quantize=False, integration_time_s=1e-4))
     assert sub.reflectance.shape == (2, 1, 1, len(idx), 4)
     torch.testing.assert_close(sub.reflectance[:, 0, 0], full.reflectance[:, 0].flatten(1, 2)[:, idx])
     torch.testing.assert_close(sub.ndsi[:, 0, 0], full.ndsi[:, 0].flatten(1)[:, idx], equal_nan=True)
 
 
+@pytest.mark.slow
 def test_several_skins_in_one_batch_match_one_render_per_skin():
     sc = panel_scene(sun_az=25.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
                                                  position=[1.0, 0.0, 1.4])])
@@ -375,7 +380,7 @@ def test_several_skins_in_one_batch_match_one_render_per_skin():
 
 @pytest.mark.parametrize("shape", [(2, 1, 4096, 4), (1, 2, 1001, 4), (3, 1, 50, 3)])
 def test_band_max_equals_amax(shape):
-    from torchskin.render import band_max
+    from torchskin.render.sensor import band_max
 
     x = torch.rand(shape, generator=torch.Generator().manual_seed(sum(shape)))
     assert torch.equal(band_max(x), x.amax(dim=2))
@@ -386,30 +391,30 @@ def test_band_max_equals_amax(shape):
 def test_dense_shading_equals_gathered_shading(skins):
     """The sync-free shading of accelerators (BRDFs evaluated on every pixel, then selected) gives the CPU's
     gathered result: skin glints and Spectralon-BRDF panels under several suns, one or several skins."""
-    from torchskin.raycast import Raycaster
-    from torchskin.render import build_meshes, material_tables, shade, skin_batched_tables
+    from torchskin.render.materials import compile_materials, skin_batch
+    from torchskin.render.raycast import rasterize
+    from torchskin.render.shade import shade
 
     sc = panel_scene(sun_az=25.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
                                                  position=[1.0, 0.0, 1.4])])
     sc.materials["white"] = Material("spectralon", panel="white", brdf=True)
     sc.suns = [Sun(zenith_deg=z, azimuth_deg=a, sky_fraction=0.1) for z, a in ((90.0, 10.0), (50.0, -40.0), (20.0, 70.0))]
-    meshes, names = build_meshes(sc)
-    gb = Raycaster(meshes, names).gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
+    gb = rasterize(sc)
     reps = 1 if skins is None else len(skins)
-    tables = (material_tables(sc, gb.material_names, torch.float64, "cpu") if skins is None
-              else skin_batched_tables(sc, gb.material_names, skins, torch.float64, "cpu"))
-    assert tables.skin_ids == (gb.material_names.index("skin"),)
-    assert tables.panel_brdf_ids == (gb.material_names.index("white"),)
+    tables = compile_materials(sc.materials, sc.bands, sc.suns, gb.material_names, torch.float64,
+                               skins=None if skins is None else skin_batch(skins))
+    assert tables.groups["skin-thesis"].ids == (gb.material_names.index("skin"),)
+    assert tables.groups["spectralon-brdf"].ids == (gb.material_names.index("white"),)
     gb = gb.to(dtype=torch.float64)
     if skins is not None:
         gb.shadow = gb.shadow.repeat(reps, 1, 1, 1)
     dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float64).repeat(reps, 1)
     sky = torch.full((len(dirs),), 0.1, dtype=torch.float64)
     gathered, dense = shade(gb, tables, dirs, sky, dense=False), shade(gb, tables, dirs, sky, dense=True)
-    torch.testing.assert_close(dense["radiance"], gathered["radiance"], rtol=1e-12, atol=0)
-    assert torch.equal(dense["lit"], gathered["lit"])
+    torch.testing.assert_close(dense.radiance, gathered.radiance, rtol=1e-12, atol=0)
+    assert torch.equal(dense.lit, gathered.lit)
     ball = (gb.mesh[0] == gb.mesh_names.index("ball")).flatten()
-    assert ball.sum() > 50 and bool((gathered["radiance"][:, 0].flatten(1, 2)[:, ball] > 0).any())
+    assert ball.sum() > 50 and bool((gathered.radiance[:, 0].flatten(1, 2)[:, ball] > 0).any())
 
 
 def test_sky_background_reads_the_sky_through_elm():

@@ -89,6 +89,7 @@ def test_broadcasting_skins_by_wavelengths():
     torch.testing.assert_close(R[1, 2], one, atol=1e-14, rtol=0)
 
 
+@pytest.mark.slow
 def test_float32_matches_float64():
     skins, _ = T.sample(500, 7, dtype=DT)
     wl = T.wavelength_grid(400, 1700, 5, dtype=DT)
@@ -128,6 +129,7 @@ def test_gradient_wrt_layer_constants_is_finite():
     assert torch.isfinite(a.grad) and float(a.grad) > 0  # more reticular scattering: brighter skin
 
 
+@pytest.mark.slow
 def test_polynomial_r0_option_converges_to_exact():
     """The thesis's per-band polynomial in R0 (Fig 18) approximates the closed form; the default degree 4
     is within 1e-3 at every incidence and each extra degree at least halves the error."""
@@ -192,6 +194,7 @@ def test_sampling_is_reproducible_and_within_type_ranges():
     assert set(ta) == set(T.FITZPATRICK_TYPES)
 
 
+@pytest.mark.slow
 def test_compiled_path_equals_eager():
     """``compile=True`` (torch.compile of the hot loop) gives the eager result."""
     skins, _ = T.sample(64, 9, dtype=torch.float32)
@@ -199,3 +202,38 @@ def test_compiled_path_equals_eager():
     eager = T.total_reflectance(skins, wl)
     comp = T.total_reflectance(skins, wl, compile=True)
     assert float((comp - eager).abs().max()) < 1e-5
+
+
+def test_compiled_kernel_cache_is_an_explicit_object():
+    """The compiled-kernel cache is an object a caller can hold and clear (compiling is lazy: no kernel runs)."""
+    kernels = T.CompiledKernels()
+    first = kernels.get("double", lambda x: 2 * x)
+    assert len(kernels) == 1 and kernels.get("double", lambda x: 3 * x) is first
+    kernels.clear()
+    assert len(kernels) == 0
+    assert isinstance(T.COMPILED_KERNELS, T.CompiledKernels)
+
+
+def test_replaced_water_table_is_never_served_stale():
+    """``data.register_table`` takes effect at once: tripled water absorption darkens skin at 1580 nm (and the
+    blood table derived from water changes), every change bumps ``data.tables_version()``, and restoring the
+    packaged table restores the reflectance exactly."""
+    from torchskin import data
+
+    skin = T.preset("I-II", dtype=DT)
+    wl = torch.tensor([1580.0], dtype=DT)
+    before = T.subsurface_reflectance(skin, wl)
+    blood_before = data.hemoglobin(wl)[0]
+    version = data.tables_version()
+    _, water = data.table("water_segelstein")
+    try:
+        data.register_table("water_segelstein", water[:, 0], 3 * water[:, 1])
+        assert data.tables_version() == version + 1
+        tripled = T.subsurface_reflectance(skin, wl)
+        assert float(tripled) < 0.8 * float(before)
+        assert not torch.equal(data.hemoglobin(wl)[0], blood_before)
+    finally:
+        data.unregister_table("water_segelstein")
+    assert data.tables_version() == version + 2
+    assert torch.equal(T.subsurface_reflectance(skin, wl), before)
+    assert torch.equal(data.hemoglobin(wl)[0], blood_before)

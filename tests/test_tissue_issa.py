@@ -1,5 +1,5 @@
 """The skin model against measured in-vivo skin: a held subset of ISSA 2025 (``tests/data``, 93 spectra over
-4 ethnicities x 10 body sites; not used by ``scripts/calibrate_skin.py``'s fit). ISSA is SCI-mode (specular
+4 ethnicities x 10 body sites; not used by ``scripts/fit_skin_layers.py``'s fit). ISSA is SCI-mode (specular
 included), so it is compared with ``tissue.reflectance``, the total reflectance, over 450-740 nm."""
 
 import csv
@@ -42,6 +42,7 @@ def test_subset_spans_the_archive(issa):
     assert set(eth) == {"CN", "CA", "IQ", "AF"}
 
 
+@pytest.mark.slow
 def test_population_covers_measured_skin(issa, nearest):
     """Median RMSE from each ISSA spectrum to the nearest model skin: measured 0.0148 here (0.0133 on the
     acceptance draw of 1,000 ISSA spectra; 0.024 before the ISSA calibration). The subset weights the rare

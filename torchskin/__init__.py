@@ -1,21 +1,23 @@
 """torchskin: physics-based multispectral skin reflectance, rendering and detector adaptation in PyTorch.
 
 Modules: ``tissue`` (9-layer Kubelka-Munk skin), ``optics`` (Fresnel, Schlick, microfacet lobe, combined
-BRDF), ``detect`` (NDSI/NDGRI, rules box, Bhattacharyya), ``calibrate`` (ELM, BRDF-ELM), ``bands``, ``data``,
-``scene``/``raycast``/``render`` (the renderer), ``fit``, ``dataset``, ``boundaries``, ``export`` and
-``onboard`` (numpy + onnxruntime only). Submodules load on first use, so ``import torchskin.onboard`` does
+BRDF), ``detect`` (NDSI/NDGRI, rules box, Bhattacharyya), ``bands``, ``angles``, ``data``, ``render`` (the
+renderer's stages: scene, meshes, raycast, materials, light, shade, sensor, elm, pipeline, outputs), ``fit``,
+``dataset``, ``boundaries``, ``classifier``, ``evaluate``, ``experiment``, ``export``, and ``onboard`` /
+``onboard_cli`` (numpy + onnxruntime only). Submodules load on first use, so ``import torchskin.onboard`` does
 not import torch.
 """
 
 import importlib
+from types import ModuleType
 
 __version__ = "0.1.0"
 
-_SUBMODULES = ("bands", "boundaries", "calibrate", "confusers", "data", "dataset", "detect", "experiment", "export",
-               "fit", "onboard", "optics", "raycast", "render", "scene", "tissue")
+_SUBMODULES = ("angles", "bands", "boundaries", "classifier", "confusers", "data", "dataset", "detect", "evaluate",
+               "experiment", "export", "fit", "onboard", "onboard_cli", "optics", "render", "tissue")
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> ModuleType:
     if name in _SUBMODULES:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'torchskin' has no attribute {name!r}")

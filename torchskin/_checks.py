@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any, TypeAlias
+
+import numpy as np
 import torch
 
+#: what the public functions accept where they take numbers: a tensor, a Python number, or a (nested) sequence
+#: of numbers or a numpy array (anything ``torch.as_tensor`` takes)
+TensorLike: TypeAlias = torch.Tensor | float | Sequence[Any] | np.ndarray
+#: a tensor or a Python number: what the formulas that compute on their inputs directly (no ``as_tensor``) take
+Numeric: TypeAlias = torch.Tensor | float
 
-def as_tensor(x, like: torch.Tensor | None = None, dtype=None, device=None) -> torch.Tensor:
+
+def as_tensor(x: TensorLike, like: torch.Tensor | None = None, dtype: torch.dtype | None = None,
+              device: torch.device | str | None = None) -> torch.Tensor:
     """Convert ``x`` to a floating tensor on ``like``'s device/dtype (or the given ones), keeping autograd."""
     if like is not None:
         dtype = dtype or like.dtype
@@ -23,7 +34,7 @@ def as_tensor(x, like: torch.Tensor | None = None, dtype=None, device=None) -> t
     return t
 
 
-def check_range(name: str, x, lo: float, hi: float, unit: str = "", *, lo_open: bool = False,
+def check_range(name: str, x: TensorLike, lo: float, hi: float, unit: str = "", *, lo_open: bool = False,
                 hi_open: bool = False) -> None:
     """Raise ``ValueError`` if any element of ``x`` (a tensor or a Python number) is NaN or outside the
     interval from ``lo`` to ``hi`` (closed by default; ``lo_open``/``hi_open`` exclude an end, so

@@ -9,10 +9,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # torch loads with the functions that compute: the band definitions are plain data
+    import torch
 
-from ._checks import as_tensor
+    from ._checks import TensorLike
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 SUPPORT_FWHM = 1.5  # a band's response is truncated at centre +- 1.5 FWHM (+- 3.5 sigma)
@@ -35,7 +37,7 @@ class Band:
     center_nm: float
     fwhm_nm: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.center_nm > 0 and math.isfinite(self.center_nm)):
             raise ValueError(f"center_nm must be a positive finite wavelength in nm, got {self.center_nm}")
         if not (self.fwhm_nm >= 0 and math.isfinite(self.fwhm_nm)):
@@ -47,8 +49,12 @@ class Band:
         return self.center_nm - h, self.center_nm + h
 
 
-#: The thesis's detection system: green, red, NIR, SWIR (monochromatic by default).
-DEFAULT_BANDS: tuple[Band, ...] = (Band(544.0), Band(633.0), Band(1080.0), Band(1580.0))
+#: Centres (nm) of the thesis's four detection bands, green, red, NIR and SWIR, in this order: the bands of the
+#: NDGRI (544, 633 nm) and NDSI (1080, 1580 nm) rules. The one place these numbers are written.
+INDEX_BANDS_NM: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
+
+#: The thesis's detection system: the ``INDEX_BANDS_NM`` bands, monochromatic by default.
+DEFAULT_BANDS: tuple[Band, ...] = tuple(Band(c) for c in INDEX_BANDS_NM)
 
 
 def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tuple[Band, ...]:
@@ -89,8 +95,20 @@ def check_band_within(band: Band, lo: float, hi: float) -> None:
 
 
 def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:
-    """Parse ``"544,633,1080/20,1580/40"`` (centre[/fwhm] in nm, comma separated). Every band's response must
-    lie ``within`` (lo, hi) nm, by default the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``)."""
+    """Parse a band list as the CLI's ``--bands`` takes it.
+
+    Args:
+        text: comma-separated bands ``centre[/fwhm]`` in nm, e.g. ``"544,633,1080/20,1580/40"`` (no fwhm:
+            monochromatic).
+        within: ``(lo, hi)`` nm that every band's response (centre ± ``SUPPORT_FWHM`` FWHM) must lie in; default
+            the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``).
+
+    Returns:
+        The bands; ``ValueError`` naming the bad item otherwise.
+
+    >>> [(b.center_nm, b.fwhm_nm) for b in parse_bands("544,1080/20")]
+    [(544.0, 0.0), (1080.0, 20.0)]
+    """
     lo, hi = _model_range() if within is None else within
     out = []
     for item in text.split(","):
@@ -107,13 +125,17 @@ def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[B
     return as_bands(out)
 
 
-def response_matrix(grid: torch.Tensor, bands: Sequence[Band]) -> torch.Tensor:
+def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
     """Weights ``(n_grid, n_bands)``, each column summing to 1, so that ``spectrum @ W`` gives band values.
 
     ``grid`` is an increasing 1-D wavelength tensor (nm). Gaussian bands use trapezoid quadrature on the
     grid; monochromatic bands use linear-interpolation weights. Raises ``ValueError`` if a band's support
     is not inside the grid.
     """
+    import torch
+
+    from ._checks import as_tensor
+
     grid = as_tensor(grid)
     if grid.ndim != 1 or grid.numel() < 1:
         raise ValueError("grid must be a 1-D wavelength tensor")
@@ -130,7 +152,8 @@ def response_matrix(grid: torch.Tensor, bands: Sequence[Band]) -> torch.Tensor:
             if grid.numel() == 1:
                 w = torch.ones_like(grid)
             else:
-                i = int(torch.searchsorted(grid, torch.tensor([b.center_nm], dtype=grid.dtype, device=grid.device), right=True).clamp(1, grid.numel() - 1))
+                centre = torch.tensor([b.center_nm], dtype=grid.dtype, device=grid.device)
+                i = int(torch.searchsorted(grid, centre, right=True).clamp(1, grid.numel() - 1))
                 t = (b.center_nm - float(grid[i - 1])) / float(grid[i] - grid[i - 1])
                 w = torch.zeros_like(grid)
                 w[i - 1] = 1 - t
@@ -151,8 +174,10 @@ def response_matrix(grid: torch.Tensor, bands: Sequence[Band]) -> torch.Tensor:
     return torch.stack(cols, dim=-1)
 
 
-def band_integrate(values: torch.Tensor, grid: torch.Tensor, bands: Sequence[Band]) -> torch.Tensor:
+def band_integrate(values: torch.Tensor, grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
     """Band values ``(..., n_bands)`` of spectra ``values`` ``(..., n_grid)`` sampled on ``grid``."""
+    from ._checks import as_tensor
+
     bands = as_bands(bands)
     grid = as_tensor(grid, like=values)
     if values.shape[-1] != grid.shape[-1]:
@@ -160,15 +185,32 @@ def band_integrate(values: torch.Tensor, grid: torch.Tensor, bands: Sequence[Ban
     return values @ response_matrix(grid, bands)
 
 
-def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype=None, device=None,
-                  within: tuple[float, float] | None = None):
-    """A wavelength grid that samples every band and the matrix that averages it back to bands.
+def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype: torch.dtype | None = None,
+                  device: torch.device | str | None = None,
+                  within: tuple[float, float] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """A wavelength grid that samples every band and the matrix that averages it back to bands: evaluate a
+    model on ``grid`` and multiply by ``W`` to get band values. Monochromatic bands contribute their centre
+    only; a Gaussian band its support sampled every ``step_nm`` (at least 9 points).
 
-    Returns ``(grid, W)``; evaluate a model on ``grid`` and multiply by ``W`` to get band values.
-    Monochromatic bands contribute their centre only. Every band's response must lie ``within`` (lo, hi) nm,
-    by default the skin model's 400-1700 nm, and the grid may hold at most ``MAX_GRID_POINTS`` wavelengths:
-    both are checked before anything is allocated.
+    Args:
+        bands: the bands (anything ``as_bands`` takes).
+        step_nm: grid step inside a Gaussian band's support, nm.
+        dtype, device: of the outputs (default: torch's default dtype, the CPU).
+        within: ``(lo, hi)`` nm that every band's response must lie in; default the skin model's 400-1700 nm.
+            Checked, like the grid size (at most ``MAX_GRID_POINTS`` wavelengths), before anything is allocated.
+
+    Shape:
+        ``grid`` (G,), increasing; ``W`` (G, n_bands), each column summing to 1.
+
+    Returns:
+        ``(grid, W)``.
+
+    >>> grid, W = band_sampling([Band(544.0), Band(1080.0, 20.0)])
+    >>> tuple(grid.shape), tuple(W.shape), [round(float(x), 4) for x in W.sum(0)]
+    ((62,), (62, 2), [1.0, 1.0])
     """
+    import torch
+
     bands = as_bands(bands)
     if isinstance(step_nm, bool) or not isinstance(step_nm, (int, float)) or not (
             math.isfinite(step_nm) and step_nm > 0):
@@ -206,3 +248,34 @@ def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype=None, devic
             w[sel] = response_matrix(sub, [b])[:, 0]
         cols.append(w / w.sum())
     return grid, torch.stack(cols, dim=-1)
+
+
+def per_band(values: float | Sequence[float], bands: Sequence[Band], what: str) -> list[float]:
+    """One value per band from a per-band setting (e.g. a sensor's path radiance).
+
+    Args:
+        values: one number for every band, one value per band, or four values at the ``INDEX_BANDS_NM``
+            wavelengths (544, 633, 1080, 1580 nm), interpolated linearly in wavelength (held constant outside)
+            for other bands.
+        bands: the bands.
+        what: the quantity's name, for the error message.
+
+    Returns:
+        ``len(bands)`` floats; ``ValueError`` for any other number of values.
+
+    >>> [round(x, 4) for x in per_band([0.1, 0.2, 0.3, 0.4], [Band(600.0), Band(1300.0)], "path radiance")]
+    [0.1629, 0.344]
+    """
+    n = len(bands)
+    if isinstance(values, (list, tuple)):
+        vals = [float(v) for v in values]
+    else:
+        vals = [float(values)] * n  # type: ignore[arg-type]  # a number, or anything float() takes
+    if len(vals) == n:
+        return vals
+    if len(vals) == len(INDEX_BANDS_NM):
+        import numpy as np
+
+        return [float(v) for v in np.interp([b.center_nm for b in bands], INDEX_BANDS_NM, vals)]
+    raise ValueError(f"{what} needs one value, one per band ({n}) or four (at "
+                     f"{', '.join(f'{c:g}' for c in INDEX_BANDS_NM)} nm, interpolated), got {len(vals)}")

@@ -9,22 +9,23 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
 from . import tissue
-from .render import _sync
+from .render.pipeline import sync
 
 
 def _median_seconds(fn: Callable[[], object], device: torch.device, repeat: int, warmup: int = 1) -> float:
     for _ in range(warmup):
         fn()
-    _sync(device)
+    sync(device)
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
         fn()
-        _sync(device)
+        sync(device)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
@@ -76,24 +77,25 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     ``cast_rays`` + ``test_occlusions`` for the same rays; and 16 sun directions shaded from one G-buffer."""
     import numpy as np
 
-    from .raycast import Raycaster, camera_rays
-    from .render import Sensor, build_meshes, render
-    from .scene import Camera, Sun, default_scene
+    from .render.materials import MaterialCache
+    from .render.pipeline import render
+    from .render.raycast import Raycaster, rasterize
+    from .render.scene import Camera, Sun, default_scene
+    from .render.sensor import Sensor
 
     sc = default_scene(camera=Camera(width=width, height=height), sun=Sun(zenith_deg=40.0, azimuth_deg=25.0,
                                                                           sky_fraction=0.1))
-    meshes, names = build_meshes(sc)
-    rc = Raycaster(meshes, names)
+    rc = Raycaster.from_scene(sc)
     sensor = Sensor()
     sun_dirs = np.stack([s.direction for s in sc.suns])
     dev = torch.device(device)
+    cache = MaterialCache()  # the same materials every frame: compiled once, as a renderer keeps its scene
 
     def frame():
-        gb = rc.gbuffer(sc.cameras, sun_dirs)
-        return render(sc, device=dev, sensor=sensor, gbuffer=gb)
+        return render(sc, device=dev, sensor=sensor, gbuffer=rasterize(sc, rc), cache=cache)
 
-    rays = camera_rays(sc.cameras[0])[None]
-    gb0 = rc.gbuffer(sc.cameras, sun_dirs)
+    rays = rc.camera_rays(sc.cameras[0])[None]
+    gb0 = rasterize(sc, rc)
     hit = gb0.hit.flatten()
     org = gb0.position.reshape(-1, 3)[hit]
     srays = torch.cat([org, torch.as_tensor(sun_dirs, dtype=torch.float32).expand(len(org), 3)], -1)
@@ -108,11 +110,9 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     suns16 = [Sun(zenith_deg=20.0 + 4 * k, azimuth_deg=-80.0 + 10 * k, sky_fraction=0.1) for k in range(16)]
     sc16 = default_scene(camera=sc.cameras[0], sun=suns16[0])
     sc16.suns = suns16
-    dirs16 = np.stack([s.direction for s in suns16])
 
     def multi():
-        gb = rc.gbuffer(sc16.cameras, dirs16)
-        return render(sc16, device=dev, sensor=sensor, gbuffer=gb)
+        return render(sc16, device=dev, sensor=sensor, gbuffer=rasterize(sc16, rc), cache=cache)
 
     tm = _median_seconds(multi, dev, max(2, repeat // 2), warmup=1)
     return {"render": {
@@ -143,12 +143,15 @@ def _band_slice(tables, b: int):
     """Material tables of band ``b`` only (for the per-band baseline)."""
     import dataclasses
 
-    out = {}
-    for f in dataclasses.fields(tables):
-        v = getattr(tables, f.name)
-        keep = not isinstance(v, torch.Tensor) or not v.is_floating_point() or v.shape[-1] != tables.sigma2.shape[0]
-        out[f.name] = v if keep else v[..., b:b + 1]
-    return type(tables)(**out)
+    n_bands = tables.wavelengths.shape[0]
+
+    def one(v):
+        return v[..., b:b + 1] if v.shape[-1] == n_bands else v
+
+    groups = {k: dataclasses.replace(g, params={p: one(v) for p, v in g.params.items()}) for k, g in tables.groups.items()}
+    return dataclasses.replace(tables, lambert_f=one(tables.lambert_f), albedo=one(tables.albedo),
+                               reference=one(tables.reference), irradiance=one(tables.irradiance),
+                               wavelengths=one(tables.wavelengths), groups=groups)
 
 
 def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, suns: int = 16, skins: int = 3,
@@ -159,10 +162,12 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     import dataclasses
 
     from .dataset.config import resolve_config, sample_group
-    from .dataset.generate import _sensor, group_rows, group_scene
-    from .raycast import Raycaster
-    from .render import build_meshes, material_tables, sensor_signal, shade
-    from .scene import Material
+    from .dataset.generate import group_rows, group_scene, group_sensor
+    from .render.materials import compile_materials
+    from .render.raycast import Raycaster
+    from .render.scene import Material
+    from .render.sensor import sensor_signal
+    from .render.shade import shade
 
     cfg = resolve_config({"camera": {"width": width, "height": height}, "sun": {"per_pose": suns},
                           "skin": {"per_pose": skins}, "confusers": {"count": [0, 0]}})
@@ -172,24 +177,24 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     rows = group_rows(g, cfg["sampling"]["pixels_per_class"])
     t_batched = time.perf_counter() - t0
     sc = group_scene(g)
-    meshes, names = build_meshes(sc)
-    rc = Raycaster(meshes, names)
-    sensor = _sensor(g)
+    rc = Raycaster.from_scene(sc)
+    sensor = group_sensor(g)
     n_bands = len(sc.bands)
     work = [(s, k, b) for k in range(skins) for s in range(suns) for b in range(n_bands)]
     step = max(1, len(work) // baseline_images)
     sample = work[::step][:baseline_images]
     t0 = time.perf_counter()
     for s, k, b in sample:
-        sc.materials["skin"] = Material("skin", skin={kk: v for kk, v in g.skins[k].items() if kk != "type"})
+        sc.materials["skin"] = Material("skin", skin={name: float(getattr(g.skins, name)[k]) for name in tissue.PARAM_NAMES})
         gb = rc.gbuffer(sc.cameras, sc.suns[s].direction[None])
-        tables = _band_slice(material_tables(sc, gb.material_names, torch.float32, "cpu"), b)
+        tables = _band_slice(compile_materials(sc.materials, sc.bands, sc.suns, gb.material_names), b)
         tables = dataclasses.replace(tables, irradiance=tables.irradiance[s:s + 1])
         sun = torch.tensor(sc.suns[s].direction[None], dtype=torch.float32)
         sky = torch.tensor([sc.suns[s].sky_fraction], dtype=torch.float32)
-        L = shade(gb, tables, sun, sky)["radiance"]
-        band_sensor = dataclasses.replace(sensor, **{f: [getattr(sensor, f)[b]] for f in (
-            "quantum_efficiency", "atmosphere_transmittance", "path_radiance") if isinstance(getattr(sensor, f), list)})
+        L = shade(gb, tables, sun, sky).radiance
+        one_band: dict[str, Any] = {f: [getattr(sensor, f)[b]] for f in (
+            "quantum_efficiency", "atmosphere_transmittance", "path_radiance") if isinstance(getattr(sensor, f), list)}
+        band_sensor = dataclasses.replace(sensor, **one_band)
         sensor_signal(L, band_sensor, [sc.band_list[b]], sc.cameras[0].focal)
     t_per_image = (time.perf_counter() - t0) / len(sample)
     t_baseline = t_per_image * len(work)
@@ -213,12 +218,12 @@ def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
     from .boundaries import BoundaryModel
     from .evaluate import MIN_REFLECTANCE
     from .export import export
-    from .onboard import Boundaries, Detector
+    from .onboard import Boundaries, OnboardDetector
 
     with tempfile.TemporaryDirectory() as d:
         model = BoundaryModel()
         paths = export(model, d)
-        det, bnd = Detector(paths["detector"]), Boundaries(paths["boundaries"])
+        det, bnd = OnboardDetector(paths["detector"]), Boundaries(paths["boundaries"])
         rng = np.random.default_rng(0)
         cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
         cfg = np.array([[40.0, 30.0, 60.0]])
@@ -230,9 +235,28 @@ def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
                               "memory_read_ms_1mp": 1e3 * t_read}}
 
 
+def bench_materials(compile: bool = False, skins: int = 16, repeat: int = 5) -> dict:
+    """Compiling a scene's materials (``render.materials.compile_materials``) for ``skins`` skins: once per skin
+    (each its own scene) against once for the whole ``SkinParams`` batch, in the same run."""
+    from .render.materials import compile_materials
+    from .render.scene import Material, default_scene
+
+    sc = default_scene(subject="file", mesh_path="unused.obj")  # materials only: the mesh is never built
+    batch, _ = tissue.sample(skins, 0, dtype=torch.float64)
+    values = batch.as_dict()
+    per_skin = [{**sc.materials, "skin": Material("skin", skin={k: v[i] for k, v in values.items()})}
+                for i in range(skins)]
+    cpu = torch.device("cpu")
+    t_one = _median_seconds(lambda: [compile_materials(m, sc.bands, sc.suns) for m in per_skin], cpu, repeat)
+    t_batch = _median_seconds(lambda: compile_materials(sc.materials, sc.bands, sc.suns, skins=batch), cpu, repeat)
+    return {"materials": {"skins": skins, "one_by_one_ms": 1e3 * t_one, "batched_ms": 1e3 * t_batch,
+                          "speedup": t_one / t_batch}}
+
+
 #: name -> callable(**options) returning a dict of results (later issues add entries)
 BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit,
-                                               "dataset": bench_dataset, "detector_onnx": bench_detector_onnx}
+                                               "dataset": bench_dataset, "detector_onnx": bench_detector_onnx,
+                                               "materials": bench_materials}
 
 
 def run(only: list[str] | None = None, compile: bool = False) -> dict:

@@ -21,18 +21,26 @@ Two trainers:
   configurations and for random configurations over the training domain; a small cost per unit of box width
   keeps the edges where the skin pixels are (soft, sigmoid edges during training; hard boxes afterwards).
 - ``train_quantiles``: the box edges as conditional quantiles of skin NDGRI and NDSI (pinball loss).
-Both are followed by ``calibrate_false_alarms`` (a hard guarantee on the train spectra). The model is exported
+Both are followed by ``tune_false_alarms`` (a hard guarantee on the train spectra). The model is exported
 to ONNX (``torchskin.export``) and run onboard without torch (``torchskin.onboard``).
 """
 
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
 from torch import nn
+
+from .bands import INDEX_BANDS_NM
+
+if TYPE_CHECKING:
+    from .classifier import SkinClassifier
 
 #: default configuration features (what an onboard computer knows: sun position and camera pointing)
 FEATURES = ("sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg")
@@ -46,14 +54,43 @@ BOX_ORDER = ("b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max", "d1_n
 #: ``ndvn_rule``: d1 = this quantile of the training skin's NDVN minus ``NDVN_MARGIN``
 NDVN_QUANTILE = 0.001
 NDVN_MARGIN = 0.05
+#: the dataset columns of the ELM reflectance in the four index bands (``INDEX_BANDS_NM``: g, r, n, s), in order
+BAND_COLUMNS = ("r544", "r633", "r1080", "r1580")
 
 
-def ratio_indices(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(NDGRI, NDSI, NDVN) of reflectance (..., 4) in the band order 544, 633, 1080, 1580 nm (NaN where a band
-    sum is 0): NDVN = ((g + r) - (n + s)) / (g + r + n + s), the visible/NIR balance."""
+def ratio_indices(R: torch.Tensor, zero_undefined: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The three normalised differences of reflectance in the four index bands (g, r, n, s) = 544, 633, 1080,
+    1580 nm (``INDEX_BANDS_NM``): NDGRI = (g - r) / (g + r) and NDSI = (n - s) / (n + s) (eq 2.5.10's indices)
+    and NDVN = ((g + r) - (n + s)) / (g + r + n + s), the visible/NIR balance. The one home of these formulas
+    (the onboard runtime evaluates them through the exported graphs).
+
+    Args:
+        R: reflectance with the four bands on the last axis, in ``INDEX_BANDS_NM`` order.
+        zero_undefined: False (default): plain ratios, NaN where a band sum is 0 (undefined indices: no box
+            holds them). True: 0 wherever the band sum is not positive (finite inputs for a network).
+
+    Shape:
+        R: (..., 4); each output: (...).
+
+    Returns:
+        (NDGRI, NDSI, NDVN).
+
+    >>> g, s, v = ratio_indices(torch.tensor([[0.3, 0.6, 0.5, 0.1], [0.0, 0.0, 0.5, 0.1]]))
+    >>> [round(x, 4) for x in (g[0].item(), s[0].item(), v[0].item())], bool(g[1].isnan())
+    ([-0.3333, 0.6667, 0.2], True)
+    >>> ratio_indices(torch.zeros(1, 4), zero_undefined=True)
+    (tensor([0.]), tensor([0.]), tensor([0.]))
+    """
     g, r, n, s = R.unbind(-1)
     vis, nir = g + r, n + s
-    return (g - r) / vis, (n - s) / nir, (vis - nir) / (vis + nir)
+    if not zero_undefined:
+        return (g - r) / vis, (n - s) / nir, (vis - nir) / (vis + nir)
+    tiny = torch.finfo(R.dtype).tiny
+
+    def nd(a, b, d):
+        return torch.where(d > 0, (a - b) / d.clamp_min(tiny), torch.zeros_like(d))
+
+    return nd(g, r, vis), nd(n, s, nir), nd(vis, nir, vis + nir)
 
 
 def ndvn_rule(v: torch.Tensor, quantile: float | None = NDVN_QUANTILE, margin: float = NDVN_MARGIN) -> float:
@@ -71,7 +108,15 @@ class BoundaryModel(nn.Module):
     """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``); d1, the NDVN rule,
     is the buffer ``ndvn_min``, the same for every configuration (-1: inactive)."""
 
-    def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None, domain=None):
+    # buffers (declared for type checkers; ``register_buffer`` creates them)
+    mean: torch.Tensor
+    std: torch.Tensor
+    scale: torch.Tensor
+    ndvn_min: torch.Tensor
+    domain: torch.Tensor
+
+    def __init__(self, features: Sequence[str] = FEATURES, hidden: int = 32, mean: Any = None, std: Any = None,
+                 domain: Any = None):
         super().__init__()
         self.features = tuple(features)
         k = len(self.features)
@@ -81,16 +126,17 @@ class BoundaryModel(nn.Module):
         self.standardize = True  # False once the standardisation is folded into the first layer (export)
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
-        self.register_buffer("scale", torch.ones(()))  # false-alarm calibration: box half-widths x scale
+        self.register_buffer("scale", torch.ones(()))  # false-alarm tuning: box half-widths x scale
         self.register_buffer("ndvn_min", torch.full((), -1.0))  # d1 of the visible/NIR rule (-1: inactive)
         if domain is None:
             domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
         # the training domain of each feature (k, 2): configurations outside it are flagged onboard
         self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
         if hidden == 0:  # a constant box: the input weights stay zero
-            self.net = nn.Sequential(nn.Linear(k, 4))
-            nn.init.zeros_(self.net[0].weight)
-            self.net[0].weight.requires_grad_(False)
+            first = nn.Linear(k, 4)
+            nn.init.zeros_(first.weight)
+            first.weight.requires_grad_(False)
+            self.net = nn.Sequential(first)
         else:
             self.net = nn.Sequential(nn.Linear(k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
                                      nn.Linear(hidden, 4))
@@ -116,12 +162,12 @@ def folded(model: BoundaryModel) -> BoundaryModel:
     import copy
 
     m = copy.deepcopy(model).eval()
-    first = m.net[0]
+    first = cast(nn.Linear, m.net[0])
     with torch.no_grad():
         w = first.weight / m.std
-        first.bias -= w @ m.mean
+        first.bias.sub_(w @ m.mean)
         first.weight.copy_(w)
-        last = m.net[-1]
+        last = cast(nn.Linear, m.net[-1])
         packed = nn.Linear(last.in_features, 5)
         packed.weight.zero_()
         packed.weight[:4] = last.weight
@@ -145,21 +191,19 @@ class TrainResult:
     rows: int
 
 
-def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
+def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
+                   sunlit_only: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
     from frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
     from .dataset.files import read_valid
 
-    bands = ["r544", "r633", "r1080", "r1580"]
-    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *bands])
+    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS])
     keep = t.column("label").to_numpy(zero_copy_only=False).copy()
     if sunlit_only:
         keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
     X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
-    R = np.stack([t.column(b).to_numpy(zero_copy_only=False) for b in bands], -1)[keep].astype(np.float64)
-    vis, nir = R[:, 0] + R[:, 1], R[:, 2] + R[:, 3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        v = (vis - nir) / (vis + nir)
+    R = np.stack([t.column(b).to_numpy(zero_copy_only=False) for b in BAND_COLUMNS], -1)[keep].astype(np.float64)
+    v = ratio_indices(torch.from_numpy(R))[2].numpy()  # NDVN in float64 (NaN where the band sum is 0)
     Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False)[keep],
                   t.column("ndsi").to_numpy(zero_copy_only=False)[keep], v], -1)
     ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
@@ -168,7 +212,8 @@ def load_skin_rows(data_dir, features=FEATURES, sunlit_only: bool = True):
     return torch.from_numpy(X[ok].astype(np.float32)), torch.from_numpy(Y[ok].astype(np.float32))
 
 
-def domain_from_manifest(data_dir, features=FEATURES) -> list[tuple[float, float]] | None:
+def domain_from_manifest(data_dir: str | os.PathLike,
+                         features: Sequence[str] = FEATURES) -> list[tuple[float, float]] | None:
     """The training domain of each feature as declared by the dataset's configuration (``_manifest.json``):
     the ranges the configurations were drawn from, not the extremes of the draws. None without a manifest."""
     from .dataset.files import manifest
@@ -190,7 +235,7 @@ def domain_from_manifest(data_dir, features=FEATURES) -> list[tuple[float, float
     return out
 
 
-def _check_xy(X: torch.Tensor, Y: torch.Tensor, features) -> None:
+def _check_xy(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str]) -> None:
     if (X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] != len(features)
             or Y.shape[1] not in (2, 3)):
         raise ValueError(f"X (n, {len(features)}) and Y (n, 2) or (n, 3) (NDGRI, NDSI[, NDVN]) expected, got "
@@ -211,7 +256,7 @@ def _initial_model(X: torch.Tensor, Y: torch.Tensor, features, hidden: int, q: f
         for p in model.net.parameters():
             if p.requires_grad:
                 p.copy_(torch.randn(p.shape, generator=g) * (0.3 / math.sqrt(max(p.shape[-1], 1))))
-        last = model.net[-1]
+        last = cast(nn.Linear, model.net[-1])
         if hidden:
             last.weight.mul_(0.1)
         qg = torch.quantile(Y[:, 0], torch.tensor([q, 1 - q]))
@@ -221,8 +266,8 @@ def _initial_model(X: torch.Tensor, Y: torch.Tensor, features, hidden: int, q: f
     return model
 
 
-def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features=FEATURES, hidden: int = 32,
-                    steps: int = 2000, lr: float = 3e-3, seed: int = 0, domain=None) -> TrainResult:
+def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features: Sequence[str] = FEATURES,
+                    hidden: int = 32, steps: int = 2000, lr: float = 3e-3, seed: int = 0, domain: Any = None) -> TrainResult:
     """Fit the box as conditional quantiles: b1, c1 at ``q`` and b2, c2 at ``1 - q`` of sunlit skin NDGRI and
     NDSI given the configuration features (full-batch Adam on the pinball loss; deterministic in ``seed``)."""
     if not (0.0 < q < 0.5):
@@ -263,10 +308,11 @@ def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, a
     return total
 
 
-def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, features=FEATURES, hidden: int = 32,
+def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, features: Sequence[str] = FEATURES,
+                hidden: int = 32,
                 steps: int = 1500, lr: float = 1e-2, tau: float = 0.01, margin: float = 0.03,
                 width_cost: float = 0.05, fa_weight: float = 10.0, domain_configs: int = 128,
-                batch: int | None = 32768, seed: int = 0, domain=None, per_config: bool = True,
+                batch: int | None = 32768, seed: int = 0, domain: Any = None, per_config: bool = True,
                 spread_cost: float = 0.1, allow: int = 0, ndvn_min: float = -1.0) -> TrainResult:
     """Learn the box that, per configuration, covers the most sunlit skin pixels ``Y`` (n, 2) given their
     configuration features ``X`` (n, k), while every ``confusers`` point (m, 2) (the earthlib *train* spectra)
@@ -284,19 +330,26 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     the skin pixels pay for it (without it, boxes shrank where the data are thin: camera-overhead Pd fell to
     0.90-0.96 on held-out data against 0.97-0.99 for a single refitted box). ``allow``: the number of confusers
     a box may hold at no cost (the ``allow`` largest violations are not counted): ``learn`` sets it to the
-    false-alarm budget, floor(pfa_budget x number of confusers), so that training and the hard calibration
-    afterwards enforce the same budget. ``ndvn_min``: d1 of the visible/NIR rule (fixed during training; -1
+    false-alarm budget, floor(pfa_budget x number of confusers), so that training and the hard tuning
+    afterwards (``tune_false_alarms``) enforce the same budget. ``ndvn_min``: d1 of the visible/NIR rule (fixed during training; -1
     inactive): with (m, 3) ``confusers`` (NDGRI, NDSI, NDVN), those it rejects need no margin from the box.
 
     Adam on random batches of ``batch`` pixels (None: all of them), deterministic in ``seed``; the sigmoid
     edges sharpen from 3 tau to tau over the first half of the steps and the learning rate decays from ``lr``
     to ``lr``/100 (cosine): at a constant rate, late steps on the sharp edges could throw the box off the data,
     where no gradient brings it back. ``domain`` (k, 2): the training domain
-    (default: the extremes of ``X``; ``domain_from_manifest`` gives the declared ranges)."""
-    for name, v, lo in (("tau", tau, 0.0), ("margin", margin, -1e-12), ("width_cost", width_cost, -1e-12),
-                        ("fa_weight", fa_weight, -1e-12), ("spread_cost", spread_cost, -1e-12)):
-        if not (v > lo) or not math.isfinite(v):
-            raise ValueError(f"{name} must be {'positive' if lo == 0 else 'non-negative'} and finite, got {v}")
+    (default: the extremes of ``X``; ``domain_from_manifest`` gives the declared ranges).
+
+    Shape:
+        X: (n, k); Y: (n, 2) or (n, 3) (NDVN unused here); confusers: (m, 2) or (m, 3); domain: (k, 2).
+
+    Returns:
+        ``TrainResult``: the model (eval mode, ``scale`` 1: ``tune_false_alarms`` comes next), the last loss and
+        the number of skin pixels."""
+    for name, v, bound in (("tau", tau, 0.0), ("margin", margin, -1e-12), ("width_cost", width_cost, -1e-12),
+                           ("fa_weight", fa_weight, -1e-12), ("spread_cost", spread_cost, -1e-12)):
+        if not (v > bound) or not math.isfinite(v):
+            raise ValueError(f"{name} must be {'positive' if bound == 0 else 'non-negative'} and finite, got {v}")
     _check_xy(X, Y, features)
     if confusers.ndim != 2 or confusers.shape[1] not in (2, 3) or confusers.shape[0] == 0:
         raise ValueError(f"confusers must be (m, 2) or (m, 3) (NDGRI, NDSI[, NDVN]) points, got "
@@ -314,7 +367,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     counts = torch.bincount(inv, minlength=len(train_cfg)).to(Y.dtype)
     w = (len(Y) / len(train_cfg)) / counts.index_select(0, inv) if per_config else torch.ones(len(Y), dtype=Y.dtype)
     lo, hi = model.domain[:, 0], model.domain[:, 1]
-    # only the spectra near the skin pixels can meet a box (the hard calibration afterwards checks them all)
+    # only the spectra near the skin pixels can meet a box (the hard tuning afterwards checks them all)
     qy = torch.quantile(Y, torch.tensor([0.01, 0.99]), dim=0)  # (2, 2)
     near = ((confusers >= qy[0] - 0.25) & (confusers <= qy[1] + 0.25)).all(-1)
     C = confusers[near].float()
@@ -344,7 +397,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     return TrainResult(model.eval(), float(loss.detach()), X.shape[0])
 
 
-def calibration_configs(model: BoundaryModel, X: torch.Tensor, grid: int = 10) -> torch.Tensor:
+def tuning_configs(model: BoundaryModel | SkinClassifier, X: torch.Tensor, grid: int = 10) -> torch.Tensor:
     """The configurations the false-alarm budget is enforced on: every distinct training configuration in
     ``X`` and a ``grid``^k lattice over the model's training domain."""
     uniq = distinct_configs(X)[0].float()
@@ -358,11 +411,31 @@ METHODS = ("boxes", "quantiles")
 
 def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: float = 1e-3,
           confusers: torch.Tensor | None = None, ndvn_quantile: float | None = NDVN_QUANTILE,
-          **options) -> tuple[BoundaryModel, dict]:
-    """Train (``train_boxes`` or ``train_quantiles``) and enforce the false-alarm budget on the earthlib train
-    partition (``calibrate_false_alarms`` over ``calibration_configs``). With (n, 3) skin points ``Y`` and
-    (m, 3) confusers the visible/NIR rule is set first (``ndvn_rule`` of the skin's NDVN at ``ndvn_quantile``;
-    None: no such rule). Returns the model and a summary."""
+          **options: Any) -> tuple[BoundaryModel, dict]:
+    """Learn the configuration-dependent boxes: train (``train_boxes`` or ``train_quantiles``), then enforce the
+    false-alarm budget on the earthlib train partition (``tune_false_alarms`` over ``tuning_configs``). With
+    (n, 3) skin points ``Y`` and (m, 3) confusers the visible/NIR rule is set first (``ndvn_rule`` of the
+    skin's NDVN at ``ndvn_quantile``; None: no such rule).
+
+    Args:
+        X: configuration features of the sunlit skin pixels (``FEATURES`` order and units).
+        Y: their (NDGRI, NDSI[, NDVN]) (``load_skin_rows``).
+        method: "boxes" (``train_boxes``) or "quantiles" (``train_quantiles``).
+        pfa_budget: the largest fraction of ``confusers`` any box may hold, in [0, 1).
+        confusers: (NDGRI, NDSI[, NDVN]) points to keep out (default: ``confuser_indices("train")``).
+        ndvn_quantile: the skin NDVN quantile d1 is set from (None: the rule is off, d1 = -1).
+        **options: passed to the trainer (``steps``, ``hidden``, ``margin``, ``seed``, ...).
+
+    Shape:
+        X: (n, k); Y: (n, 2) or (n, 3); confusers: (m, 2) or (m, 3).
+
+    Returns:
+        The model (eval mode) and a summary: method, rows, loss, scale, ndvn_min, pfa_budget, pfa_train_worst,
+        train_coverage, calibration_configs (the number of tuning configurations), options.
+
+    Raises ``ValueError`` on a bad method or budget, or when the boxes hold less than ``MIN_TRAIN_COVERAGE`` of
+    the training skin pixels. (No doctest: even a tiny run trains for seconds; see tests/test_boundaries_onnx.py.)
+    """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not (0.0 <= pfa_budget < 1.0):
@@ -375,8 +448,8 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
     else:
         res = train_quantiles(X, Y[:, :2], **options)
         res.model.ndvn_min.fill_(d1)
-    cfg = calibration_configs(res.model, X)
-    scale = calibrate_false_alarms(res.model, cfg, C, pfa_budget)
+    cfg = tuning_configs(res.model, X)
+    scale = tune_false_alarms(res.model, cfg, C, pfa_budget)
     with torch.no_grad():
         pfa_train = float(false_alarm_rate(res.model(cfg), C).max())
         coverage = train_coverage(res.model, X, Y)
@@ -386,6 +459,7 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
                          "fewer hidden units (--hidden), or check the dataset and the false-alarm budget")
     return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale, "ndvn_min": d1,
                        "pfa_budget": pfa_budget, "pfa_train_worst": pfa_train, "train_coverage": coverage,
+                       # the key keeps its old name: checkpoints and model cards carry it
                        "calibration_configs": int(cfg.shape[0]), "options": options}
 
 
@@ -406,7 +480,7 @@ def train_coverage(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor) -> fl
     return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1], v).float().mean())
 
 
-def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
+def save(model: BoundaryModel, path: str | os.PathLike, meta: dict | None = None) -> None:
     """A torch checkpoint: state, features and hidden size (+ metadata), written atomically through a buffer:
     the same model gives the same bytes."""
     from .io import save_torch
@@ -415,7 +489,9 @@ def save(model: BoundaryModel, path, meta: dict | None = None) -> None:
                       "meta": meta or {}})
 
 
-def load(path) -> BoundaryModel:
+def load(path: str | os.PathLike) -> BoundaryModel:
+    """A ``BoundaryModel`` from a checkpoint written by ``save`` (older checkpoints without a stored domain or
+    NDVN rule get the defaults), in eval mode."""
     ck = torch.load(path, map_location="cpu", weights_only=True)
     m = BoundaryModel(ck["features"], ck["hidden"])
     state = dict(ck["state_dict"])
@@ -431,14 +507,33 @@ def confuser_indices(part: str = "train") -> torch.Tensor:
     band pair) are left out: no box holds them."""
     from .confusers import band_reflectance
 
-    _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
+    _, R = band_reflectance(INDEX_BANDS_NM, part)
     pts = torch.stack(ratio_indices(R.float()), -1)
     return pts[torch.isfinite(pts).all(-1)]
 
 
 def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
-    """Whether (NDGRI, NDSI) = (``g``, ``s``) lies in ``boxes`` (N, 4 or 5, ...) (edges included; broadcasting)
-    and, with ``v`` (NDVN) and a fifth column, NDVN >= d1."""
+    """The rules detector (eq 2.5.10 with a box per configuration): whether (NDGRI, NDSI) = (``g``, ``s``) lies in
+    the box, b1 <= g <= b2 and c1 <= s <= c2 (edges included), and, with ``v`` (NDVN) and a fifth column,
+    NDVN >= d1. The one torch form of the test (the onboard runtime's is the exported detector graph).
+
+    Args:
+        boxes: (b1, b2, c1, c2[, d1]) on axis 1 (``BOX_ORDER``).
+        g, s: NDGRI and NDSI.
+        v: NDVN (None: the fifth rule is not applied).
+
+    Shape:
+        boxes: (N, 4 or 5, ...); g, s, v and the result: broadcast with ``boxes[:, 0]``, e.g. (N, ...).
+
+    Returns:
+        A bool tensor, True inside.
+
+    >>> boxes = torch.tensor([[-0.5, 0.0, 0.3, 0.9, -0.4]])
+    >>> inside_box(boxes, torch.tensor([-0.3, 0.2]), torch.tensor([0.6, 0.6]))
+    tensor([ True, False])
+    >>> inside_box(boxes, torch.tensor([-0.3]), torch.tensor([0.6]), torch.tensor([-0.6]))
+    tensor([False])
+    """
     ok = (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
     if v is not None and boxes.shape[1] > 4:
         ok = ok & (v >= boxes[:, 4])
@@ -451,8 +546,8 @@ def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None], v).float().mean(-1)
 
 
-def calibrate_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,
-                           budget: float = 1e-3, iters: int = 30) -> float:
+def tune_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,
+                      budget: float = 1e-3, iters: int = 30) -> float:
     """Shrink every box about its centre (one global scale, found by bisection) until the false-alarm rate on
     ``points`` (the earthlib *train* partition) is within ``budget`` for every configuration in ``configs``.
     Sets and returns ``model.scale``."""

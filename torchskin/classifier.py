@@ -17,39 +17,47 @@ Training (``train_classifier``): weighted logistic loss; positives are the sunli
 generated dataset (every configuration weighing the same), negatives the scene's non-skin pixels (clothing,
 ground, confusers of the training partition) and every earthlib *train* spectrum under random configurations
 over the training domain. The decision threshold is then raised until at most ``pfa_budget`` of the earthlib
-train spectra are called skin in any configuration of the calibration set (the boxes' rule).
+train spectra are called skin in any configuration of the tuning set (``tune_threshold``: the boxes' rule).
 """
 
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from .boundaries import FEATURE_DOMAIN, FEATURES, calibration_configs, distinct_configs
-
-BAND_ORDER = ("r544", "r633", "r1080", "r1580")
+from .bands import INDEX_BANDS_NM
+from .boundaries import BAND_COLUMNS, FEATURE_DOMAIN, FEATURES, distinct_configs, ratio_indices, tuning_configs
 
 
 def ratio_features(R: torch.Tensor) -> torch.Tensor:
-    """(NDGRI, NDSI, NDVN) of reflectance (..., 4) in the band order 544, 633, 1080, 1580 nm; pixels whose band
-    sums are not positive get 0 (and are never skin: see ``SkinClassifier.decide``)."""
-    g, r, n, s = R.unbind(-1)
-    vis, nir = g + r, n + s
-    tiny = torch.finfo(R.dtype).tiny
+    """The classifier's per-pixel inputs: (NDGRI, NDSI, NDVN) (``boundaries.ratio_indices``) of reflectance
+    (..., 4) -> (..., 3), 0 where a band sum is not positive (such pixels are never skin: see
+    ``SkinClassifier.decide``).
 
-    def nd(a, b, d):
-        return torch.where(d > 0, (a - b) / d.clamp_min(tiny), torch.zeros_like(d))
-
-    return torch.stack([nd(g, r, vis), nd(n, s, nir), nd(vis, nir, vis + nir)], -1)
+    >>> ratio_features(torch.tensor([[0.3, 0.6, 0.5, 0.1], [0.0, 0.0, 0.5, 0.1]])).round(decimals=4)
+    tensor([[-0.3333,  0.6667,  0.2000],
+            [ 0.0000,  0.6667, -1.0000]])
+    """
+    return torch.stack(ratio_indices(R, zero_undefined=True), -1)
 
 
 class SkinClassifier(nn.Module):
     """Configuration features (N, k) and reflectance (N, 4) -> skin logit (N,)."""
 
-    def __init__(self, features=FEATURES, hidden: int = 32, mean=None, std=None, domain=None):
+    # buffers (declared for type checkers; ``register_buffer`` creates them)
+    mean: torch.Tensor
+    std: torch.Tensor
+    threshold: torch.Tensor
+    domain: torch.Tensor
+
+    def __init__(self, features: Sequence[str] = FEATURES, hidden: int = 32, mean: Any = None, std: Any = None,
+                 domain: Any = None):
         super().__init__()
         self.features = tuple(features)
         k = len(self.features)
@@ -58,7 +66,7 @@ class SkinClassifier(nn.Module):
         self.hidden = int(hidden)
         self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
-        self.register_buffer("threshold", torch.zeros(()))  # logit above which a pixel is skin (calibrated)
+        self.register_buffer("threshold", torch.zeros(()))  # logit above which a pixel is skin (``tune_threshold``)
         if domain is None:
             domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
         self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
@@ -82,15 +90,16 @@ class SkinClassifier(nn.Module):
         return out
 
 
-def load_rows(data_dir, features=FEATURES):
+def load_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Training rows of a generated dataset (valid ELM frames): configuration (n, k), reflectance (n, 4),
     skin label and sunlit flag (numpy)."""
     from .dataset.files import read_valid
 
-    t, _ = read_valid(data_dir, list(features) + list(BAND_ORDER) + ["label", "shadow"])
+    t, _ = read_valid(data_dir, list(features) + list(BAND_COLUMNS) + ["label", "shadow"])
     col = {c: np.asarray(t.column(c).to_numpy(zero_copy_only=False)) for c in t.column_names}
     X = np.stack([col[f] for f in features], -1).astype(np.float32)
-    R = np.stack([col[b] for b in BAND_ORDER], -1).astype(np.float32)
+    R = np.stack([col[b] for b in BAND_COLUMNS], -1).astype(np.float32)
     ok = np.isfinite(X).all(1) & np.isfinite(R).all(1)
     return X[ok], R[ok], col["label"][ok].astype(bool), ~col["shadow"][ok].astype(bool)
 
@@ -98,16 +107,35 @@ def load_rows(data_dir, features=FEATURES):
 def _earthlib_reflectance(part: str) -> torch.Tensor:
     from .confusers import band_reflectance
 
-    _, R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], part)
+    _, R = band_reflectance(INDEX_BANDS_NM, part)
     return R.float()
 
 
-def train_classifier(X, R, label, sunlit, features=FEATURES, hidden: int = 32, steps: int = 1500,
-                     lr: float = 3e-3, batch: int = 16384, seed: int = 0, domain=None, pfa_budget: float = 1e-3,
-                     confuser_weight: float = 4.0, max_calibration_configs: int = 2000) -> tuple[SkinClassifier, dict]:
-    """Fit a ``SkinClassifier`` (see the module docstring) and calibrate its threshold to ``pfa_budget`` on the
-    earthlib train partition. ``X`` (n, k), ``R`` (n, 4), ``label`` and ``sunlit`` (n,) from ``load_rows``.
-    Deterministic in ``seed``. Returns the model and a summary."""
+def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence[str] = FEATURES, hidden: int = 32,
+                     steps: int = 1500, lr: float = 3e-3, batch: int = 16384, seed: int = 0, domain: Any = None,
+                     pfa_budget: float = 1e-3,
+                     confuser_weight: float = 4.0, max_tuning_configs: int = 2000) -> tuple[SkinClassifier, dict]:
+    """Fit a ``SkinClassifier`` (see the module docstring), then tune its threshold to ``pfa_budget`` on the
+    earthlib train partition (``tune_threshold``). Deterministic in ``seed``.
+
+    Args:
+        X, R, label, sunlit: configuration features, ELM reflectance (``BAND_COLUMNS`` order), skin label and
+            sunlit flag per pixel (``load_rows``; numpy arrays or tensors).
+        features: the names of the columns of ``X``.
+        hidden, steps, lr, batch, seed: network width, Adam steps (cosine-decayed rate), batch size, seed.
+        domain: the training domain per feature (default: the extremes of ``X``).
+        pfa_budget: the largest fraction of the earthlib train spectra called skin in any tuning configuration.
+        confuser_weight: the weight of the earthlib spectra (random configurations) in the loss.
+        max_tuning_configs: at most this many training configurations (plus the domain lattice) for the
+            threshold.
+
+    Shape:
+        X: (n, k); R: (n, 4); label, sunlit: (n,); domain: (k, 2).
+
+    Returns:
+        The model (eval mode) and a summary: method, rows, loss, threshold, pfa_budget, train_coverage,
+        pfa_scene_train, calibration_configs (the number of tuning configurations), options.
+    """
     X, R = torch.as_tensor(X), torch.as_tensor(R)
     label, sunlit = torch.as_tensor(label), torch.as_tensor(sunlit)
     pos = label & sunlit
@@ -152,26 +180,27 @@ def train_classifier(X, R, label, sunlit, features=FEATURES, hidden: int = 32, s
         opt.step()
         sched.step()
     model.eval()
-    cal = calibration_configs(model, Xp)
-    if cal.shape[0] > max_calibration_configs:  # the lattice (last) and a fixed subset of training configurations
-        lattice = calibration_configs(model, Xp[:1])[1:]
-        pick = torch.randperm(cal.shape[0] - lattice.shape[0], generator=g)[:max_calibration_configs]
-        cal = torch.cat([cal[pick], lattice])
-    threshold = calibrate_threshold(model, cal, C, pfa_budget)
+    tuning = tuning_configs(model, Xp)
+    if tuning.shape[0] > max_tuning_configs:  # the lattice (last) and a fixed subset of training configurations
+        lattice = tuning_configs(model, Xp[:1])[1:]
+        pick = torch.randperm(tuning.shape[0] - lattice.shape[0], generator=g)[:max_tuning_configs]
+        tuning = torch.cat([tuning[pick], lattice])
+    threshold = tune_threshold(model, tuning, C, pfa_budget)
     with torch.no_grad():
         keep = model.decide(Rp, Xp)
         coverage = float(keep.float().mean())
         scene = float(model.decide(Rn, Xn).float().mean())
     return model, {"method": "classifier", "rows": int(pos.sum()), "loss": float(loss.detach()),
                    "threshold": threshold, "pfa_budget": pfa_budget, "train_coverage": coverage,
-                   "pfa_scene_train": scene, "calibration_configs": int(cal.shape[0]),
+                   # the key keeps its old name: checkpoints and model cards carry it
+                   "pfa_scene_train": scene, "calibration_configs": int(tuning.shape[0]),
                    "options": {"hidden": hidden, "steps": steps, "lr": lr, "seed": seed,
                                "confuser_weight": confuser_weight}}
 
 
 @torch.no_grad()
-def calibrate_threshold(model: SkinClassifier, configs: torch.Tensor, spectra: torch.Tensor,
-                        budget: float = 1e-3) -> float:
+def tune_threshold(model: SkinClassifier, configs: torch.Tensor, spectra: torch.Tensor,
+                   budget: float = 1e-3) -> float:
     """The smallest logit threshold (>= 0) at which at most ``budget`` of ``spectra`` (m, 4) are called skin in
     every configuration of ``configs``. Sets and returns ``model.threshold``."""
     m = spectra.shape[0]
@@ -188,7 +217,7 @@ def calibrate_threshold(model: SkinClassifier, configs: torch.Tensor, spectra: t
     return thr
 
 
-def save(model: SkinClassifier, path, meta: dict | None = None) -> None:
+def save(model: SkinClassifier, path: str | os.PathLike, meta: dict | None = None) -> None:
     """A torch checkpoint (kind "classifier"), written atomically; the same model gives the same bytes."""
     from .io import save_torch
 
@@ -196,7 +225,9 @@ def save(model: SkinClassifier, path, meta: dict | None = None) -> None:
                       "hidden": model.hidden, "meta": meta or {}})
 
 
-def load(path) -> SkinClassifier:
+def load(path: str | os.PathLike) -> SkinClassifier:
+    """A ``SkinClassifier`` from a checkpoint written by ``save`` (``ValueError`` for other checkpoints), in eval
+    mode."""
     ck = torch.load(path, map_location="cpu", weights_only=True)
     if ck.get("kind") != "classifier":
         raise ValueError(f"{str(path)!r} is not a classifier checkpoint")
@@ -205,5 +236,5 @@ def load(path) -> SkinClassifier:
     return m.eval()
 
 
-__all__ = ["SkinClassifier", "calibrate_threshold", "load", "load_rows", "ratio_features", "save",
-           "train_classifier"]
+__all__ = ["SkinClassifier", "load", "load_rows", "ratio_features", "save", "train_classifier",
+           "tune_threshold"]

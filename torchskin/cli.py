@@ -1,6 +1,6 @@
 """The ``torchskin`` command line. ``torchskin detect`` and ``torchskin calibrate`` run on numpy (and
-onnxruntime) alone (the onboard path: torch is not imported); every other command lives in
-``torchskin.commands``. Every command shares one error path (``torchskin.errors.run_command``): one line on
+onnxruntime) alone (the onboard path, ``torchskin.onboard_cli``: torch is not imported); every other command lives
+in ``torchskin.commands``. Every command shares one error path (``torchskin.errors.run_command``): one line on
 stderr, status 2 for bad input and 1 for a failure, a traceback only with ``--debug``."""
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = [a for a in argv if a != "--debug"]
     name = argv[0] if argv and not argv[0].startswith("-") else ""
     if name == "detect":
-        from .onboard import cli_detect
+        from .onboard_cli import cli_detect
 
         return run_command("detect", lambda: cli_detect(argv[1:]), debug)
     if name == "calibrate":
-        from .onboard import cli_calibrate
+        from .onboard_cli import cli_calibrate
 
         return run_command("calibrate", lambda: cli_calibrate(argv[1:]), debug)
 

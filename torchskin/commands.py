@@ -77,7 +77,7 @@ def _skins(args) -> tuple[tissue.SkinParams, list[str]]:
     return skins, labels
 
 
-def cmd_spectra(args) -> int:
+def cmd_spectra(args: argparse.Namespace) -> int:
     if args.plot:
         check_output_file(args.plot, "--plot", (".png",))
     if args.sample is not None and not (1 <= args.sample <= MAX_SAMPLE):
@@ -143,7 +143,7 @@ def cmd_spectra(args) -> int:
 
 # ------------------------------------------------------------------------------------------------- render
 def _scene_from_args(args):
-    from .scene import Camera, Sun, default_scene
+    from .render.scene import Camera, Sun, default_scene
 
     cam = Camera(width=args.width, height=args.height, zenith_deg=args.camera_zenith,
                  azimuth_deg=args.camera_azimuth, range_m=args.range, fov_deg=args.fov)
@@ -196,9 +196,11 @@ def _check_frame(args, bands: int, suns: int = 1) -> None:
                          f"machine's {have / 2**30:.1f} GiB allows")
 
 
-def cmd_render(args) -> int:
+def cmd_render(args: argparse.Namespace) -> int:
     from .devices import check_device
-    from .render import Sensor, render, write_outputs
+    from .render.outputs import write_outputs
+    from .render.pipeline import render
+    from .render.sensor import Sensor
 
     check_output_folder(args.out, "--out")
     _check_angle("--source-zenith", args.source_zenith, 0, 90)
@@ -215,7 +217,7 @@ def cmd_render(args) -> int:
     sc = _scene_from_args(args)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed)
     res = render(sc, device=device, sensor=sensor, elm=args.elm)
-    info = write_outputs(res, sc, args.out)
+    info = write_outputs(res, sc.to_dict(), args.out)
     if not info["elm_valid"]:
         print(f"torchskin render: warning: the reference panels are not sunlit (sunlit share of their interiors "
               f"{', '.join(f'{v:.2f}' for v in info['panel_sunlit_fraction'])}; the sun is behind or below them, or "
@@ -237,10 +239,10 @@ def cmd_render(args) -> int:
     return 0
 
 
-def cmd_experiment(args) -> int:
+def cmd_experiment(args: argparse.Namespace) -> int:
     from . import experiment
     from .devices import check_device
-    from .render import Sensor
+    from .render.sensor import Sensor
 
     check_output_folder(args.out, "--out")
     _check_frame(args, 4, len(experiment.ANGLES_DEG) * len(experiment.MODELS))
@@ -266,7 +268,7 @@ def cmd_experiment(args) -> int:
 
 
 # ---------------------------------------------------------------------------------------------------- fits
-def cmd_fit_skin(args) -> int:
+def cmd_fit_skin(args: argparse.Namespace) -> int:
     from . import fit
 
     check_output_file(args.out, "--out", (".csv",))
@@ -298,10 +300,10 @@ def cmd_fit_skin(args) -> int:
     return 0
 
 
-def cmd_fit_brdf(args) -> int:
+def cmd_fit_brdf(args: argparse.Namespace) -> int:
     from . import fit
     from .io import write_text
-    from .optics import rho0_to_n
+    from .optics import cosines_from_angles, rho0_to_n
 
     check_output_file(args.out, "--out", (".json",))
     if args.plot:
@@ -316,8 +318,7 @@ def cmd_fit_brdf(args) -> int:
         from .plots import fit_brdf_curves
 
         def model(a, b, c):
-            ci, cr = torch.cos(a)[:, None], torch.cos(b)[:, None]
-            c2b = ci * cr + (torch.sin(a) * torch.sin(b) * torch.cos(c))[:, None]
+            ci, cr, c2b = (x[:, None] for x in cosines_from_angles(a, b, c))
             return fit.brdf_model(ci, cr, c2b, res.sigma2, res.rho0, None if args.no_diffuse else res.rho_d)
 
         fit_brdf_curves(args.plot, ti, tr, dp, f, model, bands)
@@ -331,7 +332,7 @@ def cmd_fit_brdf(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------------ datasets
-def cmd_generate(args) -> int:
+def cmd_generate(args: argparse.Namespace) -> int:
     from .dataset.config import load_config
     from .dataset.generate import generate
     from .devices import check_device
@@ -364,7 +365,7 @@ def cmd_generate(args) -> int:
     return 0
 
 
-def cmd_dataset_verify(args) -> int:
+def cmd_dataset_verify(args: argparse.Namespace) -> int:
     from .dataset.generate import verify
 
     rep = verify(args.dir)
@@ -377,7 +378,7 @@ def cmd_dataset_verify(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------------ boundaries
-def cmd_train(args) -> int:
+def cmd_train(args: argparse.Namespace) -> int:
     from . import boundaries as Bd
 
     check_output_file(args.out, "--out", (".pt",))
@@ -446,7 +447,7 @@ def _checkpoint(path, what: str):
     return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
 
 
-def cmd_export(args) -> int:
+def cmd_export(args: argparse.Namespace) -> int:
     from .classifier import SkinClassifier
     from .export import export, write_model_cards
 
@@ -487,7 +488,7 @@ def cmd_export(args) -> int:
     return 0
 
 
-def cmd_evaluate(args) -> int:
+def cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from .dataset.files import manifest_sha256
@@ -518,7 +519,7 @@ def cmd_evaluate(args) -> int:
 
 
 # -------------------------------------------------------------------------------------------------- bench
-def cmd_bench(args) -> int:
+def cmd_bench(args: argparse.Namespace) -> int:
     from . import bench
 
     only = [x.strip() for x in args.only.split(",")] if args.only else None
@@ -539,7 +540,23 @@ def build_parser() -> argparse.ArgumentParser:
                                  "command line) shows the traceback instead.")
     ap.add_argument("--version", action="version", version=f"torchskin {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
+    add_spectra_command(sub)
+    add_render_command(sub)
+    add_experiment_command(sub)
+    add_fit_skin_command(sub)
+    add_fit_brdf_command(sub)
+    add_generate_command(sub)
+    add_dataset_command(sub)
+    add_train_command(sub)
+    add_export_command(sub)
+    add_evaluate_command(sub)
+    add_onboard_command(sub)
+    add_bench_command(sub)
+    return ap
 
+
+def add_spectra_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin spectra`` command."""
     sp = sub.add_parser("spectra", help="diffuse skin reflectance spectra, indices and the rules box",
                         description="Diffuse-model skin reflectance (9-layer Kubelka-Munk + front surface).")
     sp.add_argument("--preset", action="append", metavar="NAME",
@@ -557,6 +574,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--plot", metavar="PNG", help="write spectra 400-1700 nm and the rules plane to PNG")
     sp.set_defaults(func=cmd_spectra)
 
+
+def add_render_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin render`` command."""
     rp = sub.add_parser("render", help="render a calibrated multispectral frame of a subject with panels",
                         description="Ray-cast a subject between two reference panels under a sun, through the "
                                     "sensor chain, calibrate with ELM and run the rules detector.")
@@ -593,6 +613,9 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     rp.set_defaults(func=cmd_render)
 
+
+def add_experiment_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin experiment`` command."""
     ep = sub.add_parser("experiment", help="the thesis experiment: source 10-85 deg off normal, every skin model",
                         description="The thesis experiment (section 3.4): a Type I/II subject facing the camera at "
                                     "9.449 m, a source 10, 30, 60 and 85 deg off normal; the diffuse-only skin and "
@@ -615,6 +638,9 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     ep.set_defaults(func=cmd_experiment)
 
+
+def add_fit_skin_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin fit-skin`` command."""
     fp = sub.add_parser("fit-skin", help="fit the skin parameters to measured reflectance spectra",
                         description="Fit the six skin parameters to reflectance spectra (CSV) by minimising the RMSE of "
                                     "eq 2.4.14; parameters the data cannot determine are left empty.")
@@ -626,6 +652,9 @@ def build_parser() -> argparse.ArgumentParser:
     fp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     fp.set_defaults(func=cmd_fit_skin)
 
+
+def add_fit_brdf_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin fit-brdf`` command."""
     bf = sub.add_parser("fit-brdf", help="fit microfacet sigma2 and rho0 per band to goniometric data",
                         description="Fit the Gaussian microfacet lobe (sigma2, rho0) and a diffuse reflectance per band "
                                     "to goniometric BRDF samples (CSV).")
@@ -636,6 +665,9 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     bf.set_defaults(func=cmd_fit_brdf)
 
+
+def add_generate_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin generate`` command."""
     gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)",
                         description="Draw random sun/camera/subject/skin configurations (TOML config, see "
                                     "torchskin/dataset/config.py), render them and write balanced labelled skin / "
@@ -658,6 +690,9 @@ def build_parser() -> argparse.ArgumentParser:
     gp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     gp.set_defaults(func=cmd_generate)
 
+
+def add_dataset_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin dataset`` command."""
     dp = sub.add_parser("dataset", help="dataset utilities", description="Dataset utilities: verify.")
     dsub = dp.add_subparsers(dest="dataset_command", required=True)
     vp = dsub.add_parser("verify", help="check shards against the manifest (non-zero exit on problems)")
@@ -665,9 +700,12 @@ def build_parser() -> argparse.ArgumentParser:
     vp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     vp.set_defaults(func=cmd_dataset_verify)
 
+
+def add_train_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin train`` command."""
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset",
                         description="Learn configuration-dependent rules boxes (or a classifier) from a generated "
-                                    "dataset, calibrated to a false-alarm budget on the earthlib train spectra.")
+                                    "dataset, tuned to a false-alarm budget on the earthlib train spectra.")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     tp.add_argument("--out", required=True, help="checkpoint (.pt)")
     tp.add_argument("--method", choices=("boxes", "quantiles", "classifier"), default="boxes",
@@ -694,6 +732,9 @@ def build_parser() -> argparse.ArgumentParser:
     tp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     tp.set_defaults(func=cmd_train)
 
+
+def add_export_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin export`` command."""
     xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx",
                         description="Export checkpoints to ONNX (boundaries.onnx, baseline_box.onnx, detector.onnx) with "
                                     "metadata and model cards.")
@@ -709,6 +750,9 @@ def build_parser() -> argparse.ArgumentParser:
     xp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     xp.set_defaults(func=cmd_export)
 
+
+def add_evaluate_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin evaluate`` command."""
     ev = sub.add_parser("evaluate", help="Pd / Pfa of learned boundaries vs the static box on held-out data",
                         description="Compare models (checkpoints or ONNX exports) with the static thesis box on a "
                                     "held-out dataset: Pd by skin category, Pfa, decision-region areas; one table.")
@@ -722,6 +766,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     ev.set_defaults(func=cmd_evaluate)
 
+
+def add_onboard_command(sub: argparse._SubParsersAction) -> None:
+    """The onboard commands' entries (they run in the torch-free runtime, ``torchskin.onboard_cli``)."""
     sub.add_parser("detect", help="skin mask of a cube with detector.onnx (numpy + onnxruntime only; "
                                   "see torchskin detect --help)",
                    description="Run by the torch-free onboard runtime: torchskin detect --help.")
@@ -729,13 +776,15 @@ def build_parser() -> argparse.ArgumentParser:
                                      "see torchskin calibrate --help)",
                    description="Run by the torch-free onboard runtime: torchskin calibrate --help.")
 
+
+def add_bench_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin bench`` command."""
     bp = sub.add_parser("bench", help="benchmarks (JSON with --json)",
-                        description="Throughput benchmarks: km, render, fit, dataset, detector_onnx.")
+                        description="Throughput benchmarks: km, render, fit, dataset, detector_onnx, materials.")
     bp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     bp.add_argument("--only", metavar="NAMES", help="comma-separated benchmark names (default: all)")
     bp.add_argument("--compile", action="store_true", help="also measure the torch.compile path (slow start)")
     bp.set_defaults(func=cmd_bench)
-    return ap
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,8 @@ def library(part: str | None = None) -> tuple[list[str], list[str], np.ndarray, 
     return [names[i] for i in sel], [classes[i] for i in sel], wl, R[sel]
 
 
-def band_reflectance(wavelengths_nm, part: str | None = None) -> tuple[list[str], torch.Tensor]:
+def band_reflectance(wavelengths_nm: Sequence[float] | torch.Tensor,
+                     part: str | None = None) -> tuple[list[str], torch.Tensor]:
     """Names and reflectance (N, B) of the library's spectra at band centres (linear interpolation),
     clipped to [0, 1]."""
     names, _, wl, R = library(part)
@@ -78,7 +80,7 @@ def band_reflectance(wavelengths_nm, part: str | None = None) -> tuple[list[str]
     return names, torch.from_numpy(np.clip(out, 0.0, 1.0))
 
 
-def spectrum(name: str, wavelengths_nm) -> list[float]:
+def spectrum(name: str, wavelengths_nm: Sequence[float]) -> list[float]:
     """One named spectrum at the given wavelengths (clipped to [0, 1])."""
     names, _, wl, R = library()
     try:

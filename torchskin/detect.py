@@ -11,8 +11,8 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from ._checks import as_tensor
-from .bands import DEFAULT_BANDS, Band, as_bands
+from ._checks import TensorLike, as_tensor
+from .bands import DEFAULT_BANDS, INDEX_BANDS_NM, Band, as_bands
 
 
 def normalized_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -20,14 +20,43 @@ def normalized_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b) / (a + b)
 
 
-def ndgri(green, red) -> torch.Tensor:
-    """Normalized Difference Green-Red Index, (ρ544 - ρ633)/(ρ544 + ρ633)."""
+def ndgri(green: TensorLike, red: TensorLike) -> torch.Tensor:
+    """Normalized Difference Green-Red Index, (ρ544 - ρ633)/(ρ544 + ρ633): green minus red (DESIGN.md; the
+    thesis prints eq 2.5.9 the other way round).
+
+    Args:
+        green: reflectance at 544 nm.
+        red: reflectance at 633 nm.
+
+    Shape:
+        The two broadcast; the result has the broadcast shape (NaN where both are 0).
+
+    Returns:
+        NDGRI in [-1, 1]: negative for skin (redder than green).
+
+    >>> round(float(ndgri(0.30, 0.62)), 4)
+    -0.3478
+    """
     green = as_tensor(green)
     return normalized_difference(green, as_tensor(red, like=green))
 
 
-def ndsi(nir, swir) -> torch.Tensor:
-    """Normalized Difference Skin Index, eq 2.5.8: (ρ1080 - ρ1580)/(ρ1080 + ρ1580)."""
+def ndsi(nir: TensorLike, swir: TensorLike) -> torch.Tensor:
+    """Normalized Difference Skin Index, eq 2.5.8: (ρ1080 - ρ1580)/(ρ1080 + ρ1580).
+
+    Args:
+        nir: reflectance at 1080 nm.
+        swir: reflectance at 1580 nm.
+
+    Shape:
+        The two broadcast; the result has the broadcast shape (NaN where both are 0).
+
+    Returns:
+        NDSI in [-1, 1]: high for skin (water absorbs at 1580 nm).
+
+    >>> round(float(ndsi(0.53, 0.083)), 4)
+    0.7292
+    """
     nir = as_tensor(nir)
     return normalized_difference(nir, as_tensor(swir, like=nir))
 
@@ -38,7 +67,8 @@ def _band_index(bands: Sequence[Band], center: float, tol: float = 30.0) -> int:
     if d[i] > tol:
         raise ValueError(
             f"no band within {tol:g} nm of {center:g} nm among {[b.center_nm for b in bands]}: "
-            "the indices need bands near 544, 633, 1080 and 1580 nm"
+            f"the indices need bands near {', '.join(f'{c:g}' for c in INDEX_BANDS_NM[:-1])} and "
+            f"{INDEX_BANDS_NM[-1]:g} nm"
         )
     return i
 
@@ -46,23 +76,42 @@ def _band_index(bands: Sequence[Band], center: float, tol: float = 30.0) -> int:
 def has_index_bands(bands: Sequence[Band]) -> bool:
     """Whether ``bands`` hold one band within 30 nm of each of 544, 633, 1080 and 1580 nm (the indices' bands)."""
     try:
-        for c in (544.0, 633.0, 1080.0, 1580.0):
+        for c in INDEX_BANDS_NM:
             _band_index(bands, c)
     except ValueError:
         return False
     return True
 
 
-def indices(reflectance: torch.Tensor, bands: Sequence[Band] | None = None, band_dim: int = -1):
-    """``(ndgri, ndsi)`` of a reflectance tensor whose ``band_dim`` axis holds ``bands`` (default: the four
-    thesis bands in order 544, 633, 1080, 1580 nm)."""
+def indices(reflectance: TensorLike, bands: Sequence[Band] | None = None,
+            band_dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(ndgri, ndsi)`` of a reflectance tensor, from its bands nearest (within 30 nm) to ``INDEX_BANDS_NM``.
+
+    Args:
+        reflectance: band reflectance.
+        bands: the bands along ``band_dim`` (default ``DEFAULT_BANDS``: 544, 633, 1080, 1580 nm in this order);
+            ``ValueError`` if one of the four index bands has no band within 30 nm.
+        band_dim: the band axis.
+
+    Shape:
+        ``reflectance`` ``(..., n_bands)`` (band axis ``band_dim``) gives two tensors of its shape without that
+        axis.
+
+    Returns:
+        ``(ndgri, ndsi)``.
+
+    >>> from torchskin import tissue
+    >>> g, s = indices(tissue.reflectance(tissue.preset(["I-II", "V-VI"]), INDEX_BANDS_NM))
+    >>> [round(x, 4) for x in g.tolist()], [round(x, 4) for x in s.tolist()]
+    ([-0.3445, -0.386], [0.7294, 0.6986])
+    """
     bands = as_bands(bands) if bands is not None else DEFAULT_BANDS
     reflectance = as_tensor(reflectance)
     if reflectance.shape[band_dim] != len(bands):
         raise ValueError(
             f"reflectance has {reflectance.shape[band_dim]} bands on axis {band_dim}, expected {len(bands)}"
         )
-    pick = [_band_index(bands, c) for c in (544.0, 633.0, 1080.0, 1580.0)]
+    pick = [_band_index(bands, c) for c in INDEX_BANDS_NM]
     g, r, n, s = (reflectance.select(band_dim, i) for i in pick)
     return ndgri(g, r), ndsi(n, s)
 
@@ -76,11 +125,11 @@ class RulesBox:
     c1: float = 0.65703
     c2: float = 0.76779
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.b1 <= self.b2 and self.c1 <= self.c2):
             raise ValueError(f"need b1 <= b2 and c1 <= c2, got {self}")
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, float]:
         return asdict(self)
 
 
@@ -88,9 +137,24 @@ class RulesBox:
 DEFAULT_BOX = RulesBox()
 
 
-def rules_detector(ndgri_, ndsi_, box: RulesBox | torch.Tensor = DEFAULT_BOX) -> torch.Tensor:
-    """Boolean skin mask, eq 2.5.10. ``box`` is a ``RulesBox`` or a tensor ``(..., 4)`` of (b1, b2, c1, c2)
-    broadcasting with the indices (a per-pixel or per-configuration box). NaN indices are not skin."""
+def rules_detector(ndgri_: TensorLike, ndsi_: TensorLike, box: RulesBox | TensorLike = DEFAULT_BOX) -> torch.Tensor:
+    """Boolean skin mask of the rules detector, eq 2.5.10: b1 <= NDGRI <= b2 and c1 <= NDSI <= c2.
+
+    Args:
+        ndgri_: NDGRI values (``ndgri``).
+        ndsi_: NDSI values (``ndsi``), broadcasting with ``ndgri_``.
+        box: a ``RulesBox`` (default: the thesis's ``DEFAULT_BOX``) or a tensor of (b1, b2, c1, c2) in its last
+            axis, broadcasting with the indices (a per-pixel or per-configuration box).
+
+    Shape:
+        The indices broadcast (with a tensor box's ``(..., 4)`` leading axes); the mask has the broadcast shape.
+
+    Returns:
+        A bool mask; NaN indices are not skin.
+
+    >>> rules_detector(torch.tensor([-0.3, 0.1]), torch.tensor([0.7, 0.7])).tolist()
+    [True, False]
+    """
     g = as_tensor(ndgri_)
     s = as_tensor(ndsi_, like=g)
     if isinstance(box, RulesBox):
@@ -102,7 +166,8 @@ def rules_detector(ndgri_, ndsi_, box: RulesBox | torch.Tensor = DEFAULT_BOX) ->
     return (g >= b1) & (g <= b2) & (s >= c1) & (s <= c2)
 
 
-def histogram2d(x: torch.Tensor, y: torch.Tensor, bins: int = 64, range_x=(-1.0, 1.0), range_y=(-1.0, 1.0)):
+def histogram2d(x: TensorLike, y: TensorLike, bins: int = 64, range_x: tuple[float, float] = (-1.0, 1.0),
+                range_y: tuple[float, float] = (-1.0, 1.0)) -> torch.Tensor:
     """Counts ``(bins, bins)`` of points (x, y) on a regular grid (device-agnostic: bucketize + bincount).
 
     Points outside the ranges or NaN are dropped.
@@ -122,7 +187,7 @@ def histogram2d(x: torch.Tensor, y: torch.Tensor, bins: int = 64, range_x=(-1.0,
     return counts.reshape(bins, bins)
 
 
-def bhattacharyya(h1: torch.Tensor, h2: torch.Tensor) -> torch.Tensor:
+def bhattacharyya(h1: TensorLike, h2: TensorLike) -> torch.Tensor:
     """Bhattacharyya coefficient, eq 4.2.1: Σ √(p q) of two histograms, each normalised to sum 1.
 
     Histograms of any shape (1-D, 2-D NDSI x NDGRI, ...), summed over all bins. 1 for identical

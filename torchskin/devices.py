@@ -7,7 +7,14 @@ import torch
 
 
 def available_devices() -> list[str]:
-    """The torch devices this machine can use: "cpu", then "cuda:0".. and "mps" when present."""
+    """The torch devices this machine can use.
+
+    Returns:
+        "cpu", then "cuda:0", "cuda:1".. and "mps" when present.
+
+    >>> available_devices()[0]
+    'cpu'
+    """
     out = ["cpu"]
     if torch.cuda.is_available():
         out += [f"cuda:{i}" for i in range(torch.cuda.device_count())]
@@ -17,9 +24,20 @@ def available_devices() -> list[str]:
     return out
 
 
-def check_device(name, option: str = "--device") -> torch.device:
-    """``torch.device(name)`` if this machine has it, else ``ValueError`` naming the option and the devices
-    that exist (a bare "cuda" means "cuda:0")."""
+def check_device(name: str | torch.device, option: str = "--device") -> torch.device:
+    """The device ``name`` names, checked to exist on this machine before any work.
+
+    Args:
+        name: a device name ("cpu", "cuda", "cuda:1", "mps") or a ``torch.device``; a bare "cuda" means "cuda:0".
+        option: the command-line option that named it, for the message.
+
+    Returns:
+        ``torch.device(name)``; ``ValueError`` naming ``option`` and the devices that exist when this machine
+        lacks it or ``name`` is not a device name.
+
+    >>> check_device("cpu")
+    device(type='cpu')
+    """
     have = available_devices()
     try:
         dev = torch.device(str(name))

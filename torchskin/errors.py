@@ -13,7 +13,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
+
+from .io import StrPath
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
@@ -23,12 +27,25 @@ class Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose usage errors are one line, ``<prog>: error: <message> (see <prog> --help)``,
     with exit status 2 (argparse prints the whole usage block first)."""
 
-    def error(self, message: str):
+    def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
 
 
 def one_line(e: BaseException) -> str:
-    """The exception's message on one line (at most 600 characters)."""
+    """The exception's message on one line (at most 600 characters).
+
+    Args:
+        e: any exception.
+
+    Returns:
+        Its message with every run of whitespace (newlines included) made one space, cut to 600 characters;
+        the exception's type name when the message is empty.
+
+    >>> one_line(ValueError("bad\\n   value"))
+    'bad value'
+    >>> one_line(KeyError())
+    'KeyError'
+    """
     text = " ".join(str(e).split()) or type(e).__name__
     return text if len(text) <= 600 else text[:597] + "..."
 
@@ -38,8 +55,26 @@ def _describe_os_error(e: OSError) -> str:
     return f"{what}: {e.filename!r}" if e.filename else what
 
 
-def run_command(name: str, fn, debug: bool = False) -> int:
-    """Run ``fn()`` (returning an exit status) with the error path described above."""
+def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) -> int:
+    """Run ``fn()`` with the error path described above.
+
+    Args:
+        name: the command's name, for the message (``torchskin <name>: error: ...``).
+        fn: the command; returns its exit status (None: 0).
+        debug: re-raise instead of printing one line (also when ``TORCHSKIN_DEBUG`` is set and not "0").
+
+    Returns:
+        The exit status: ``fn``'s, 2 (``EXIT_USAGE``) for bad input, 1 (``EXIT_FAILURE``) for a failure while
+        working, 130 when interrupted.
+
+    >>> run_command("demo", lambda: 0)
+    0
+    >>> import contextlib, io
+    >>> with contextlib.redirect_stderr(io.StringIO()) as err:
+    ...     status = run_command("demo", lambda: int("x"))
+    >>> status, err.getvalue()
+    (2, "torchskin demo: error: invalid literal for int() with base 10: 'x'\\n")
+    """
     debug = debug or os.environ.get("TORCHSKIN_DEBUG", "") not in ("", "0")
     try:
         return int(fn() or 0)
@@ -93,9 +128,18 @@ def _can_create_in(d: Path) -> bool:
         return False
 
 
-def check_output_file(path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
+def check_output_file(path: StrPath | None, option: str, suffixes: tuple[str, ...] = ()) -> Path:
     """Check before any work that ``path`` can be written as a file: not an existing folder, its folder exists
-    and is writable, and (when given) it ends in one of ``suffixes``. Returns it as a Path."""
+    and is writable, and (when given) it ends in one of ``suffixes``.
+
+    Args:
+        path: the file a command will write.
+        option: the command-line option that named it, for the message (e.g. "--out").
+        suffixes: the allowed suffixes, lower case with the dot (any when empty).
+
+    Returns:
+        ``path`` as a Path; ``ValueError`` naming ``option`` when it cannot be written.
+    """
     if path is None or str(path).strip() == "":
         raise ValueError(f"{option} needs a file path")
     p = Path(path)
@@ -109,9 +153,17 @@ def check_output_file(path, option: str, suffixes: tuple[str, ...] = ()) -> Path
     return p
 
 
-def check_output_folder(path, option: str) -> Path:
+def check_output_folder(path: StrPath | None, option: str) -> Path:
     """Check before any work that ``path`` can be (or is) a writable folder: an existing folder, or a new one
-    whose nearest existing ancestor is a writable folder (not a file). Nothing is created here."""
+    whose nearest existing ancestor is a writable folder (not a file). Nothing is created here.
+
+    Args:
+        path: the folder a command will write into.
+        option: the command-line option that named it, for the message.
+
+    Returns:
+        ``path`` as a Path; ``ValueError`` naming ``option`` when it cannot be written.
+    """
     if path is None or str(path).strip() == "":
         raise ValueError(f"{option} needs a folder path")
     p = Path(path)
@@ -130,8 +182,23 @@ def check_output_folder(path, option: str) -> Path:
     return p
 
 
-def check_input_file(path, option: str, suffixes: tuple[str, ...] = ()) -> Path:
-    """An existing, readable file (ending in one of ``suffixes`` when given)."""
+def check_input_file(path: StrPath, option: str, suffixes: tuple[str, ...] = ()) -> Path:
+    """Check before any work that ``path`` is an existing, readable file (ending in one of ``suffixes`` when
+    given).
+
+    Args:
+        path: the file a command will read.
+        option: the command-line option that named it, for the message.
+        suffixes: the allowed suffixes, lower case with the dot (any when empty).
+
+    Returns:
+        ``path`` as a Path; ``ValueError`` naming ``option`` when it is missing, a folder or unreadable.
+
+    >>> check_input_file("no/such/file.csv", "--spectra")
+    Traceback (most recent call last):
+    ...
+    ValueError: --spectra 'no/such/file.csv' does not exist
+    """
     p = Path(str(path))
     if not p.exists():
         raise ValueError(f"{option} {str(p)!r} does not exist")

@@ -9,19 +9,24 @@ zenith) bin; ROC curves, a Pd heat map and a comparison figure as PNG."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
-from .boundaries import FEATURES, confuser_indices, false_alarm_rate, inside_box, ratio_indices
+from .bands import INDEX_BANDS_NM
+from .boundaries import BAND_COLUMNS, FEATURES, confuser_indices, false_alarm_rate, inside_box, ratio_indices
 from .dataset.files import open_dataset, read_valid
 from .detect import DEFAULT_BOX
 
+#: one model path or several (``load_candidate``)
+ModelPaths = str | os.PathLike | Sequence[str | os.PathLike]
 SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 CAMERA_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
-BAND_COLUMNS = ("r544", "r633", "r1080", "r1580")
 #: a sunlit skin pixel is glint-affected when the specular lobe adds at least this much apparent reflectance
 #: (π f_s) at 1580 nm (section 3.3.3 parameters): enough to move NDSI by about 0.02 or more
 GLINT_REFLECTANCE = 0.01
@@ -61,7 +66,7 @@ def static_candidate() -> Candidate:
     return Candidate("static box (thesis)", "static", list(FEATURES), _box_decide(boxes_of), boxes_of, "static")
 
 
-def load_candidate(spec) -> Candidate:
+def load_candidate(spec: str | os.PathLike) -> Candidate:
     """A candidate from a path: a torch checkpoint (.pt: boundary boxes or a classifier), an exported
     ``boundaries.onnx`` / ``baseline_box.onnx`` (configuration -> boxes) or a ``detector.onnx`` (cube +
     configuration -> mask), or the word "static"."""
@@ -74,10 +79,10 @@ def load_candidate(spec) -> Candidate:
         raise ValueError(f"model file {p!r} does not exist")
     name = Path(p).name
     if p.endswith(".onnx"):
-        from .onboard import Boundaries, Detector, model_inputs
+        from .onboard import Boundaries, OnboardDetector, model_inputs
 
         if "cube" in model_inputs(p):
-            d = Detector(p)
+            d = OnboardDetector(p)
             decide = lambda R, X: torch.from_numpy(d.pixels(R.numpy(), X.numpy())["mask"])  # noqa: E731
             return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta))
         b = Boundaries(p)
@@ -87,9 +92,9 @@ def load_candidate(spec) -> Candidate:
     if ck.get("kind") == "classifier":
         from .classifier import load as load_classifier
 
-        m = load_classifier(p)
-        decide = lambda R, X: m.decide(R, X)  # noqa: E731
-        return Candidate(name, "classifier", list(m.features), decide, None, p, ck.get("meta", {}))
+        clf = load_classifier(p)
+        decide = lambda R, X: clf.decide(R, X)  # noqa: E731
+        return Candidate(name, "classifier", list(clf.features), decide, None, p, ck.get("meta", {}))
     from .boundaries import load
 
     m = load(p)
@@ -97,7 +102,8 @@ def load_candidate(spec) -> Candidate:
     return Candidate(name, "boxes", list(m.features), _box_decide(boxes_of), boxes_of, p, ck.get("meta", {}))
 
 
-def load_checkpoint(path) -> dict:
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """The dict of a torchskin model checkpoint (``ValueError`` with one line for anything else)."""
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for junk files
@@ -108,7 +114,7 @@ def load_checkpoint(path) -> dict:
     return ck
 
 
-def box_function(model_path):
+def box_function(model_path: str | os.PathLike) -> tuple[list[str], Callable]:
     """``features (N, k) -> boxes (N, 4)`` from a torch checkpoint (.pt) or an exported boundaries.onnx."""
     c = load_candidate(model_path)
     if c.boxes is None:
@@ -116,7 +122,7 @@ def box_function(model_path):
     return c.features, c.boxes
 
 
-def glint_affected(theta_i_deg, theta_r_deg, delta_phi_deg) -> torch.Tensor:
+def glint_affected(theta_i_deg: ArrayLike, theta_r_deg: ArrayLike, delta_phi_deg: ArrayLike) -> torch.Tensor:
     """Whether the specular lobe (eq 2.3.4, section 3.3.3 parameters at 1580 nm) adds at least
     ``GLINT_REFLECTANCE`` apparent reflectance π f_s at these local angles (degrees)."""
     from .optics import THESIS_SPECULAR, microfacet_brdf
@@ -299,47 +305,35 @@ def _grid_area(cand: Candidate, cfg_X: torch.Tensor, rows: _Rows) -> torch.Tenso
     return out
 
 
-def evaluate(data_dir, model_paths, scales=ROC_SCALES, min_reflectance: float = MIN_REFLECTANCE) -> dict:
-    """Every model of ``model_paths`` (one path or a list; see ``load_candidate``) and the static box on the
-    held-out dataset at ``data_dir``, all under the brightness floor ``min_reflectance`` (``MIN_REFLECTANCE``).
-    ``models`` holds one entry per model (the static box last); for compatibility ``learned`` / ``static`` (and
-    ``bins``, ``sun_zenith_ge_60``, ``roc``) compare the first model with the static box."""
+def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Sequence[float] = ROC_SCALES,
+             min_reflectance: float = MIN_REFLECTANCE) -> dict:
+    """Every model of ``model_paths`` and the static box on the held-out dataset at ``data_dir``, all under the
+    brightness floor ``min_reflectance``: Pd of skin pixels (sunlit, glint-affected, shadowed), Pfa on the
+    earthlib test spectra and on the scene's non-skin pixels, decision-region areas, overall, at sun zenith >=
+    60° and per (sun zenith x camera zenith) bin, and, when the first model has boxes, its ROC.
+
+    Args:
+        data_dir: a generated dataset folder (``torchskin generate``; rows of frames with a valid ELM).
+        model_paths: one path or a list (see ``load_candidate``: .pt checkpoints, boundaries.onnx /
+            baseline_box.onnx, detector.onnx, or "static"); all must take the same features.
+        scales: the box scale factors of the ROC (``ROC_SCALES``).
+        min_reflectance: the brightness floor, in [0, 1) (``MIN_REFLECTANCE``).
+
+    Returns:
+        A JSON-ready dict: ``models`` (one entry per model, the static box last: name, path, kind, overall,
+        sun_zenith_ge_60, bins, area, scene_pfa_by_family), ``learned`` / ``static`` (and ``bins``,
+        ``sun_zenith_ge_60``, ``roc``) comparing the first model with the static box, and the dataset's
+        features, rows, rows_excluded_no_sunlit_panels, configurations, glint_reflectance, min_reflectance.
+    """
     if not (0.0 <= float(min_reflectance) < 1.0) or not math.isfinite(min_reflectance):
         raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
-    paths = [model_paths] if isinstance(model_paths, (str, bytes)) or not hasattr(model_paths, "__iter__") \
-        else list(model_paths)
-    if not paths:
-        raise ValueError("evaluate needs at least one model")
-    cands = [load_candidate(p) for p in paths]
+    cands = load_candidates(model_paths)
     features = cands[0].features
-    for c in cands[1:]:
-        if c.features != features:
-            raise ValueError(f"models take different features: {c.name} {c.features} vs {cands[0].name} {features}")
     cands.append(static_candidate())
     rows = _Rows(data_dir, features)
-    from .confusers import band_reflectance
-
-    _, test_R = band_reflectance([544.0, 633.0, 1080.0, 1580.0], "test")
-    test_R = test_R.float()
-    test_pts = torch.stack(ratio_indices(test_R), -1)  # (m, 3), row for row with test_R (NaN: undefined)
+    test_R, test_pts = _earthlib_test()
     judged = [_Judged(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
-    hi = rows.sz >= 60
-    models = []
-    for c, j in zip(cands, judged):
-        bins = []
-        for i in range(len(SUN_BINS) - 1):
-            for k in range(len(CAMERA_BINS) - 1):
-                m = (rows.sz >= SUN_BINS[i]) & (rows.sz < SUN_BINS[i + 1]) & (rows.cz >= CAMERA_BINS[k]) & \
-                    (rows.cz < CAMERA_BINS[k + 1])
-                if bool((m & rows.label).any()):
-                    bins.append({"sun_zenith_deg": [SUN_BINS[i], SUN_BINS[i + 1]],
-                                 "camera_zenith_deg": [CAMERA_BINS[k], CAMERA_BINS[k + 1]], **j.summary(rows, m)})
-        area = j.area_cfg
-        models.append({"name": c.name, "path": c.path, "kind": c.kind, "overall": j.summary(rows),
-                       "sun_zenith_ge_60": j.summary(rows, hi), "bins": bins,
-                       "area": {"mean": float(area.mean()), "median": float(area.median()),
-                                "p10": float(area.quantile(0.1)), "p90": float(area.quantile(0.9))},
-                       "scene_pfa_by_family": j.scene_by_family(rows)})
+    models = [_model_entry(c, j, rows) for c, j in zip(cands, judged)]
     first, static = models[0], models[-1]
     out = {"models": models, "learned": first["overall"], "static": static["overall"],
            "sun_zenith_ge_60": {"learned": first["sun_zenith_ge_60"], "static": static["sun_zenith_ge_60"]},
@@ -355,6 +349,54 @@ def evaluate(data_dir, model_paths, scales=ROC_SCALES, min_reflectance: float = 
     return out
 
 
+def load_candidates(model_paths: ModelPaths) -> list[Candidate]:
+    """The candidates of one path or a list of paths (``load_candidate``), which must take the same features."""
+    paths = [model_paths] if isinstance(model_paths, (str, bytes)) or not hasattr(model_paths, "__iter__") \
+        else list(cast(Sequence, model_paths))
+    if not paths:
+        raise ValueError("evaluate needs at least one model")
+    cands = [load_candidate(p) for p in paths]
+    features = cands[0].features
+    for c in cands[1:]:
+        if c.features != features:
+            raise ValueError(f"models take different features: {c.name} {c.features} vs {cands[0].name} {features}")
+    return cands
+
+
+def _earthlib_test() -> tuple[torch.Tensor, torch.Tensor]:
+    """The earthlib test spectra in the index bands: reflectance (m, 4) float32 and, row for row, their
+    (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined)."""
+    from .confusers import band_reflectance
+
+    _, test_R = band_reflectance(INDEX_BANDS_NM, "test")
+    test_R = test_R.float()
+    return test_R, torch.stack(ratio_indices(test_R), -1)
+
+
+def _bins(judged: _Judged, rows: _Rows) -> list[dict]:
+    """``_Judged.summary`` per (sun zenith x camera zenith) bin that holds skin pixels."""
+    bins = []
+    for i in range(len(SUN_BINS) - 1):
+        for k in range(len(CAMERA_BINS) - 1):
+            m = (rows.sz >= SUN_BINS[i]) & (rows.sz < SUN_BINS[i + 1]) & (rows.cz >= CAMERA_BINS[k]) & \
+                (rows.cz < CAMERA_BINS[k + 1])
+            if bool((m & rows.label).any()):
+                bins.append({"sun_zenith_deg": [SUN_BINS[i], SUN_BINS[i + 1]],
+                             "camera_zenith_deg": [CAMERA_BINS[k], CAMERA_BINS[k + 1]], **judged.summary(rows, m)})
+    return bins
+
+
+def _model_entry(cand: Candidate, judged: _Judged, rows: _Rows) -> dict:
+    """One model's entry of ``evaluate``'s ``models``: overall, sun zenith >= 60°, per bin, areas, scene Pfa by
+    family."""
+    area = judged.area_cfg
+    return {"name": cand.name, "path": cand.path, "kind": cand.kind, "overall": judged.summary(rows),
+            "sun_zenith_ge_60": judged.summary(rows, rows.sz >= 60), "bins": _bins(judged, rows),
+            "area": {"mean": float(area.mean()), "median": float(area.median()),
+                     "p10": float(area.quantile(0.1)), "p90": float(area.quantile(0.9))},
+            "scene_pfa_by_family": judged.scene_by_family(rows)}
+
+
 def _scaled(b: torch.Tensor, k: float) -> torch.Tensor:
     """Boxes (N, 4+) scaled by ``k`` about their centres in (NDGRI, NDSI) (a fifth column, d1, is kept)."""
     ctr = torch.stack([(b[:, 0] + b[:, 1]) / 2] * 2 + [(b[:, 2] + b[:, 3]) / 2] * 2, -1)
@@ -363,12 +405,13 @@ def _scaled(b: torch.Tensor, k: float) -> torch.Tensor:
 
 def _roc(cand: Candidate, static: Candidate, rows: _Rows, test_pts, scales, floor: float) -> dict:
     """Pd (sunlit) against Pfa as every box is scaled about its centre, for ``cand`` and the static box."""
-    out = {"scales": [float(k) for k in scales]}
+    out: dict[str, list] = {"scales": [float(k) for k in scales]}
     lit = rows.label & ~rows.shadow
     nonskin = ~rows.label
     for key, c in (("learned", cand), ("static", static)):
-        bx = c.boxes(rows.X)
-        cb = c.boxes(rows.cfg_X)
+        boxes_of = cast(Callable, c.boxes)  # both are box models
+        bx = boxes_of(rows.X)
+        cb = boxes_of(rows.cfg_X)
         pts = []
         for k in scales:
             hit = inside_box(_scaled(bx, k), rows.g, rows.s, rows.v) & (rows.R.mean(-1) > floor)
@@ -378,8 +421,9 @@ def _roc(cand: Candidate, static: Candidate, rows: _Rows, test_pts, scales, floo
     return out
 
 
-def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, sun_azimuth_deg: float = 20.0,
-                 min_reflectance: float = 0.005, plot=None) -> dict:
+def thesis_frame(detector_path: str | os.PathLike, size: int = 160, sun_zenith_deg: float = 45.0,
+                 sun_azimuth_deg: float = 20.0, min_reflectance: float = 0.005,
+                 plot: str | os.PathLike | None = None) -> dict:
     """The shipped detector on the thesis geometry, end to end: ``render``'s default scene (horizontal camera at
     9.449 m, Type I/II subject between a 0.97 and a 0.03 panel, sensor noise on) at ``size`` x ``size`` under
     the given sun, its signal frame calibrated by the onboard ELM through the panels' pixel regions, then
@@ -387,20 +431,25 @@ def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, s
     sunlit-skin detection of the learned boundaries and of the static box, the learned false alarms and the
     largest difference between the onboard and the renderer's ELM reflectance. ``plot``: a PNG of the 1080 nm
     reflectance beside both masks."""
-    from .onboard import Detector, elm_apply, elm_fit
-    from .render import Sensor, panel_regions, render
-    from .scene import Camera, Sun, default_scene
+    from .angles import relative_azimuth_deg
+    from .onboard import OnboardDetector, elm_apply, elm_fit
+    from .render.elm import panel_regions
+    from .render.materials import compile_materials
+    from .render.pipeline import render
+    from .render.scene import Camera, Sun, default_scene
+    from .render.sensor import Sensor
 
     sc = default_scene(camera=Camera(width=size, height=size),
                        sun=Sun(zenith_deg=sun_zenith_deg, azimuth_deg=sun_azimuth_deg, sky_fraction=0.1))
     res = render(sc, sensor=Sensor())
     signal = res.signal[0, 0].permute(2, 0, 1).cpu().numpy()
-    regions = panel_regions(res.gbuffer, list(sc.panels))
-    refs = {p: sc.materials[sc.mesh(p).material].band_reflectance(sc.band_list) for p in sc.panels}
+    regions = panel_regions(res.panel_pixels, list(sc.panels), size, size)
+    reference = compile_materials(sc.materials, sc.bands, sc.suns, dtype=torch.float64).reference  # (M, B) DHR
+    refs = {p: reference[list(sc.materials).index(sc.mesh(p).material)].tolist() for p in sc.panels}
     fit = elm_fit(signal, [(regions[p], refs[p]) for p in sc.panels])
     cube = elm_apply(signal, fit["gain"], fit["offset"])[None]
-    rel = abs((sun_azimuth_deg - sc.cameras[0].azimuth_deg + 180.0) % 360.0 - 180.0)
-    out = Detector(detector_path)(cube, [[sun_zenith_deg, sc.cameras[0].zenith_deg, rel]], negative="clip",
+    rel = relative_azimuth_deg(sun_azimuth_deg, sc.cameras[0].azimuth_deg)
+    out = OnboardDetector(detector_path)(cube, [[sun_zenith_deg, sc.cameras[0].zenith_deg, rel]], negative="clip",
                                   min_reflectance=min_reflectance)
     skin, lit = res.skin[0].cpu().numpy(), res.lit[0, 0].cpu().numpy()
     sunlit = skin & lit
@@ -419,13 +468,14 @@ def thesis_frame(detector_path, size: int = 160, sun_zenith_deg: float = 45.0, s
             "elm_max_diff": float(np.abs(cube[0] - res.reflectance[0, 0].permute(2, 0, 1).cpu().numpy()).max())}
 
 
-def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 40.0, 90.0), (80.0, 60.0, 10.0)),
+def boxes_plot(data_dir: str | os.PathLike, model_path: str | os.PathLike, path: str | os.PathLike,
+               configs: Sequence[tuple[float, ...]] = ((15.0, 20.0, 150.0), (50.0, 40.0, 90.0), (80.0, 60.0, 10.0)),
                max_points: int = 20000) -> None:
     """The picture behind the numbers: held-out sunlit skin pixels (colour: sun zenith), the earthlib test
     spectra, the static box and the learned box at a few configurations, on (NDGRI, NDSI)."""
     from matplotlib.patches import Rectangle
 
-    from .plots import _plt, save_figure
+    from .plots import pyplot, save_figure
 
     features, boxes_of = box_function(model_path)
     t, _ = read_valid(data_dir, ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"])
@@ -435,7 +485,7 @@ def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 
         pick = np.random.default_rng(0).choice(len(g), max_points, replace=False)
         g, s, sz = g[pick], s[pick], sz[pick]
     conf = confuser_indices("test").numpy()
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.4, 5.2), layout="constrained")
     sc = ax.scatter(g, s, c=sz, s=2, alpha=0.35, cmap="viridis", vmin=0, vmax=90, rasterized=True)
     ax.scatter(conf[:, 0], conf[:, 1], s=5, c="k", marker="x", lw=0.6, label="earthlib test spectra")
@@ -458,12 +508,14 @@ def boxes_plot(data_dir, model_path, path, configs=((15.0, 20.0, 150.0), (50.0, 
     save_figure(fig, path)
 
 
-def plots(result: dict, out_dir) -> None:
+def plots(result: dict, out_dir: str | os.PathLike) -> None:
+    """The ROC (``roc.png``) and the Pd heat map per (sun zenith x camera zenith) bin (``pd_heatmap.png``) of an
+    ``evaluate`` result, in ``out_dir``."""
     from pathlib import Path
 
-    from .plots import _plt, save_figure
+    from .plots import pyplot, save_figure
 
-    plt = _plt()
+    plt = pyplot()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     first = result["models"][0]["name"] if result.get("models") else "learned"
@@ -526,12 +578,12 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def compare_plot(result: dict, path) -> None:
+def compare_plot(result: dict, path: str | os.PathLike) -> None:
     """Bars per model: Pd (sunlit without glint, glint-affected, shadowed, sun >= 60° mean over configurations),
     false alarms (earthlib test and scene non-skin, log scale) and the decision-region area."""
-    from .plots import _plt, save_figure
+    from .plots import pyplot, save_figure
 
-    plt = _plt()
+    plt = pyplot()
     models = result["models"]
     names = [m["name"] for m in models]
     fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4.2), gridspec_kw={"width_ratios": [2.2, 1.2, 1]})

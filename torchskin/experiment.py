@@ -12,7 +12,9 @@ the diffuse-only and each combined model's histograms.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,9 +22,12 @@ import torch
 from .detect import DEFAULT_BOX, bhattacharyya, histogram2d
 from .io import write_text
 from .optics import DEFAULT_SURFACE, SURFACE_MODELS, check_surface
-from .raycast import Raycaster
-from .render import Sensor, build_meshes, render
-from .scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
+from .render.elm import apply_elm, panel_references, panel_values
+from .render.materials import compile_materials
+from .render.pipeline import render
+from .render.raycast import rasterize
+from .render.scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
+from .render.sensor import Sensor
 
 ANGLES_DEG = (10.0, 30.0, 60.0, 85.0)
 HIST_BINS = 48
@@ -34,8 +39,12 @@ HIST_RANGE_NDSI = (-0.2, 1.0)
 MODELS = ("diffuse", *SURFACE_MODELS)
 
 
-def experiment_scene(angles=ANGLES_DEG, skin="I-II", diffuse_only=False, width=512, height=512,
-                     panels: str = "lambertian", surface: str = DEFAULT_SURFACE) -> Scene:
+def experiment_scene(angles: Sequence[float] = ANGLES_DEG, skin: str | dict = "I-II", diffuse_only: bool = False,
+                     width: int = 512, height: int = 512, panels: str = "lambertian",
+                     surface: str = DEFAULT_SURFACE) -> Scene:
+    """The thesis experiment's scene (section 3.4): an anny subject facing a horizontal camera at 9.449 m, two
+    0.3 m reference panels beside its head, and one horizontal source per angle of ``angles`` (azimuth from the
+    subject's facing direction, degrees)."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
@@ -71,8 +80,8 @@ def appendix_c(sensor: Sensor | None = None, width: int = 192, height: int = 96)
     return float(res.reflectance[0, 0][mid].median(dim=0).values.mean())
 
 
-def run(out_dir, angles=ANGLES_DEG, width: int = 512, height: int = 512, sensor: Sensor | None = None,
-        device="cpu", panels: str = "lambertian", surface: str = DEFAULT_SURFACE) -> dict:
+def run(out_dir: str | Path, angles: Sequence[float] = ANGLES_DEG, width: int = 512, height: int = 512,
+        sensor: Sensor | None = None, device: torch.device | str = "cpu", panels: str = "lambertian", surface: str = DEFAULT_SURFACE) -> dict:
     """Run the experiment, write its figures and ``experiment.json`` into ``out_dir``; return the summary.
 
     Three skin models share one ray cast: "diffuse" (diffuse-only), "thesis" and "conserving" (eq 3.1.1 under
@@ -92,13 +101,11 @@ def run(out_dir, angles=ANGLES_DEG, width: int = 512, height: int = 512, sensor:
     scenes = {m: experiment_scene(angles, diffuse_only=(m == "diffuse"), width=width, height=height,
                                   panels=panels, surface=m if m != "diffuse" else DEFAULT_SURFACE) for m in MODELS}
     elm = "brdf" if panels == "spectralon-brdf" else "dhr"
-    meshes, names = build_meshes(scenes[surface])
-    rc = Raycaster(meshes, names)
-    gb = rc.gbuffer(scenes[surface].cameras, np.stack([s.direction for s in scenes[surface].suns]))
+    gb = rasterize(scenes[surface])
     res = {m: render(sc, device=device, sensor=sensor, gbuffer=gb, elm=elm) for m, sc in scenes.items()}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    summary = {"angles_deg": [float(a) for a in angles], "surface": surface, "panels": panels,
+    summary: dict[str, Any] = {"angles_deg": [float(a) for a in angles], "surface": surface, "panels": panels,
                **{f"detected_fraction_{m}": [] for m in MODELS},
                **{f"bhattacharyya_{m}": [] for m in SURFACE_MODELS}, "sunlit_skin_pixels": []}
     hists = {}
@@ -120,7 +127,7 @@ def run(out_dir, angles=ANGLES_DEG, width: int = 512, height: int = 512, sensor:
         summary["lambertian_panel_error"] = _lambertian_panel_error(res[surface], scenes[surface], gb)
         for m in MODELS:
             summary[f"detected_fraction_{m}_lambertian_elm"] = _lambertian_elm_detection(res[m], scenes[m], gb)
-    _figures(out, angles, res, hists, summary, plots)
+    _figures(out, angles, res, hists, summary)
     summary["surface_energy"] = plots.surface_energy(out / "surface_energy.png")
     write_text(out / "experiment.json", json.dumps(summary, indent=1))
     return summary
@@ -133,13 +140,13 @@ def _fraction(mask: torch.Tensor, where: torch.Tensor) -> float:
 
 def _lambertian_elm(r, scene, gb) -> torch.Tensor:
     """The render ``r`` (made with BRDF-ELM) recalibrated with plain ELM on the panels' DHR."""
-    from .render import apply_elm, material_tables, panel_pixels, panel_references, panel_values
-
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=r.signal.dtype)
     g = gb.to(dtype=r.signal.dtype)
-    tables = material_tables(scene, g.material_names, r.signal.dtype, r.signal.device)
-    pix = panel_pixels(g, list(scene.panels))
-    return apply_elm(r.signal, panel_values(r.signal, pix), panel_references(scene, g, tables, sun_dirs, pix, "dhr"))
+    tables = compile_materials(scene.materials, scene.bands, scene.suns, g.material_names, r.signal.dtype,
+                               r.signal.device)
+    ids = [g.material_names.index(scene.mesh(p).material) for p in scene.panels]
+    refs = panel_references(ids, g, tables, sun_dirs, r.panel_pixels, "dhr")
+    return apply_elm(r.signal, panel_values(r.signal, r.panel_pixels), refs)
 
 
 def _lambertian_elm_detection(r, scene, gb) -> list[float]:
@@ -166,11 +173,21 @@ _LABELS = {"diffuse": "diffuse-only", "thesis": "eq 3.1.1, thesis surface", "con
 _COLORS = {"diffuse": "C0", "thesis": "C3", "conserving": "C1"}
 
 
-def _figures(out: Path, angles, res, hists, summary, plots) -> None:
-    from matplotlib.colors import LogNorm
-    from matplotlib.patches import Rectangle
+def _figures(out: Path, angles, res, hists, summary) -> None:
+    """The experiment's four figures."""
+    from .plots import pyplot
 
-    plt = plots._plt()
+    plt = pyplot()
+    _reflectance_figure(plt, out, angles, res, summary)
+    _scatter_figure(plt, out, angles, res, summary)
+    _histogram_figure(plt, out, angles, hists)
+    _angle_figure(plt, out, angles, summary)
+
+
+def _reflectance_figure(plt, out: Path, angles, res, summary) -> None:
+    """Reflectance images of the chosen combined model: rows = angles, columns = bands, like Figs 29/35."""
+    from .plots import save_figure
+
     surface = summary["surface"]
     # reflectance images of the chosen combined model: rows = angles, columns = bands, like Figs 29/35
     r = res[surface]
@@ -188,7 +205,13 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
                                                      (False, True): "max", (True, True): "both"}[(lo < 0, hi > 1)],
                  label=f"reflectance (ELM; {_LABELS[surface]}); colour clipped to [0, 1];\n"
                        f"images min {lo:.3g}, max {hi:.3g}")
-    plots.save_figure(fig, out / "reflectance_combined.png")
+    save_figure(fig, out / "reflectance_combined.png")
+
+
+def _scatter_figure(plt, out: Path, angles, res, summary) -> None:
+    """Sunlit skin in the rules-detector plane, Fig 32/37 style: one row per model."""
+    from .plots import rules_scatter, save_figure
+
     # rules scatter, Fig 32/37 style: one row per model
     fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles), 3.4 * len(MODELS)),
                              sharex=True, sharey=True, squeeze=False)
@@ -196,13 +219,22 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
         rr = res[m]
         for si, a in enumerate(angles):
             lit = rr.skin[0] & rr.lit[si, 0]
-            plots.rules_scatter(axes[mi, si], rr.ndgri[si, 0][lit], rr.ndsi[si, 0][lit], DEFAULT_BOX, color=_COLORS[m])
+            rules_scatter(axes[mi, si], rr.ndgri[si, 0][lit], rr.ndsi[si, 0][lit], DEFAULT_BOX, color=_COLORS[m])
             axes[mi, si].set_title(f"{_LABELS[m]}, {a:g}°: {summary[f'detected_fraction_{m}'][si]:.2f} in box",
                                    fontsize=9)
             axes[mi, si].label_outer()
     fig.suptitle("Sunlit skin pixels in the rules-detector plane (black: rules box, eq 2.5.10)", fontsize=10)
     fig.tight_layout()
-    plots.save_figure(fig, out / "rules_scatter.png")
+    save_figure(fig, out / "rules_scatter.png")
+
+
+def _histogram_figure(plt, out: Path, angles, hists) -> None:
+    """2-D NDSI x NDGRI histograms, Fig 33/38 style: counts per bin (log colour scale), the box drawn."""
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Rectangle
+
+    from .plots import save_figure
+
     # 2-D histograms, Fig 33/38 style: counts per bin (log colour scale), the box drawn
     fig, axes = plt.subplots(len(MODELS), len(angles), figsize=(3.6 * len(angles) + 1.0, 3.2 * len(MODELS)),
                              sharex=True, sharey=True, squeeze=False, layout="constrained")
@@ -226,7 +258,13 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
     axes[0, 0].legend(fontsize=7, loc="lower left")
     fig.colorbar(im, ax=axes, fraction=0.02, label="sunlit skin pixels per bin (count, log scale; empty bins white)")
     fig.suptitle(f"NDSI x NDGRI histograms of sunlit skin ({h.shape[1]} x {h.shape[0]} bins)", fontsize=10)
-    plots.save_figure(fig, out / "histograms.png")
+    save_figure(fig, out / "histograms.png")
+
+
+def _angle_figure(plt, out: Path, angles, summary) -> None:
+    """Detected fraction and Bhattacharyya coefficient against angle, Fig 39 style."""
+    from .plots import save_figure
+
     # detected fraction and Bhattacharyya coefficient vs angle, Fig 39 style
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10.5, 3.9))
     for m, marker in zip(MODELS, "os^"):
@@ -246,4 +284,4 @@ def _figures(out: Path, angles, res, hists, summary, plots) -> None:
     a2.legend(fontsize=8)
     a2.set_title("diffuse-only vs eq 3.1.1 NDSI x NDGRI histograms", fontsize=10)
     fig.tight_layout()
-    plots.save_figure(fig, out / "detection_vs_angle.png")
+    save_figure(fig, out / "detection_vs_angle.png")

@@ -7,17 +7,25 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import nn
 
 from . import __version__
+from .bands import INDEX_BANDS_NM
 from .boundaries import BOX_ORDER, FEATURE_UNITS, BoundaryModel, folded
 from .io import atomic_path
 
+if TYPE_CHECKING:
+    import onnx
+
+    from .classifier import SkinClassifier
+
 OPSET = 17
-BANDS_NM = (544.0, 633.0, 1080.0, 1580.0)
 
 
 #: the edge forms as a linear function of the box: W(box) = box @ EDGE_M + EDGE_C, reshaped to (5 edges, 4 bands)
@@ -41,8 +49,9 @@ def edge_matrix(boxes: torch.Tensor) -> torch.Tensor:
     return (boxes @ M + C).reshape(-1, e, 4)
 
 
-class Detector(nn.Module):
-    """Rules detector with configuration-dependent boxes, written without divisions:
+class BoxDetector(nn.Module):
+    """Rules detector with configuration-dependent boxes, written without divisions (the torch reference of
+    ``detector.onnx`` for a box model; ``ClassifierDetector`` is the classifier's):
     NDGRI in [b1, b2], NDSI in [c1, c2] and NDVN >= d1 <=> the five edge forms L1..L5 (``edge_matrix``) are
     positive. ``score`` = min(L1..L5): the smallest index margin to a box edge, weighted by the band sum
     (g + r, n + s or g + r + n + s), in reflectance units; positive inside. ``mask`` = score > 0 (a pixel with
@@ -53,18 +62,22 @@ class Detector(nn.Module):
         super().__init__()
         self.boundaries = boundaries
 
-    def forward(self, cube: torch.Tensor, config: torch.Tensor):
+    def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mask and score (B, H, W) of a reflectance cube (B, 4, H, W) under configurations (B, k)."""
         B, _, H, W = cube.shape
         lin = edge_matrix(self.boundaries(config)) @ cube.reshape(B, 4, H * W)  # (B, E, HW)
         score = lin.amin(1).reshape(B, H, W)
         return score > 0, score
 
 
-def metadata(model: BoundaryModel, manifest_sha256: str = "", surface: str = "") -> dict[str, str]:
+def metadata(model: BoundaryModel | SkinClassifier, manifest_sha256: str = "", surface: str = "") -> dict[str, str]:
+    """The ONNX metadata of an exported model (a ``BoundaryModel`` or a ``classifier.SkinClassifier``): band
+    centres and units, feature order, units and domain, box order, NDVN formula, skin surface model, training
+    manifest hash, package version (every key is part of the shipped files: keep them as they are)."""
     return {
         "skin_surface_model": surface,
         "torchskin_version": __version__,
-        "bands_nm": json.dumps(list(BANDS_NM)),
+        "bands_nm": json.dumps(list(INDEX_BANDS_NM)),
         "band_units": "nm; reflectance in [0, 1] (ELM-calibrated)",
         "features": json.dumps(list(model.features)),
         "feature_units": json.dumps([FEATURE_UNITS.get(f, "") for f in model.features]),
@@ -127,16 +140,18 @@ class ClassifierDetector(nn.Module):
     and score (B, H, W), score = logit - threshold (positive: skin). The configuration's part of the first
     layer is computed once per frame; per pixel the three band ratios go through the MLP."""
 
-    def __init__(self, classifier):
+    def __init__(self, classifier: SkinClassifier):
         super().__init__()
         self.c = classifier
 
-    def forward(self, cube: torch.Tensor, config: torch.Tensor):
+    def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mask and score (B, H, W) of a reflectance cube (B, 4, H, W) under configurations (B, k)."""
         from .classifier import ratio_features
 
         B, _, H, W = cube.shape
         x = cube.reshape(B, 4, H * W).transpose(1, 2)  # (B, HW, 4)
         first, *rest = list(self.c.net)
+        first = cast(nn.Linear, first)
         w = first.weight
         cfg = (config - self.c.mean) / self.c.std  # (B, k)
         bias = cfg @ w[:, 3:].T + first.bias  # (B, hidden): the configuration's part, once per frame
@@ -154,7 +169,7 @@ def _onnx_bytes(module, args, input_names, output_names, dynamic_axes, meta: dic
     buf = io.BytesIO()
     with warnings.catch_warnings():  # the TorchScript exporter is deliberate: no onnxscript dependency
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,
+        torch.onnx.export(module, args, buf, input_names=input_names, output_names=output_names,  # type: ignore[arg-type]
                           dynamic_axes=dynamic_axes, opset_version=OPSET, dynamo=False)
     m = onnx.load_from_string(buf.getvalue())
     for k, v in meta.items():
@@ -164,14 +179,14 @@ def _onnx_bytes(module, args, input_names, output_names, dynamic_axes, meta: dic
     return m
 
 
-def boundaries_graph(model: BoundaryModel, meta: dict):
+def boundaries_graph(model: BoundaryModel, meta: dict[str, str]) -> onnx.ModelProto:
     """The ONNX graph configuration (N, k) -> boxes (N, 4) of a box model."""
     cfg = torch.zeros(2, len(model.features))
     return _onnx_bytes(folded(model.eval()), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}},
                        meta)
 
 
-def detector_graph(model, meta: dict):
+def detector_graph(model: BoundaryModel | SkinClassifier, meta: dict[str, str]) -> onnx.ModelProto:
     """The ONNX graph cube (B, 4, H, W) + configuration (B, k) -> mask, score of a box model (edge forms) or a
     classifier."""
     from .classifier import SkinClassifier
@@ -185,15 +200,34 @@ def detector_graph(model, meta: dict):
     return _detector_graph(boundaries_graph(model, {}), meta)
 
 
-def export(model: BoundaryModel, out_dir, manifest_sha256: str = "", *, surface: str = "",
-           baseline: BoundaryModel | None = None, detector=None, detector_meta: dict | None = None,
-           checkpoints: dict | None = None) -> dict:
+def export(model: BoundaryModel, out_dir: str | os.PathLike, manifest_sha256: str = "", *, surface: str = "",
+           baseline: BoundaryModel | None = None, detector: BoundaryModel | SkinClassifier | None = None,
+           detector_meta: dict[str, str] | None = None,
+           checkpoints: dict[str, str] | None = None) -> dict[str, str]:
     """Write ``boundaries.onnx`` (``model``), ``baseline_box.onnx`` (``baseline``, a constant box with the same
     inputs and outputs, when given) and ``detector.onnx`` (``detector``: a box model or a classifier; default
-    ``model``) into ``out_dir``; return their paths. Every graph is built and checked before any file is
-    written. ``detector_meta`` adds metadata to detector.onnx (e.g. which model it is and why)."""
-    from pathlib import Path
+    ``model``) into ``out_dir``, opset 17, with metadata (``metadata``). Every graph is built and checked before
+    any file is written; each file is written atomically. The same models give the same bytes.
 
+    Args:
+        model: the box model of ``boundaries.onnx`` (and of ``detector.onnx`` by default).
+        out_dir: the output folder (created if missing).
+        manifest_sha256: the training dataset's manifest hash, recorded in the metadata.
+        surface: the skin surface model of the training renders ("thesis" or "conserving"), recorded likewise.
+        baseline: a constant box model for ``baseline_box.onnx`` (none written without it).
+        detector: the model behind ``detector.onnx``: a ``BoundaryModel`` or a ``classifier.SkinClassifier``.
+        detector_meta: extra metadata of ``detector.onnx`` (e.g. which model it is and why).
+        checkpoints: per graph name ("boundaries", "baseline_box", "detector"), the checkpoint it came from
+            (metadata key ``checkpoint``).
+
+    Shape:
+        boundaries.onnx / baseline_box.onnx: ``config`` (N, k) -> ``boxes`` (N, 5); detector.onnx: ``cube``
+        (B, 4, H, W) and ``config`` (B, k) -> ``mask`` bool and ``score`` float32, (B, H, W).
+
+    Returns:
+        ``{name: path}`` of the files written ("boundaries", "detector" and, with ``baseline``,
+        "baseline_box").
+    """
     model = model.eval()
     ck = checkpoints or {}
 
@@ -208,10 +242,11 @@ def export(model: BoundaryModel, out_dir, manifest_sha256: str = "", *, surface:
     return write_graphs(graphs, Path(out_dir))
 
 
-def write_graphs(graphs: dict, out) -> dict:
+def write_graphs(graphs: dict, out: str | os.PathLike) -> dict[str, str]:
     """Write ``{name: onnx.ModelProto}`` as ``out/<name>.onnx`` (atomically, one by one)."""
     import onnx
 
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
     for name, g in graphs.items():
@@ -221,12 +256,11 @@ def write_graphs(graphs: dict, out) -> dict:
     return paths
 
 
-def write_model_cards(out_dir, train: dict, evaluation: dict | None = None, trains: dict | None = None) -> dict:
+def write_model_cards(out_dir: str | os.PathLike, train: dict, evaluation: dict | None = None,
+                      trains: dict | None = None) -> dict[str, str]:
     """A Markdown card beside each exported model (``boundaries``, ``baseline_box``, ``detector``; metadata read
     back from the ONNX files). ``train``: the training summary of boundaries.onnx; ``trains``: per model name,
     its own (default ``train``)."""
-    from pathlib import Path
-
     import onnx
 
     from .io import write_text

@@ -13,14 +13,15 @@ uncertainty is infinite.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
 import torch
 
 from . import tissue
-from ._checks import as_tensor, check_range
-from .optics import microfacet_brdf_cos
+from ._checks import Numeric, TensorLike, as_tensor, check_range
+from .optics import combined_brdf_cos, cosines_from_angles, half_angle_cos, microfacet_brdf_cos, schlick_cos
 
 #: search range of each skin parameter (inside tissue.PARAM_BOUNDS)
 FIT_BOUNDS: dict[str, tuple[float, float]] = {
@@ -50,7 +51,9 @@ def _to_z(p: torch.Tensor, lo, hi) -> torch.Tensor:
 
 
 def _skins(p: torch.Tensor) -> tissue.SkinParams:
-    return tissue.SkinParams(*p.unbind(-1))
+    """``SkinParams`` from parameters ``(..., 6)`` in ``tissue.PARAM_NAMES`` order."""
+    melanosome, blood, oxygenation, reticular_depth, collagen, subcutaneous_scale = p.unbind(-1)
+    return tissue.SkinParams(melanosome, blood, oxygenation, reticular_depth, collagen, subcutaneous_scale)
 
 
 def _model(p: torch.Tensor, wl: torch.Tensor, r0: float) -> torch.Tensor:
@@ -62,7 +65,7 @@ def rmse(model: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(((model - measured) ** 2).mean(-1))
 
 
-def check_spectra(reflectance, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+def check_spectra(reflectance: TensorLike, wavelengths: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
     """Validate measured spectra ``(n, W)`` and their wavelengths ``(W,)``; errors name the row and column."""
     R = as_tensor(reflectance)
     wl = as_tensor(wavelengths, like=R)
@@ -106,7 +109,7 @@ class SkinFit:
     #                    space, NaN: the Jacobian is not finite)
     seconds: float
 
-    def reported(self) -> list[dict]:
+    def reported(self) -> list[dict[str, float | None]]:
         """Per spectrum: parameter -> value, or None where the data cannot determine it."""
         vals = self.params.expand().as_dict()
         out = []
@@ -174,8 +177,8 @@ def fisher_std(J: torch.Tensor, sigma: torch.Tensor, scale: torch.Tensor) -> tor
 
 
 def fit_skin(
-    reflectance,
-    wavelengths,
+    reflectance: TensorLike,
+    wavelengths: TensorLike,
     *,
     r0: float = 0.04,
     starts: int = 2,
@@ -185,21 +188,44 @@ def fit_skin(
     gn_steps: int = 15,
     noise: float | None = None,
     rel_tol: float = 0.05,
-    dtype=torch.float64,
-    device=None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
 ) -> SkinFit:
     """Fit the six free skin parameters to measured total reflectance spectra (normal incidence, front
     surface ``r0``), minimising the RMSE of eq 2.4.14 for every spectrum independently.
 
-    ``reflectance`` (n, W) in [0, 1] at ``wavelengths`` (W,) nm anywhere in 400-1700 nm. ``noise`` is the
-    measurement noise (reflectance units) for the uncertainty estimate; default: the fit's own RMSE (at
-    least 0.002). A parameter is *identifiable* when its 3-sigma uncertainty is within ``rel_tol`` of its
-    value; parameters in the null space of the Jacobian (always some of them with fewer wavelengths than
-    the six parameters) have an infinite uncertainty (``fisher_std``). Stages: look-up-table multi-start,
-    Adam on all starts, L-BFGS on the best start of every spectrum (one joint problem), then per-spectrum
-    Levenberg-Marquardt; a spectrum has *converged* when the
-    Gauss-Newton decrement left (the loss a further Newton step would still remove) is below 1e-3 of its
-    loss; degenerate spectra (a singular Gauss-Newton system) are reported as not converged.
+    Stages: look-up-table multi-start, Adam on all starts, L-BFGS on the best start of every spectrum (one
+    joint problem), then per-spectrum Levenberg-Marquardt. A spectrum has *converged* when the Gauss-Newton
+    decrement left (the loss a further Newton step would still remove) is below 1e-3 of its loss; degenerate
+    spectra (a singular Gauss-Newton system) are reported as not converged. A parameter is *identifiable*
+    when its 3-sigma uncertainty is within ``rel_tol`` of its value; parameters in the null space of the
+    Jacobian (always some of them with fewer wavelengths than the six parameters) have an infinite
+    uncertainty (``fisher_std``).
+
+    Args:
+        reflectance: measured total reflectance in [0, 1] (``check_spectra`` validates it).
+        wavelengths: in nm, strictly increasing, anywhere in 400-1700 nm.
+        r0: front-surface reflectance of the model (``tissue.total_reflectance``).
+        starts: look-up-table starts per spectrum; lut_size: model skins in the table (``tissue.sample``).
+        adam_steps, lbfgs_steps, gn_steps: iterations of the three optimisation stages.
+        noise: measurement noise (reflectance units) for the uncertainty estimate; default: the fit's own
+            RMSE (at least 0.002).
+        rel_tol: relative 3-sigma uncertainty below which a parameter counts as identifiable.
+        dtype, device: where the fit runs (default float64, the spectra's device).
+
+    Shape:
+        ``reflectance`` (n, W) (or (W,) for one spectrum), ``wavelengths`` (W,).
+
+    Returns:
+        A ``SkinFit``: parameters (n,), RMSE (n,), fitted spectra (n, W), converged (n,), identifiable and
+        std (n, 6).
+
+    >>> from torchskin import tissue
+    >>> wl = tissue.wavelength_grid(450, 1600, 50, dtype=torch.float64)
+    >>> R = tissue.total_reflectance(tissue.preset(["I-II", "V-VI"], dtype=torch.float64), wl)
+    >>> res = fit_skin(R, wl, lut_size=500)
+    >>> tuple(res.fitted.shape), [round(x, 3) for x in res.params.melanosome.tolist()], res.converged.tolist()
+    ((2, 24), [0.035, 0.4], [True, True])
     """
     t0 = time.perf_counter()
     check_range("r0 (front-surface reflectance)", r0, 0.0, 1.0, hi_open=True)
@@ -316,21 +342,42 @@ SIGMA2_BOUNDS = (1e-4, 0.5)
 RHO0_BOUNDS = (1e-3, 0.3)
 
 
-def brdf_model(cos_i, cos_r, cos_2b, sigma2, rho0, rho_d=None) -> torch.Tensor:
-    """The microfacet lobe (eq 2.3.4), plus (1 - F(β)) ρ_d / π when ``rho_d`` is given (eq 3.1.1)."""
-    f = microfacet_brdf_cos(cos_i, cos_r, cos_2b, sigma2, rho0)
-    if rho_d is not None:
-        cos_b = torch.sqrt((0.5 * (1 + cos_2b)).clamp(1e-24, 1.0))
-        f = f + (1 - (rho0 + (1 - rho0) * (1 - cos_b).pow(5))) * rho_d / math.pi
-    return f
+def brdf_model(cos_i: torch.Tensor, cos_r: torch.Tensor, cos_2b: torch.Tensor, sigma2: Numeric, rho0: Numeric,
+               rho_d: Numeric | None = None) -> torch.Tensor:
+    """The model ``fit_brdf`` fits: the microfacet lobe (eq 2.3.4, ``optics.microfacet_brdf_cos``), or with
+    ``rho_d`` the combined BRDF of eq 3.1.1, lobe + (1 - F(β)) ρ_d / π (``optics.combined_brdf_cos``, which is
+    0 below the horizon). Cosines as ``optics.cosines_from_angles`` gives them; all inputs broadcast."""
+    if rho_d is None:
+        return microfacet_brdf_cos(cos_i, cos_r, cos_2b, sigma2, rho0)
+    return combined_brdf_cos(cos_i, cos_r, cos_2b, rho_d, sigma2, rho0)
 
 
-def fit_brdf(theta_i, theta_r, delta_phi, brdf, *, diffuse: bool = True, steps: int = 200) -> BrdfFit:
-    """Fit σ² and ρ0 (and a diffuse reflectance ρ_d with ``diffuse=True``) per band to BRDF samples.
+def fit_brdf(theta_i: TensorLike, theta_r: TensorLike, delta_phi: TensorLike, brdf: TensorLike, *,
+             diffuse: bool = True, steps: int = 200) -> BrdfFit:
+    """Fit the microfacet σ² and ρ0 (and a diffuse reflectance ρ_d with ``diffuse=True``) per band to BRDF
+    samples (section 3.3.3): least squares on the BRDF values (eq 2.4.14) of ``brdf_model``, from a grid of
+    starts, then L-BFGS, independently per band.
 
-    ``theta_i``, ``theta_r``, ``delta_phi`` (radians, Δφ = π the forward plane) have shape (M,) or (M, B);
-    ``brdf`` (M, B) in sr^-1 (a 1-D ``brdf`` is one band). Least squares on the BRDF values (eq 2.4.14)
-    from a grid of starts, then L-BFGS, independently per band.
+    Args:
+        theta_i, theta_r: incidence and view angles from the normal, rad, in [0, π/2].
+        delta_phi: relative azimuth, rad (Δφ = π the forward plane).
+        brdf: measured BRDF values, sr^-1 (finite, >= 0).
+        diffuse: fit ρ_d too (the combined BRDF of eq 3.1.1), else the lobe alone.
+        steps: L-BFGS iterations.
+
+    Shape:
+        Angles (M,) or (M, B), ``brdf`` (M, B) (a 1-D ``brdf`` is one band); results (B,).
+
+    Returns:
+        A ``BrdfFit`` (σ², ρ0, ρ_d, RMSE, converged per band).
+
+    >>> from torchskin import optics
+    >>> ti = torch.linspace(0.1, 1.2, 12, dtype=torch.float64).repeat_interleave(12)
+    >>> tr = torch.linspace(0.0, 1.2, 12, dtype=torch.float64).repeat(12)
+    >>> dp = torch.full_like(ti, math.pi)
+    >>> res = fit_brdf(ti, tr, dp, optics.combined_brdf(ti, tr, dp, 0.3, 0.02, 0.045))
+    >>> [round(float(x[0]), 4) for x in (res.sigma2, res.rho0, res.rho_d)]
+    [0.02, 0.045, 0.3]
     """
     f = as_tensor(brdf, dtype=torch.float64)
     if f.dim() == 1:
@@ -350,8 +397,7 @@ def fit_brdf(theta_i, theta_r, delta_phi, brdf, *, diffuse: bool = True, steps: 
         if bool(badang.any()):
             i, j = (int(v) for v in badang.nonzero()[0])
             raise ValueError(f"row {i}: {name} {math.degrees(float(x[i, j])):g} deg must lie in [0, 90] degrees")
-    ci, cr = torch.cos(ti), torch.cos(tr)
-    c2b = ci * cr + torch.sin(ti) * torch.sin(tr) * torch.cos(dp)
+    ci, cr, c2b = cosines_from_angles(ti, tr, dp)
     B = f.shape[1]
     # grid of starts per band: log σ² x ρ0 (x ρ_d), pick the best per band
     s_grid = torch.logspace(math.log10(0.003), math.log10(0.2), 12, dtype=torch.float64)
@@ -361,7 +407,7 @@ def fit_brdf(theta_i, theta_r, delta_phi, brdf, *, diffuse: bool = True, steps: 
     if diffuse:
         # best diffuse level for each (σ², ρ0) start by linear least squares on the residual
         fs = brdf_model(ci, cr, c2b, S, Rg)
-        basis = (1 - (Rg + (1 - Rg) * (1 - torch.sqrt((0.5 * (1 + c2b)).clamp(1e-24, 1))).pow(5))) / math.pi
+        basis = (1 - schlick_cos(Rg, half_angle_cos(c2b))) / math.pi  # the diffuse term of eq 3.1.1 per unit ρ_d
         d0 = (((f - fs) * basis).sum(1, keepdim=True) / (basis * basis).sum(1, keepdim=True)).clamp(0.0, 1.0)
         pred = fs + basis * d0
     else:
@@ -418,7 +464,7 @@ __all__ = ["BrdfFit", "FIT_BOUNDS", "SkinFit", "brdf_model", "check_spectra", "f
 
 
 # ------------------------------------------------------------------------------------------------- file I/O
-def _csv_rows(path, what: str) -> tuple[str, list[list[str]]]:
+def _csv_rows(path: str | os.PathLike[str], what: str) -> tuple[str, list[list[str]]]:
     import csv
     from pathlib import Path
 
@@ -445,7 +491,8 @@ def _numbers(fname: str, i: int, cells: list[str], n: int) -> list[float]:
     return out
 
 
-def read_spectra_csv(path, min_wavelengths: int = 1) -> tuple[list[str], torch.Tensor, torch.Tensor]:
+def read_spectra_csv(path: str | os.PathLike[str],
+                     min_wavelengths: int = 1) -> tuple[list[str], torch.Tensor, torch.Tensor]:
     """Spectra CSV: header row = wavelengths in nm (optionally a first non-numeric column of names), one
     spectrum per row. Returns (names, reflectance (n, W), wavelengths (W,)), validated as ``check_spectra``
     does; errors name the file, row and column. At least ``min_wavelengths`` wavelengths (default 1: with fewer
@@ -477,7 +524,7 @@ def read_spectra_csv(path, min_wavelengths: int = 1) -> tuple[list[str], torch.T
     return names, R, w
 
 
-def _is_float(c) -> bool:
+def _is_float(c: str) -> bool:
     try:
         float(c)
         return True
@@ -485,7 +532,9 @@ def _is_float(c) -> bool:
         return False
 
 
-def write_params_csv(path, names: list[str], res: SkinFit) -> None:
+def write_params_csv(path: str | os.PathLike[str], names: list[str], res: SkinFit) -> None:
+    """Write a ``SkinFit`` as CSV: name, the six parameters (empty where not identifiable), their 1-sigma
+    uncertainties, the RMSE and whether the fit converged, one row per spectrum."""
     from .io import write_text
 
     lines = [",".join(["name", *NAMES, *(f"std_{k}" for k in NAMES), "rmse", "converged"])]
@@ -497,7 +546,7 @@ def write_params_csv(path, names: list[str], res: SkinFit) -> None:
     write_text(path, "\n".join(lines) + "\n")
 
 
-def read_brdf_csv(path):
+def read_brdf_csv(path: str | os.PathLike[str]) -> tuple[tuple[torch.Tensor, ...], torch.Tensor, list[float]]:
     """BRDF CSV: columns theta_i_deg, theta_r_deg, delta_phi_deg, then one column per band named by its
     wavelength in nm (values in sr^-1). Returns (angles in radians (3 tensors), brdf (M, B), bands_nm)."""
     fname, rows = _csv_rows(path, "BRDF")

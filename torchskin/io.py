@@ -5,14 +5,37 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
+
+#: a file path as the writers take it: a ``str`` or any ``os.PathLike[str]`` (``pathlib.Path``)
+StrPath = str | os.PathLike[str]
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+def atomic_path(path: StrPath, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it is fsync'd and renamed onto ``path``.
 
     On an exception the temporary file is removed and ``path`` is left untouched.
+
+    Args:
+        path: the file to write; its folder must exist (``ValueError`` otherwise).
+        suffix: the temporary file's suffix (default: ``path``'s own, so writers that pick a format by the
+            name, e.g. ``savefig``, see the right one).
+
+    Yields:
+        The temporary path to write to.
+
+    >>> from tempfile import TemporaryDirectory
+    >>> with TemporaryDirectory() as d:
+    ...     with atomic_path(Path(d) / "table.csv") as tmp:
+    ...         _ = tmp.write_text("a,b\\n")
+    ...     print(sorted(p.name for p in Path(d).iterdir()))
+    ['table.csv']
     """
     path = Path(path)
     parent = path.parent if str(path.parent) else Path(".")
@@ -39,18 +62,42 @@ def _umask() -> int:
     return mask
 
 
-def write_text(path: str | os.PathLike, text: str) -> None:
+def write_text(path: StrPath, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically: a crash leaves the old file or the new one, never half of it.
+
+    Args:
+        path: the file to write; its folder must exist.
+        text: the whole content.
+
+    >>> from tempfile import TemporaryDirectory
+    >>> with TemporaryDirectory() as d:
+    ...     write_text(Path(d) / "note.txt", "skin\\n")
+    ...     print(repr((Path(d) / "note.txt").read_text()), len(list(Path(d).iterdir())))
+    'skin\\n' 1
+    """
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> None:
+def write_bytes(path: StrPath, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see ``write_text``).
+
+    Args:
+        path: the file to write; its folder must exist.
+        data: the whole content.
+    """
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(data)
 
 
-def save_npy(path: str | os.PathLike, array, suffix: str = ".npy") -> None:
-    """``numpy.save`` to ``path`` exactly (no ``.npy`` appended), written atomically."""
+def save_npy(path: StrPath, array: ArrayLike, suffix: str = ".npy") -> None:
+    """``numpy.save`` to ``path`` exactly (no ``.npy`` appended), written atomically.
+
+    Args:
+        path: the file to write; its folder must exist.
+        array: anything ``numpy.save`` takes.
+        suffix: the temporary file's suffix.
+    """
     import numpy as np
 
     with atomic_path(path, suffix=suffix) as tmp:
@@ -58,9 +105,14 @@ def save_npy(path: str | os.PathLike, array, suffix: str = ".npy") -> None:
             np.save(fh, array)
 
 
-def save_torch(path: str | os.PathLike, obj) -> None:
+def save_torch(path: StrPath, obj: object) -> None:
     """``torch.save`` written atomically and serialised through a buffer, so the archive does not carry the
-    temporary file's random name: the same object gives the same bytes."""
+    temporary file's random name: the same object gives the same bytes.
+
+    Args:
+        path: the file to write; its folder must exist.
+        obj: anything ``torch.save`` takes (a checkpoint dict).
+    """
     import io
 
     import torch
@@ -68,3 +120,36 @@ def save_torch(path: str | os.PathLike, obj) -> None:
     buf = io.BytesIO()
     torch.save(obj, buf)
     write_bytes(path, buf.getvalue())
+
+
+def write_png(path: StrPath, image: ArrayLike) -> None:
+    """An 8-bit PNG of a uint8 array, (H, W) greyscale or (H, W, 3) RGB, one PNG pixel per element (stdlib
+    zlib, no imaging library), written atomically.
+
+    Args:
+        path: the file to write; its folder must exist.
+        image: (H, W) or (H, W, 3) values, converted to uint8; ``ValueError`` for any other shape.
+
+    >>> from tempfile import TemporaryDirectory
+    >>> with TemporaryDirectory() as d:
+    ...     write_png(Path(d) / "mask.png", [[0, 255], [255, 0]])
+    ...     print((Path(d) / "mask.png").read_bytes()[:8])
+    b'\\x89PNG\\r\\n\\x1a\\n'
+    """
+    import struct
+    import zlib
+
+    import numpy as np
+
+    a = np.ascontiguousarray(image, dtype=np.uint8)
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
+        raise ValueError(f"a PNG image must be (H, W) or (H, W, 3), got shape {a.shape}")
+    h, w = a.shape[:2]
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, -1)], 1).tobytes()  # filter 0 before each row
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    colour = 2 if a.ndim == 3 else 0
+    write_bytes(path, b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0))
+                + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))

@@ -100,6 +100,9 @@ _USE = {
 
 
 def _false_alarm_line(train: dict) -> str:
+    # "calibration" here (and "calibrated threshold" in ``_INPUTS``) means the false-alarm tuning
+    # (``boundaries.tune_false_alarms``, ``classifier.tune_threshold``); the words and the summary key
+    # ``calibration_configs`` are part of the shipped cards and checkpoints (exports/), so they stay
     if train.get("method") == "classifier":
         how = (f"the decision threshold was raised to {_f(train.get('threshold'))} (logit) so that at most "
                f"{_f(train.get('pfa_budget'))} of the earthlib *train* spectra are called skin in any of "

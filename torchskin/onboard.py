@@ -1,36 +1,42 @@
 """Onboard runtime: load the exported ONNX models and run them with numpy and onnxruntime only (no torch).
 
-    det = Detector("exports/detector.onnx")
+    det = OnboardDetector("exports/detector.onnx")
     out = det(cube, config)      # cube (B, 4, H, W) float32 reflectance, config (B, k) in the model's units
     out["mask"], out["score"], out["out_of_domain"]
 
 ``score`` is the smallest margin to a box edge in index units weighted by the band-pair sum (positive inside;
-see ``torchskin.export.Detector``).
+see ``torchskin.export.BoxDetector``).
 
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance raise ``ValueError``;
 configurations outside the training domain are flagged per frame in ``out_of_domain`` (never silently used).
 Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative reflectance from sensor noise:
 ``det(cube, config, negative="clip")`` sets those values to 0 instead and counts them per frame in
 ``clipped_values`` (a pixel whose band pairs sum to 0 is never skin).
+
+The ELM of camera frames (``panel_signal``, ``elm_fit``, ``elm_apply``) is numpy too; the command line
+(``torchskin detect``, ``torchskin calibrate``) is ``torchskin.onboard_cli``.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from .errors import Parser, check_input_file, check_output_file, one_line
+if TYPE_CHECKING:
+    from concurrent.futures import ThreadPoolExecutor
 
 
 class _Model:
     KIND = "torchskin"
     IO: tuple[set, set] = (set(), set())
 
-    def __init__(self, path, threads: int | None = None):
-        import os
-
+    def __init__(self, path: str | os.PathLike, threads: int | None = None):
         import onnxruntime as ort
 
         self.path = str(path)
@@ -52,7 +58,7 @@ class _Model:
         self.features = json.loads(meta.get("features", "[]"))
         self.domain = np.array(json.loads(meta.get("feature_domain", "[]")), dtype=np.float64).reshape(-1, 2)
         self.bands_nm = json.loads(meta.get("bands_nm", "[]"))
-        self._pool = None
+        self._pool: ThreadPoolExecutor | None = None
 
     def _config(self, config) -> tuple[np.ndarray, np.ndarray]:
         c = np.asarray(config)
@@ -68,11 +74,12 @@ class _Model:
             c = c.astype(np.float32)
         if not np.isfinite(c).all():
             raise ValueError("config holds NaN, infinite or out-of-float32-range values")
-        ood = ((c < self.domain[:, 0]) | (c > self.domain[:, 1])).any(1) if len(self.domain) else np.zeros(len(c), bool)
+        ood = cast(np.ndarray, ((c < self.domain[:, 0]) | (c > self.domain[:, 1])).any(1)) if len(self.domain) \
+            else np.zeros(len(c), bool)
         return c, ood
 
 
-def model_inputs(path) -> list[str]:
+def model_inputs(path: str | os.PathLike) -> list[str]:
     """The input names of an ONNX model (``cube`` marks a detector, ``config`` alone a boundary model)."""
     import onnxruntime as ort
 
@@ -90,25 +97,27 @@ class Boundaries(_Model):
     KIND = "boundaries (configuration -> boxes)"
     IO = ({"config"}, {"boxes"})
 
-    def __call__(self, config) -> dict:
+    def __call__(self, config: ArrayLike) -> dict:
+        """``{"boxes": (N, 5) float32, "out_of_domain": (N,) bool}`` of configurations (N, k) or (k,)."""
         c, ood = self._config(config)
         (boxes,) = self.session.run(None, {"config": c})
         return {"boxes": boxes, "out_of_domain": ood}
 
 
-class Detector(_Model):
-    """``detector.onnx``: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and score.
+class OnboardDetector(_Model):
+    """``detector.onnx`` run by onnxruntime: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and
+    score (the torch reference: ``torchskin.export.BoxDetector`` or ``ClassifierDetector``).
 
     Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that
     ``threads`` workers (the calling thread and a pool; one onnxruntime session, one intra-op thread each)
     pull from a shared queue, outputs bound straight into the result arrays, so the intermediates stay in
-    cache: the frame is read from memory about once. A Detector keeps its tile buffers and pool between
+    cache: the frame is read from memory about once. An OnboardDetector keeps its tile buffers and pool between
     calls: create it once, and use one per calling thread (calls on one object must not overlap)."""
 
     KIND = "detector (cube + configuration -> mask, score)"
     IO = ({"cube", "config"}, {"mask", "score"})
 
-    def __init__(self, path, threads: int | None = None, tile: int = 65536):
+    def __init__(self, path: str | os.PathLike, threads: int | None = None, tile: int = 65536):
         super().__init__(path, threads)
         if tile < 1024:
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
@@ -154,7 +163,7 @@ class Detector(_Model):
                 io.bind_cpu_input("cube", buf)
         return low
 
-    def pixels(self, reflectance, config, chunk: int = 65536) -> dict:
+    def pixels(self, reflectance: ArrayLike, config: ArrayLike, chunk: int = 65536) -> dict:
         """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, 4) and
         ``config`` (n, k) run as a (n, 4, 1, 1) cube in chunks of ``chunk`` pixels (negative values clipped to 0,
         as ``negative="clip"``; no brightness floor). Returns ``mask`` (n,) bool and ``score`` (n,) float32."""
@@ -182,28 +191,8 @@ class Detector(_Model):
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
-    @property
-    def default_min_reflectance(self) -> float:
-        """The brightness floor the model was evaluated with (metadata ``min_reflectance``; 0 when absent)."""
-        try:
-            return float(self.meta.get("min_reflectance", 0.0))
-        except ValueError:
-            return 0.0
-
-    def __call__(self, cube, config, out=None, negative: str = "error", min_reflectance: float | None = None) -> dict:
-        """``out``: optional preallocated (mask, score) arrays, (B, H, W) bool and float32, C-contiguous, that
-        receive the result (an onboard loop reuses them; their content is undefined if the call raises).
-        ``negative``: "error" (default) raises on negative reflectance; "clip" sets it to 0 (the caller's
-        cube is not modified) and reports the count per frame as ``clipped_values``. ``min_reflectance`` > 0:
-        pixels whose mean reflectance over the bands is not above it are never skin (at the noise floor the
-        indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 keeps the rules alone; None (default): the
-        floor the model was evaluated with (``default_min_reflectance``, from its metadata)."""
-        if negative not in ("error", "clip"):
-            raise ValueError(f"negative must be 'error' or 'clip', got {negative!r}")
-        if min_reflectance is None:
-            min_reflectance = self.default_min_reflectance
-        if not (0.0 <= float(min_reflectance) < 1.0):
-            raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
+    def _check_cube(self, cube) -> np.ndarray:
+        """``cube`` as an array, after the checks of rank, band count, dtype and size (``ValueError``)."""
         x = np.asarray(cube)
         if x.ndim != 4:
             raise ValueError(f"cube must have rank 4 (B, bands, H, W), got shape {x.shape}")
@@ -214,19 +203,67 @@ class Detector(_Model):
             raise ValueError(f"cube must be float32 reflectance, got {x.dtype}")
         if x.size == 0:
             raise ValueError(f"cube is empty: shape {x.shape}")
+        return x
+
+    @staticmethod
+    def _check_out(out, shape: tuple[int, int, int]) -> None:
+        """``ValueError`` unless ``out`` is a (mask, score) pair of writeable C-contiguous bool and float32 arrays
+        of ``shape``."""
+        if (not isinstance(out, (tuple, list)) or len(out) != 2
+                or not all(isinstance(a, np.ndarray) for a in out)):
+            raise ValueError("out must be a (mask, score) pair of numpy arrays")
+        for a, dt, name in ((out[0], np.bool_, "mask"), (out[1], np.float32, "score")):
+            if a.shape != shape or a.dtype != dt or not a.flags.c_contiguous or not a.flags.writeable:
+                raise ValueError(f"out {name} must be a writeable C-contiguous {np.dtype(dt).name} array of shape "
+                                 f"{shape}, got {a.dtype} {a.shape}")
+
+    @property
+    def default_min_reflectance(self) -> float:
+        """The brightness floor the model was evaluated with (metadata ``min_reflectance``; 0 when absent)."""
+        try:
+            return float(self.meta.get("min_reflectance", 0.0))
+        except ValueError:
+            return 0.0
+
+    def __call__(self, cube: np.ndarray, config: ArrayLike, out: tuple[np.ndarray, np.ndarray] | None = None,
+                 negative: str = "error", min_reflectance: float | None = None) -> dict:
+        """Detect skin in ELM reflectance frames.
+
+        Args:
+            cube: float32 reflectance, bands (544, 633, 1080, 1580 nm: the model's ``bands_nm``) on axis 1;
+                finite, and non-negative unless ``negative="clip"``.
+            config: each frame's configuration features in the model's order and units (``features``).
+            out: optional preallocated (mask, score) arrays, bool and float32, C-contiguous, that receive the
+                result (an onboard loop reuses them; their content is undefined if the call raises).
+            negative: "error" (default) raises on negative reflectance; "clip" sets it to 0 (the caller's cube
+                is not modified) and reports the count per frame as ``clipped_values``.
+            min_reflectance: > 0: pixels whose mean reflectance over the bands is not above it are never skin
+                (at the noise floor the indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 keeps the
+                rules alone; None (default): the floor the model was evaluated with (``default_min_reflectance``,
+                from its metadata).
+
+        Shape:
+            cube: (B, 4, H, W); config: (B, k) (or (k,) for B = 1); out, mask, score: (B, H, W);
+            out_of_domain, clipped_values: (B,).
+
+        Returns:
+            ``{"mask": bool, "score": float32 (positive inside), "out_of_domain": bool per frame}`` and, with
+            ``negative="clip"``, ``"clipped_values"`` (int64 per frame). ``ValueError`` on invalid input.
+        """
+        if negative not in ("error", "clip"):
+            raise ValueError(f"negative must be 'error' or 'clip', got {negative!r}")
+        if min_reflectance is None:
+            min_reflectance = self.default_min_reflectance
+        if not (0.0 <= float(min_reflectance) < 1.0):
+            raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
+        x = self._check_cube(cube)
         c, ood = self._config(config)
         if c.shape[0] != x.shape[0]:
             raise ValueError(f"config has {c.shape[0]} rows for a batch of {x.shape[0]} frames")
         B, _, H, W = x.shape
         n = H * W
         if out is not None:
-            if (not isinstance(out, (tuple, list)) or len(out) != 2
-                    or not all(isinstance(a, np.ndarray) for a in out)):
-                raise ValueError("out must be a (mask, score) pair of numpy arrays")
-            for a, dt, name in ((out[0], np.bool_, "mask"), (out[1], np.float32, "score")):
-                if a.shape != (B, H, W) or a.dtype != dt or not a.flags.c_contiguous or not a.flags.writeable:
-                    raise ValueError(f"out {name} must be a writeable C-contiguous {np.dtype(dt).name} array of shape "
-                                     f"{(B, H, W)}, got {a.dtype} {a.shape}")
+            self._check_out(out, (B, H, W))
         clipped = np.zeros(B, dtype=np.int64) if negative == "clip" else None
         extra = {} if clipped is None else {"clipped_values": clipped}
         floor = x.shape[1] * float(min_reflectance)  # on the band sum
@@ -262,7 +299,7 @@ class Detector(_Model):
             from concurrent.futures import ThreadPoolExecutor
 
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="torchskin-detect")
-        futures = [self._pool.submit(self._run_tiles, flat, c, mask, score, take, i, counts[i], floor)
+        futures = [cast("ThreadPoolExecutor", self._pool).submit(self._run_tiles, flat, c, mask, score, take, i, counts[i], floor)
                    for i in range(1, k)]
         lows = []
         try:  # the calling thread is worker 0
@@ -272,26 +309,15 @@ class Detector(_Model):
         low = np.min(lows)  # NaN propagates
         self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
         if clipped is not None:
-            clipped += np.sum(counts, axis=0)
+            clipped += np.sum(cast(list[np.ndarray], counts), axis=0)
         if out is not None:
             return {"mask": out[0], "score": out[1], "out_of_domain": ood, **extra}
         return {"mask": mask.reshape(B, H, W), "score": score.reshape(B, H, W), "out_of_domain": ood, **extra}
 
 
+
 # ------------------------------------------------------------------------- ELM for camera frames (numpy only)
-def parse_roi(text: str) -> tuple[int, int, int, int]:
-    """``"Y0:Y1:X0:X1"`` (rows Y0..Y1-1, columns X0..X1-1) -> a tuple of ints."""
-    parts = str(text).split(":")
-    try:
-        roi = tuple(int(p) for p in parts)
-    except ValueError:
-        roi = ()
-    if len(roi) != 4:
-        raise ValueError(f"a panel region must be Y0:Y1:X0:X1 (integers), got {text!r}")
-    return roi
-
-
-def panel_signal(frame, roi, erode: int = 1) -> np.ndarray:
+def panel_signal(frame: ArrayLike, roi: Sequence[int], erode: int = 1) -> np.ndarray:
     """Per-band median of ``frame`` (bands, H, W) over the region ``roi`` = (y0, y1, x0, x1) shrunk by ``erode``
     pixels on every side (the panel's edges mix with the background)."""
     f = np.asarray(frame)
@@ -312,7 +338,7 @@ def panel_signal(frame, roi, erode: int = 1) -> np.ndarray:
     return np.median(v, axis=1)
 
 
-def elm_fit(frame, panels, erode: int = 1) -> dict:
+def elm_fit(frame: ArrayLike, panels: Sequence[tuple[Sequence[int], ArrayLike]], erode: int = 1) -> dict:
     """Empirical line L = gain·ρ + offset per band (eqs 2.5.5-2.5.6) from reference panels in ``frame``
     (bands, H, W): ``panels`` is a sequence of (roi, reflectance), the reflectance a scalar or one value per
     band in (0, 1]. Two panels give the exact line through them; more give the least-squares line, whose RMS
@@ -348,7 +374,7 @@ def elm_fit(frame, panels, erode: int = 1) -> dict:
     return {"gain": gain, "offset": offset, "signals": L, "references": R, "residual": resid}
 
 
-def elm_apply(cube, gain, offset) -> np.ndarray:
+def elm_apply(cube: ArrayLike, gain: ArrayLike, offset: ArrayLike) -> np.ndarray:
     """Reflectance (float32) of signals ``cube`` (bands, H, W) or (B, bands, H, W): (L - offset) / gain."""
     x = np.asarray(cube)
     g, o = np.asarray(gain, np.float64), np.asarray(offset, np.float64)
@@ -359,171 +385,3 @@ def elm_apply(cube, gain, offset) -> np.ndarray:
         raise ValueError("gain must be finite and > 0 and offset finite in every band")
     inv = (1.0 / g)[:, None, None]
     return ((x - o[:, None, None]) * inv).astype(np.float32)
-
-
-def cli_calibrate(argv: list[str]) -> int:
-    """``torchskin calibrate --cube DN.npy (--panel Y0:Y1:X0:X1=REFL ... | --coefficients ELM.json) --out
-    REFL.npy [--save-coefficients ELM.json] [--erode PX] [--json]`` (numpy only)."""
-
-    from .io import save_npy, write_text
-
-    ap = Parser(prog="torchskin calibrate", description="Signals (DN or radiance) to reflectance "
-                                 "with the empirical line through reference panels in the frame (numpy only).")
-    ap.add_argument("--cube", required=True, help=".npy signal cube (bands, H, W), or (B, bands, H, W) with "
-                    "--coefficients")
-    ap.add_argument("--panel", action="append", default=[], metavar="Y0:Y1:X0:X1=REFL",
-                    help="a reference panel: pixel region and reflectance (one value, or one per band separated by "
-                         "commas); repeat for each panel (at least 2)")
-    ap.add_argument("--coefficients", help="apply a saved gain/offset JSON instead of fitting panels")
-    ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
-    ap.add_argument("--out", required=True, help="reflectance cube .npy (float32)")
-    ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
-    ap.add_argument("--json", action="store_true")
-    args = ap.parse_args(argv)
-    if bool(args.panel) == bool(args.coefficients):
-        raise ValueError("give either --panel (at least twice) or --coefficients")
-    out = check_output_file(args.out, "--out", (".npy",))
-    save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
-        if args.save_coefficients else None
-    cube = load_cube(args.cube, "--cube")
-    if args.coefficients:
-        coef_path = check_input_file(args.coefficients, "--coefficients", (".json",))
-        try:
-            doc = json.loads(coef_path.read_text())
-            gain, offset = np.asarray(doc["gain"], np.float64), np.asarray(doc["offset"], np.float64)
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise ValueError(f"cannot read --coefficients {args.coefficients!r}: {one_line(e)}") from None
-        fit = None
-    else:
-        panels = []  # (region, reflectance)
-        for p in args.panel:
-            roi, sep, rho = p.partition("=")
-            try:
-                vals = [float(v) for v in rho.split(",")] if sep else []
-            except ValueError:
-                vals = []
-            if not vals or not all(np.isfinite(vals)):
-                raise ValueError(f"--panel must be Y0:Y1:X0:X1=REFL[,REFL...] with finite reflectances, got {p!r}")
-            panels.append((parse_roi(roi), vals[0] if len(vals) == 1 else vals))
-        if cube.ndim != 3:
-            raise ValueError(f"fitting panels needs one frame (bands, H, W), got shape {cube.shape}")
-        fit = elm_fit(cube, panels, args.erode)
-        gain, offset = fit["gain"], fit["offset"]
-    refl = elm_apply(cube, gain, offset)
-    if not np.isfinite(refl).all():
-        raise ValueError("the calibrated cube holds NaN or infinite values (check the coefficients)")
-    coef = {"gain": gain.tolist(), "offset": offset.tolist()}
-    if fit is not None:
-        coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
-                          for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
-        coef["residual"] = fit["residual"].tolist()
-    coef_text = json.dumps(coef, indent=1)  # everything prepared before the first file is written
-    save_npy(out, refl)
-    if save_coef is not None:
-        write_text(save_coef, coef_text)
-    res = {**coef, "out": args.out, "shape": list(refl.shape),
-           "reflectance_range": [float(refl.min()), float(refl.max())]}
-    if args.json:
-        print(json.dumps(res))
-    else:
-        print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
-              f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
-              + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
-    return 0
-
-
-def load_cube(path, option: str = "--cube") -> np.ndarray:
-    """A numeric, non-empty, finite array from a ``.npy`` file (no pickles, no ``.npz`` archives), with a
-    one-line ``ValueError`` naming ``option`` and the file otherwise."""
-    p = check_input_file(path, option, (".npy",))
-    try:
-        x = np.load(p, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as e:
-        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
-    if not isinstance(x, np.ndarray):
-        raise ValueError(f"{option} {str(p)!r} is not a single .npy array")
-    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
-        raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {x.dtype}")
-    if x.size == 0:
-        raise ValueError(f"{option} {str(p)!r} is empty (shape {x.shape})")
-    if np.issubdtype(x.dtype, np.floating) and not np.isfinite(x).all():
-        raise ValueError(f"{option} {str(p)!r} holds NaN or infinite values")
-    return x
-
-
-FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
-                    "relative_azimuth_deg": "relative_azimuth", "range_m": "range"}
-
-
-def write_png(path, mask: np.ndarray) -> None:
-    """A greyscale PNG of a boolean (H, W) mask (stdlib zlib; no imaging library), written atomically."""
-    import struct
-    import zlib
-
-    from .io import write_bytes
-
-    m = (np.asarray(mask, dtype=bool).astype(np.uint8) * 255)
-    h, w = m.shape
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), m], 1).tobytes()  # filter byte 0 before every row
-
-    def chunk(tag, data):
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-    write_bytes(path, png)
-
-
-def cli_detect(argv: list[str]) -> int:
-    """``torchskin detect --model detector.onnx --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
-    --relative-azimuth DEG [--range M] [--out MASK.png] [--json]`` (numpy + onnxruntime only)."""
-
-    ap = Parser(prog="torchskin detect", description="Skin mask of a reflectance cube with the "
-                                 "exported detector (numpy + onnxruntime, no torch).")
-    ap.add_argument("--model", required=True, help="detector.onnx")
-    ap.add_argument("--cube", required=True, help=".npy reflectance cube (4, H, W) or (B, 4, H, W), float32")
-    ap.add_argument("--sun-zenith", type=float, help="degrees")
-    ap.add_argument("--camera-zenith", type=float, help="degrees")
-    ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
-    ap.add_argument("--range", type=float, help="metres (if the model uses it)")
-    ap.add_argument("--out", help="mask PNG (first frame)")
-    ap.add_argument("--clip-negative", action="store_true",
-                    help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
-                         "clipped, instead of refusing the cube")
-    ap.add_argument("--min-reflectance", type=float, default=None,
-                    help="pixels whose mean reflectance over the bands is not above this are never skin (their "
-                         "indices are noise); default: the floor the model was evaluated with (its metadata "
-                         "min_reflectance; 0 for models without it)")
-    ap.add_argument("--json", action="store_true")
-    args = ap.parse_args(argv)
-    mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
-    det = Detector(check_input_file(args.model, "--model", (".onnx",)))
-    cube = load_cube(args.cube, "--cube")
-    if cube.ndim == 3:
-        cube = cube[None]
-    values = []
-    for f in det.features:
-        flag = FLAG_FOR_FEATURE.get(f, f)
-        v = getattr(args, flag, None)
-        if v is None:
-            raise ValueError(f"the model needs --{flag.replace('_', '-')} ({f})")
-        if not np.isfinite(v):
-            raise ValueError(f"--{flag.replace('_', '-')} must be a finite number, got {v}")
-        values.append(v)
-    out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
-              negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
-    if mask_path is not None:
-        write_png(mask_path, out["mask"][0])
-    frac = float(out["mask"].mean())
-    clipped = out.get("clipped_values")
-    if args.json:
-        res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
-               "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
-        if clipped is not None:
-            res["clipped_values"] = clipped.tolist()
-        print(json.dumps(res))
-    else:
-        flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
-        clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
-        print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
-    return 0

@@ -9,19 +9,22 @@ All functions broadcast their inputs and return on their device and dtype.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import overload
 
 import torch
 
-from ._checks import as_tensor, check_range
-from .bands import Band, as_bands
+from ._checks import Numeric, TensorLike, as_tensor, check_range
+from .bands import INDEX_BANDS_NM, Band, as_bands
 
 _EPS_COS = 1e-12
-_HALF_PI = math.pi / 2 * (1 + 1e-6)  # π/2 with room for its float32 rounding (1.5707964 > π/2)
+#: the largest accepted incidence angle, rad: π/2 with room for its float32 rounding (1.5707964 > π/2)
+MAX_INCIDENCE_RAD = math.pi / 2 * (1 + 1e-6)
 
 
-def _check_surface_params(sigma2=None, rho0=None, rho_d=None, r_sub=None) -> None:
+def _check_surface_params(sigma2: TensorLike | None = None, rho0: TensorLike | None = None,
+                          rho_d: TensorLike | None = None, r_sub: TensorLike | None = None) -> None:
     """Validate the material parameters of the public BRDFs (σ² > 0 finite, ρ0 in [0, 1), ρ_d and R_sub in
     [0, 1]); the ``*_cos`` kernels, the renderer's per-frame path, skip this (see ``_check_numbers``)."""
     if sigma2 is not None:
@@ -34,7 +37,7 @@ def _check_surface_params(sigma2=None, rho0=None, rho_d=None, r_sub=None) -> Non
         check_range("r_sub", r_sub, 0.0, 1.0)
 
 
-def _check_numbers(**values) -> None:
+def _check_numbers(**values: TensorLike) -> None:
     """``_check_surface_params`` for the arguments that are Python numbers (free: no tensor, no device sync)."""
     nums = {k: v for k, v in values.items() if isinstance(v, (int, float))}
     if nums:
@@ -42,13 +45,14 @@ def _check_numbers(**values) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ Fresnel
-def fresnel_normal(n1, n2) -> torch.Tensor:
+def fresnel_normal(n1: TensorLike, n2: TensorLike) -> torch.Tensor:
     """Normal-incidence reflectance ((n2 - n1) / (n2 + n1))^2, eq 2.2.4."""
-    n1, n2 = torch.broadcast_tensors(as_tensor(n1), as_tensor(n2))
-    return ((n2 - n1) / (n2 + n1)) ** 2
+    a, b = torch.broadcast_tensors(as_tensor(n1), as_tensor(n2))
+    return ((b - a) / (b + a)) ** 2
 
 
-def _cos_t(theta_i, n1, n2):
+def _cos_t(theta_i: torch.Tensor, n1: torch.Tensor,
+           n2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     cos_i = torch.cos(theta_i)
     sin_t2 = (n1 / n2) ** 2 * (1 - cos_i**2)
     tir = sin_t2 >= 1
@@ -56,7 +60,7 @@ def _cos_t(theta_i, n1, n2):
     return cos_i, cos_t, tir
 
 
-def fresnel_s(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+def fresnel_s(theta_i: TensorLike, n1: TensorLike = 1.0, n2: TensorLike = 1.5) -> torch.Tensor:
     """s-polarised reflectance, eq 2.2.5 (1 under total internal reflection)."""
     theta_i = as_tensor(theta_i)
     n1, n2 = as_tensor(n1, like=theta_i), as_tensor(n2, like=theta_i)
@@ -65,7 +69,7 @@ def fresnel_s(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
     return torch.where(tir, torch.ones_like(r), r)
 
 
-def fresnel_p(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+def fresnel_p(theta_i: TensorLike, n1: TensorLike = 1.0, n2: TensorLike = 1.5) -> torch.Tensor:
     """p-polarised reflectance, eq 2.2.6 (1 under total internal reflection)."""
     theta_i = as_tensor(theta_i)
     n1, n2 = as_tensor(n1, like=theta_i), as_tensor(n2, like=theta_i)
@@ -74,24 +78,65 @@ def fresnel_p(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
     return torch.where(tir, torch.ones_like(r), r)
 
 
-def fresnel_unpolarized(theta_i, n1=1.0, n2=1.5) -> torch.Tensor:
+def fresnel_unpolarized(theta_i: TensorLike, n1: TensorLike = 1.0, n2: TensorLike = 1.5) -> torch.Tensor:
     """Unpolarised reflectance: the mean of eqs 2.2.5 and 2.2.6."""
     return 0.5 * (fresnel_s(theta_i, n1, n2) + fresnel_p(theta_i, n1, n2))
 
 
-def schlick(rho0, theta) -> torch.Tensor:
-    """Schlick's approximation, eq 2.2.7: ρ0 + (1 - ρ0)(1 - cos θ)^5."""
+def schlick(rho0: TensorLike, theta: TensorLike) -> torch.Tensor:
+    """Schlick's approximation of the Fresnel reflectance, eq 2.2.7: ρ0 + (1 - ρ0)(1 - cos θ)^5.
+
+    Args:
+        rho0: normal-incidence reflectance ρ0 (eq 2.2.4; 0.04 for n = 1.5).
+        theta: incidence angle, rad.
+
+    Shape:
+        ``rho0`` and ``theta`` broadcast; the result has the broadcast shape, on ``theta``'s device and dtype.
+
+    Returns:
+        The reflectance, ρ0 at normal incidence rising to 1 at grazing incidence.
+
+    >>> round(float(schlick(0.04, 0.0)), 4), round(float(schlick(0.04, math.radians(80.0))), 4)
+    (0.04, 0.4099)
+    """
     theta = as_tensor(theta)
     rho0 = as_tensor(rho0, like=theta)
     return schlick_cos(rho0, torch.cos(theta))
 
 
-def schlick_cos(rho0, cos_theta):
-    """Schlick's approximation from a cosine (tensors or floats): ρ0 + (1 - ρ0)(1 - cos θ)^5."""
+@overload
+def schlick_cos(rho0: float, cos_theta: float) -> float: ...
+
+
+@overload
+def schlick_cos(rho0: Numeric, cos_theta: torch.Tensor) -> torch.Tensor: ...
+
+
+@overload
+def schlick_cos(rho0: torch.Tensor, cos_theta: Numeric) -> torch.Tensor: ...
+
+
+def schlick_cos(rho0: Numeric, cos_theta: Numeric) -> Numeric:
+    """Schlick's approximation from a cosine, eq 2.2.7: ρ0 + (1 - ρ0)(1 - cos θ)^5: the one place the formula
+    is written (``schlick`` and every BRDF call it).
+
+    Args:
+        rho0: normal-incidence reflectance ρ0.
+        cos_theta: cosine of the incidence angle.
+
+    Shape:
+        Tensors broadcast; floats give a float (no tensor is made).
+
+    Returns:
+        The reflectance, of the inputs' kind.
+
+    >>> round(float(schlick_cos(0.04, 0.5)), 4), schlick_cos(0.04, 1.0)
+    (0.07, 0.04)
+    """
     return rho0 + (1 - rho0) * (1 - cos_theta) ** 5
 
 
-def rho0_to_n(rho0, n1: float = 1.0) -> torch.Tensor:
+def rho0_to_n(rho0: TensorLike, n1: float = 1.0) -> torch.Tensor:
     """Refractive index from normal reflectance (eq 2.2.4 inverted): n = n1 (1 + √ρ0) / (1 - √ρ0)."""
     rho0 = as_tensor(rho0)
     check_range("rho0", rho0, 0.0, 0.999999)
@@ -99,19 +144,84 @@ def rho0_to_n(rho0, n1: float = 1.0) -> torch.Tensor:
     return n1 * (1 + s) / (1 - s)
 
 
-def n_to_rho0(n, n1: float = 1.0) -> torch.Tensor:
+def n_to_rho0(n: TensorLike, n1: float = 1.0) -> torch.Tensor:
     """Normal reflectance of the interface n1 -> n (eq 2.2.4)."""
     return fresnel_normal(n1, n)
 
 
+# ------------------------------------------------------------------------------------------- local angles
+def cosines_from_angles(theta_i: TensorLike, theta_r: TensorLike,
+                        delta_phi: TensorLike) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The cosines the ``*_cos`` BRDF kernels take, from local angles: cos θi, cos θr and
+    cos 2β = cos θi cos θr + sin θi sin θr cos Δφ = ω_i · ω_r (eq 2.3.5).
+
+    Args:
+        theta_i: incidence angle from the local normal, rad.
+        theta_r: view angle from the local normal, rad.
+        delta_phi: relative azimuth, rad (Δφ = π the forward plane).
+
+    Shape:
+        The inputs broadcast together; the three outputs have the broadcast shape.
+
+    Returns:
+        ``(cos θi, cos θr, cos 2β)``.
+
+    >>> ci, cr, c2b = cosines_from_angles(0.5, 0.5, math.pi)  # the mirror direction: 2β = θi + θr
+    >>> round(float(c2b), 4), round(math.cos(1.0), 4)
+    (0.5403, 0.5403)
+    """
+    ti, tr, dp = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi))
+    ci, cr = torch.cos(ti), torch.cos(tr)
+    return ci, cr, ci * cr + torch.sin(ti) * torch.sin(tr) * torch.cos(dp)
+
+
+def half_angle_cos(cos_2beta: torch.Tensor) -> torch.Tensor:
+    """cos β from cos 2β = ω_i · ω_r: √((1 + cos 2β) / 2), with β the incidence angle on the facet that mirrors
+    the source into the viewer (eq 2.3.5); clamped to [1e-12, 1] (finite at back-scatter, 2β = π).
+
+    >>> round(float(half_angle_cos(torch.tensor(0.0))), 4)  # 2β = 90°: β = 45°
+    0.7071
+    """
+    return torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
+
+
+def local_angles(normal: torch.Tensor, to_source: torch.Tensor,
+                 to_viewer: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Local angles ``(θi, θr, Δφ)`` in rad of a surface point from unit vectors: θi between the normal and the
+    direction to the source, θr between the normal and the direction to the viewer, Δφ between the two
+    directions projected on the tangent plane (Δφ = π: the forward, specular plane; π/2 where a projection
+    vanishes).
+
+    Args:
+        normal: unit surface normals.
+        to_source: unit directions from the surface to the source.
+        to_viewer: unit directions from the surface to the viewer.
+
+    Shape:
+        ``(..., 3)`` each, broadcasting together; the outputs have the broadcast batch shape ``(...)``.
+
+    Returns:
+        ``(theta_i, theta_r, delta_phi)``, rad.
+
+    >>> n = torch.tensor([0.0, 0.0, 1.0])
+    >>> s, v = torch.tensor([0.6, 0.0, 0.8]), torch.tensor([-0.6, 0.0, 0.8])
+    >>> [round(math.degrees(float(a)), 2) for a in local_angles(n, s, v)]
+    [36.87, 36.87, 180.0]
+    """
+    ci = (normal * to_source).sum(-1).clamp(-1, 1)
+    cr = (normal * to_viewer).sum(-1).clamp(-1, 1)
+    st, vt = to_source - ci[..., None] * normal, to_viewer - cr[..., None] * normal
+    cphi = ((st * vt).sum(-1) / (st.norm(dim=-1) * vt.norm(dim=-1)).clamp_min(1e-12)).clamp(-1, 1)
+    return torch.acos(ci), torch.acos(cr), torch.acos(cphi)
+
+
 # ----------------------------------------------------------------------------------------- microfacet lobe
-def microfacet_angles(theta_i, theta_r, delta_phi) -> tuple[torch.Tensor, torch.Tensor]:
+
+
+def microfacet_angles(theta_i: TensorLike, theta_r: TensorLike,
+                      delta_phi: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
     """``(β, θ)`` of eqs 2.3.5-2.3.6: the incidence angle on the facet and the facet tilt from the normal."""
-    theta_i, theta_r, delta_phi = torch.broadcast_tensors(
-        as_tensor(theta_i), as_tensor(theta_r), as_tensor(delta_phi)
-    )
-    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
-    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    ci, cr, cos2b = cosines_from_angles(theta_i, theta_r, delta_phi)
     # clamp away from ±1: acos has an infinite derivative there
     beta = 0.5 * torch.acos(cos2b.clamp(-1 + 1e-12, 1 - 1e-12))
     cos_t = (ci + cr) / (2 * torch.cos(beta)).clamp_min(_EPS_COS)
@@ -119,7 +229,7 @@ def microfacet_angles(theta_i, theta_r, delta_phi) -> tuple[torch.Tensor, torch.
     return beta, theta
 
 
-def _smith_g1(cos_v, m2):
+def _smith_g1(cos_v: torch.Tensor, m2: torch.Tensor) -> torch.Tensor:
     """Smith masking for a Beckmann distribution with slope variance m² (exact erf form), from cos θ."""
     c = cos_v.clamp(1e-12, 1.0)
     a = c / (torch.sqrt(m2) * torch.sqrt((1 - c * c).clamp_min(1e-24)))  # 1 / (m tan θ)
@@ -127,12 +237,13 @@ def _smith_g1(cos_v, m2):
     return 1.0 / (1.0 + lam)
 
 
-def microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+def microfacet_brdf_cos(cos_i: torch.Tensor, cos_r: torch.Tensor, cos_2beta: torch.Tensor, sigma2: Numeric,
+                        rho0: Numeric, *, shadowing: bool = False) -> torch.Tensor:
     """Eq 2.3.4 from cosines: cos θi, cos θr and cos 2β = ω_i · ω_r (the angle between the directions to
     the source and to the viewer). The vector form used by the renderer; see ``microfacet_brdf``. Tensor
     parameters are not validated here (no device synchronisation on the hot path)."""
     _check_numbers(sigma2=sigma2, rho0=rho0)
-    cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
+    cos_b = half_angle_cos(cos_2beta)
     ct = ((cos_i + cos_r) / (2 * cos_b)).clamp(-1.0, 1.0)  # cos of the facet tilt θ, eq 2.3.6
     ct2 = (ct * ct).clamp_min(_EPS_COS)
     tan2 = (1 - ct2) / ct2
@@ -140,23 +251,36 @@ def microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, *, shadowing: boo
     f = fresnel * torch.exp(-tan2 / (2 * sigma2)) / (
         8 * math.pi * sigma2 * (ct2 * ct2) * (cos_i * cos_r).clamp_min(_EPS_COS))
     if shadowing:
-        m2 = 2 * sigma2
+        m2 = 2 * as_tensor(sigma2, like=cos_i)  # a Python-number sigma2 too (torch.sqrt takes tensors only)
         f = f * _smith_g1(cos_i, m2) * _smith_g1(cos_r, m2)
     return torch.where((cos_i > 0) & (cos_r > 0), f, torch.zeros_like(f))
 
 
-def microfacet_brdf(theta_i, theta_r, delta_phi, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+def microfacet_brdf(theta_i: TensorLike, theta_r: TensorLike, delta_phi: TensorLike, sigma2: TensorLike,
+                    rho0: TensorLike, *, shadowing: bool = False) -> torch.Tensor:
     """Gaussian microfacet specular lobe, eq 2.3.4 (sr^-1).
 
     Cook-Torrance with a Beckmann distribution of slope variance m² = 2σ² and Schlick Fresnel at the facet
-    incidence β; no shadowing by default (the thesis's form). ``shadowing=True`` multiplies by the separable
-    Smith masking-shadowing G = G1(θi) G1(θr), which keeps the lobe energy-bounded at grazing angles.
-    Returns 0 for directions below the horizon. ``sigma2`` must be > 0 (finite), ``rho0`` in [0, 1).
+    incidence β; no shadowing by default (the thesis's form).
+
+    Args:
+        theta_i, theta_r: incidence and view angles from the normal, rad.
+        delta_phi: relative azimuth, rad (Δφ = π the forward plane).
+        sigma2: slope parameter σ² (> 0, finite); the thesis's per band: ``THESIS_SPECULAR``.
+        rho0: Schlick normal reflectance ρ0, in [0, 1).
+        shadowing: multiply by the separable Smith masking-shadowing G = G1(θi) G1(θr), which keeps the lobe
+            energy-bounded at grazing angles.
+
+    Shape:
+        All inputs broadcast (band axis last); the result has the broadcast shape.
+
+    Returns:
+        The BRDF in sr^-1; 0 for directions below the horizon.
+
+    >>> round(float(microfacet_brdf(math.radians(30.0), math.radians(30.0), math.pi, 0.0146, 0.042)), 4)
+    0.1528
     """
-    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
-                                                          as_tensor(delta_phi))
-    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
-    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)  # eq 2.3.5
+    ci, cr, cos2b = cosines_from_angles(theta_i, theta_r, delta_phi)
     sigma2, rho0 = as_tensor(sigma2, like=ci), as_tensor(rho0, like=ci)
     _check_surface_params(sigma2=sigma2, rho0=rho0)
     return microfacet_brdf_cos(ci, cr, cos2b, sigma2, rho0, shadowing=shadowing)
@@ -171,11 +295,11 @@ class SpecularParams:
     1580 nm. Between the fitted wavelengths the parameters are interpolated linearly, outside held constant.
     """
 
-    wavelengths_nm: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
+    wavelengths_nm: tuple[float, ...] = INDEX_BANDS_NM
     sigma2: tuple[float, ...] = (0.0313, 0.0292, 0.0214, 0.0146)
     rho0: tuple[float, ...] = (0.030, 0.038, 0.045, 0.042)
 
-    def at(self, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+    def at(self, wavelengths: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
         """``(σ², ρ0)`` at ``wavelengths`` (nm), on their device and dtype."""
         from .data import interp
 
@@ -185,7 +309,9 @@ class SpecularParams:
         out = interp(wl.clamp(xp[0], xp[-1]), xp, fp)
         return out[0], out[1]
 
-    def for_bands(self, bands: Sequence[Band] | None = None, dtype=None, device=None):
+    def for_bands(self, bands: Sequence[Band] | None = None, dtype: torch.dtype | None = None,
+                  device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(σ², ρ0)`` at the centres of ``bands`` (default ``DEFAULT_BANDS``), each ``(n_bands,)``."""
         bands = as_bands(bands)
         wl = torch.tensor([b.center_nm for b in bands], dtype=dtype or torch.get_default_dtype(), device=device)
         return self.at(wl)
@@ -194,26 +320,38 @@ class SpecularParams:
 THESIS_SPECULAR = SpecularParams()
 
 
-def combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
+def combined_brdf_cos(cos_i: torch.Tensor, cos_r: torch.Tensor, cos_2beta: torch.Tensor, rho_d: Numeric,
+                      sigma2: Numeric, rho0: Numeric, *, shadowing: bool = False) -> torch.Tensor:
     """Eq 3.1.1 from cosines (see ``microfacet_brdf_cos``); the renderer's form of ``combined_brdf``."""
     _check_numbers(rho_d=rho_d)
     fs = microfacet_brdf_cos(cos_i, cos_r, cos_2beta, sigma2, rho0, shadowing=shadowing)
-    cos_b = torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
-    fd = (1 - schlick_cos(rho0, cos_b)) * rho_d / math.pi
+    fd = (1 - schlick_cos(rho0, half_angle_cos(cos_2beta))) * rho_d / math.pi
     return fs + torch.where((cos_i > 0) & (cos_r > 0), fd, torch.zeros_like(fd))
 
 
-def combined_brdf(theta_i, theta_r, delta_phi, rho_d, sigma2, rho0, *, shadowing: bool = False) -> torch.Tensor:
-    """Combined skin BRDF, eq 3.1.1: f_s + (1 - ρ_Schlick(ρ0, β)) ρ_d / π (sr^-1).
+def combined_brdf(theta_i: TensorLike, theta_r: TensorLike, delta_phi: TensorLike, rho_d: TensorLike,
+                  sigma2: TensorLike, rho0: TensorLike, *, shadowing: bool = False) -> torch.Tensor:
+    """Combined BRDF, eq 3.1.1: f_s + (1 - ρ_Schlick(ρ0, β)) ρ_d / π (sr^-1), with a given diffuse reflectance.
 
-    ``rho_d`` is the diffuse (subsurface) reflectance, e.g. ``tissue.diffuse_reflectance`` at the local
-    incidence; all inputs broadcast, the band axis last. ``rho_d`` must lie in [0, 1], ``sigma2`` > 0
-    (finite), ``rho0`` in [0, 1).
+    Args:
+        theta_i, theta_r: incidence and view angles from the normal, rad.
+        delta_phi: relative azimuth, rad (Δφ = π the forward plane).
+        rho_d: the diffuse reflectance ρ_d in [0, 1], e.g. ``tissue.diffuse_reflectance`` at the local
+            incidence (``skin_brdf`` derives it from the subsurface reflectance).
+        sigma2: slope parameter σ² of the lobe (> 0, finite).
+        rho0: Schlick normal reflectance ρ0, in [0, 1).
+        shadowing: Smith shadowing on the lobe (see ``microfacet_brdf``).
+
+    Shape:
+        All inputs broadcast (band axis last); the result has the broadcast shape.
+
+    Returns:
+        The BRDF in sr^-1; 0 for directions below the horizon.
+
+    >>> round(float(combined_brdf(math.radians(30.0), math.radians(30.0), math.pi, 0.5, 0.0146, 0.042)), 4)
+    0.3052
     """
-    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
-                                                          as_tensor(delta_phi))
-    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
-    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    ci, cr, cos2b = cosines_from_angles(theta_i, theta_r, delta_phi)
     rho_d, sigma2, rho0 = (as_tensor(x, like=ci) for x in (rho_d, sigma2, rho0))
     _check_surface_params(sigma2=sigma2, rho0=rho0, rho_d=rho_d)
     return combined_brdf_cos(ci, cr, cos2b, rho_d, sigma2, rho0, shadowing=shadowing)
@@ -237,7 +375,7 @@ def surface_front(surface: str) -> float:
     return 1.0 if check_surface(surface) == "thesis" else 0.0
 
 
-def skin_diffuse(r_sub, r0, front=1.0):
+def skin_diffuse(r_sub: torch.Tensor, r0: Numeric, front: Numeric = 1.0) -> torch.Tensor:
     """Eq 3.1.1's diffuse reflectance ρ_d(θi) of skin from its subsurface reflectance R_sub (the nine layers
     and substrate, ``tissue.subsurface_reflectance``) under a front surface of reflectance R0 = Schlick(ρ0, θi):
 
@@ -264,7 +402,9 @@ def skin_diffuse(r_sub, r0, front=1.0):
     return (1 - r0) ** 2 * r_sub / (1 - r0 * r_sub) + front * r0
 
 
-def skin_brdf_cos(cos_i, cos_r, cos_2beta, r_sub, sigma2, rho0, front=1.0, *, shadowing: bool = False):
+def skin_brdf_cos(cos_i: torch.Tensor, cos_r: torch.Tensor, cos_2beta: torch.Tensor, r_sub: torch.Tensor,
+                  sigma2: Numeric, rho0: Numeric, front: Numeric = 1.0, *,
+                  shadowing: bool = False) -> torch.Tensor:
     """The combined skin BRDF of eq 3.1.1 from cosines, with ρ_d from ``skin_diffuse`` at R0 = Schlick(ρ0, θi)
     (``front``: 1 thesis, 0 conserving). All inputs broadcast, band axis last; sr^-1."""
     _check_numbers(r_sub=r_sub)
@@ -272,29 +412,51 @@ def skin_brdf_cos(cos_i, cos_r, cos_2beta, r_sub, sigma2, rho0, front=1.0, *, sh
     return combined_brdf_cos(cos_i, cos_r, cos_2beta, rho_d, sigma2, rho0, shadowing=shadowing)
 
 
-def skin_brdf(theta_i, theta_r, delta_phi, r_sub, sigma2, rho0, surface: str = DEFAULT_SURFACE, *,
+def skin_brdf(theta_i: TensorLike, theta_r: TensorLike, delta_phi: TensorLike, r_sub: TensorLike,
+              sigma2: TensorLike, rho0: TensorLike, surface: str = DEFAULT_SURFACE, *,
               shadowing: bool = False) -> torch.Tensor:
-    """The combined skin BRDF of eq 3.1.1 (sr^-1) from the subsurface reflectance ``r_sub``: the specular lobe
-    (eq 2.3.4) plus (1 - ρ_Schlick(β)) ρ_d / π with ρ_d from the skin surface model ``surface`` ("thesis" or
-    "conserving", see ``skin_diffuse``). Angles in radians (Δφ = π forward); inputs broadcast, band axis last.
-    ``r_sub`` must lie in [0, 1], ``sigma2`` > 0 (finite), ``rho0`` in [0, 1)."""
+    """The combined skin BRDF of eq 3.1.1 (sr^-1) from the subsurface reflectance: the specular lobe (eq
+    2.3.4) plus (1 - ρ_Schlick(β)) ρ_d / π, with ρ_d from the skin surface model ``surface`` at
+    R0 = Schlick(ρ0, θi) (``skin_diffuse``).
+
+    Args:
+        theta_i, theta_r: incidence and view angles from the normal, rad.
+        delta_phi: relative azimuth, rad (Δφ = π the forward plane).
+        r_sub: subsurface reflectance R_sub in [0, 1] (``tissue.subsurface_reflectance``).
+        sigma2: slope parameter σ² of the lobe (> 0, finite); per band: ``THESIS_SPECULAR.for_bands()``.
+        rho0: Schlick normal reflectance ρ0, in [0, 1).
+        surface: "thesis" (default: ρ_d includes the front-surface reflection) or "conserving".
+        shadowing: Smith shadowing on the lobe (see ``microfacet_brdf``).
+
+    Shape:
+        All inputs broadcast (band axis last); the result has the broadcast shape.
+
+    Returns:
+        The BRDF in sr^-1; 0 for directions below the horizon.
+
+    >>> sigma2, rho0 = THESIS_SPECULAR.for_bands()  # (4,) each: 544, 633, 1080, 1580 nm
+    >>> theta_i = torch.tensor([0.1, 0.3, 0.5])[:, None]
+    >>> skin_brdf(theta_i, 0.0, 0.0, torch.tensor([0.28, 0.6, 0.5, 0.05]), sigma2, rho0).shape
+    torch.Size([3, 4])
+    >>> t = math.radians(30.0)
+    >>> round(float(skin_brdf(t, t, math.pi, 0.05, 0.0146, 0.042)), 4)
+    0.1796
+    """
     front = surface_front(surface)
-    theta_i, theta_r, delta_phi = torch.broadcast_tensors(as_tensor(theta_i), as_tensor(theta_r),
-                                                          as_tensor(delta_phi))
-    ci, cr = torch.cos(theta_i), torch.cos(theta_r)
-    cos2b = ci * cr + torch.sin(theta_i) * torch.sin(theta_r) * torch.cos(delta_phi)
+    ci, cr, cos2b = cosines_from_angles(theta_i, theta_r, delta_phi)
     r_sub, sigma2, rho0 = (as_tensor(x, like=ci) for x in (r_sub, sigma2, rho0))
     _check_surface_params(sigma2=sigma2, rho0=rho0, r_sub=r_sub)
     return skin_brdf_cos(ci, cr, cos2b, r_sub, sigma2, rho0, front, shadowing=shadowing)
 
 
-def observed_reflectance(brdf, theta_r, solid_angle) -> torch.Tensor:
+def observed_reflectance(brdf: TensorLike, theta_r: TensorLike, solid_angle: TensorLike) -> torch.Tensor:
     """Reflectance seen by a detector of solid angle Ω = A_optic / R², eq 3.1.4: f · Ω · cos θr."""
     brdf = as_tensor(brdf)
     return brdf * as_tensor(solid_angle, like=brdf) * torch.cos(as_tensor(theta_r, like=brdf))
 
 
-def gauss_legendre(n: int, a: float, b: float, dtype=torch.float64, device=None):
+def gauss_legendre(n: int, a: float, b: float, dtype: torch.dtype = torch.float64,
+                   device: torch.device | str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Nodes and weights of n-point Gauss-Legendre quadrature on [a, b] (Golub-Welsch, in torch)."""
     k = torch.arange(1, n, dtype=torch.float64)
     off = k / torch.sqrt(4 * k * k - 1)
@@ -306,7 +468,8 @@ def gauss_legendre(n: int, a: float, b: float, dtype=torch.float64, device=None)
     return x.to(dtype=dtype, device=device), w.to(dtype=dtype, device=device)
 
 
-def dhr(brdf_fn, theta_i, n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
+def dhr(brdf_fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor], theta_i: TensorLike,
+        n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
     """Directional-hemispherical reflectance, eq 2.3.2, by quadrature.
 
     ``brdf_fn(theta_i, theta_r, delta_phi)`` receives tensors broadcasting to ``S + (n_theta, n_phi)``, where
@@ -315,7 +478,7 @@ def dhr(brdf_fn, theta_i, n_theta: int = 96, n_phi: int = 128) -> torch.Tensor:
     Gauss-Legendre in θr, the periodic trapezoid rule in Δφ. ``theta_i`` must lie in [0, π/2].
     """
     theta_i = as_tensor(theta_i)
-    check_range("theta_i", theta_i, 0.0, _HALF_PI, "rad")
+    check_range("theta_i", theta_i, 0.0, MAX_INCIDENCE_RAD, "rad")
     if n_theta < 1 or n_phi < 1:
         raise ValueError(f"n_theta and n_phi must be >= 1, got {n_theta}, {n_phi}")
     tr, wt = gauss_legendre(n_theta, 0.0, math.pi / 2, dtype=theta_i.dtype, device=theta_i.device)
@@ -341,7 +504,8 @@ def _spectralon_k(wavelength_nm: torch.Tensor) -> torch.Tensor:
     return drop / (1 - lobe75)
 
 
-def spectralon_brdf_cos(cos_i, cos_r, cos_2beta, rho, wavelength_nm) -> torch.Tensor:
+def spectralon_brdf_cos(cos_i: torch.Tensor, cos_r: torch.Tensor, cos_2beta: torch.Tensor, rho: Numeric,
+                        wavelength_nm: TensorLike) -> torch.Tensor:
     """A Spectralon-like reference panel: Lambertian at normal incidence, with a weak forward lobe that grows
     with incidence and takes its energy from the diffuse part (Appendix B's behaviour):
 

@@ -4,17 +4,24 @@ experiment images, fits."""
 from __future__ import annotations
 
 import math
-import os
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from .bands import DEFAULT_BANDS
 from .detect import DEFAULT_BOX, RulesBox
-from .io import atomic_path
+from .io import StrPath, atomic_path
+
+if TYPE_CHECKING:
+    import numpy as np
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from numpy.typing import ArrayLike
 
 
 def plot_spectra(
-    path: str | os.PathLike,
+    path: StrPath,
     wavelengths: torch.Tensor,
     reflectance: torch.Tensor,
     names: list[str],
@@ -33,6 +40,17 @@ def plot_spectra(
     label names the melanosome fraction, the Fitzpatrick types' melanosome ranges
     (``tissue.FITZPATRICK_RANGES``) marked on its other side. Without ``shade`` the skins are coloured in
     order: named in a legend when there are at most 12, else keyed by a colour bar of the skin's index.
+
+    Args:
+        path: the PNG to write.
+        wavelengths: (W,) nm.
+        reflectance: (N, W), one spectrum per skin (any shape that reshapes to it).
+        names: the N skins' names.
+        ndgri, ndsi: (N,) the skins' indices (eqs 2.5.8, 2.5.9).
+        box: the rules box drawn in the plane.
+        title: the spectra panel's title.
+        shade: (N,) values in [0, 1] that colour the skins, or None.
+        shade_label, shade_max: the colour bar's label and the value at shade 1.
     """
     import matplotlib
 
@@ -104,7 +122,8 @@ def plot_spectra(
     plt.close(fig)
 
 
-def _plt():
+def pyplot() -> Any:
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (figures are only written to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -113,20 +132,34 @@ def _plt():
     return plt
 
 
-def save_figure(fig, path) -> None:
+def save_figure(fig: Figure, path: StrPath) -> None:
+    """Write ``fig`` as a 100 dpi PNG (atomically) and close it.
+
+    Args:
+        fig: a matplotlib figure.
+        path: the PNG to write.
+    """
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=100, format="png")
-    _plt().close(fig)
+    pyplot().close(fig)
 
 
-def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: float = 1.0,
+def band_image(path: StrPath, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: float = 1.0,
                label: str = "reflectance") -> None:
     """False-colour reflectance image of one band (like the thesis's Figs 29 and 35). The colour scale is
     clipped to [``vmin``, ``vmax``]; the colour bar's label says so and gives the image's own min and max, and
-    the bar's ends are arrows on the side(s) where pixels lie outside the scale."""
+    the bar's ends are arrows on the side(s) where pixels lie outside the scale.
+
+    Args:
+        path: the PNG to write.
+        image: (H, W) reflectance of one band.
+        title: the figure's title.
+        vmin, vmax: the colour scale's ends.
+        label: what the values are (the colour bar's label).
+    """
     import numpy as np
 
-    plt = _plt()
+    plt = pyplot()
     img = image.detach().cpu().float().numpy()
     h, w = img.shape
     finite = img[np.isfinite(img)]
@@ -142,7 +175,7 @@ def band_image(path, image: torch.Tensor, title: str, vmin: float = 0.0, vmax: f
     save_figure(fig, path)
 
 
-def _numpy(x):
+def _numpy(x: torch.Tensor | ArrayLike) -> np.ndarray:
     import numpy as np
 
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
@@ -193,41 +226,34 @@ def _mask_legend(fig_or_ax, classes, **kw) -> None:
     fig_or_ax.legend(handles=handles, **kw)
 
 
-def write_rgb_png(path, rgb) -> None:
-    """An 8-bit RGB PNG of an (H, W, 3) uint8 array, one PNG pixel per array element (stdlib zlib), written
-    atomically."""
-    import struct
-    import zlib
-
-    import numpy as np
-
-    from .io import write_bytes
-
-    a = np.ascontiguousarray(rgb, dtype=np.uint8)
-    if a.ndim != 3 or a.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) array, got shape {a.shape}")
-    h, w = a.shape[:2]
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, 3 * w)], 1).tobytes()  # filter 0 per row
-
-    def chunk(tag, data):
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-    write_bytes(path, b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
-                + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-
-
-def mask_png(path, mask: torch.Tensor, truth: torch.Tensor | None = None) -> None:
+def mask_png(path: StrPath, mask: torch.Tensor, truth: torch.Tensor | None = None) -> None:
     """The detector mask as a pixel-aligned RGB PNG of the frame's size (one PNG pixel per frame pixel, no
     axes or title), colour-coded with ``MASK_COLORS``: with ``truth`` detected skin green (26, 217, 51), missed
     skin red (230, 38, 26), false alarms yellow (255, 230, 26); without it detected pixels white; everything else
-    black."""
-    write_rgb_png(path, _mask_rgb8(mask, truth))
+    black.
+
+    Args:
+        path: the PNG to write.
+        mask: (H, W) the detector's decision per pixel.
+        truth: (H, W) the skin pixels, or None.
+    """
+    from .io import write_png
+
+    write_png(path, _mask_rgb8(mask, truth))
 
 
-def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, title: str = "rules detector") -> None:
+def mask_image(path: StrPath, mask: torch.Tensor, truth: torch.Tensor | None = None,
+               title: str = "rules detector") -> None:
     """Annotated figure of a detector mask: detected skin (green), missed skin (red), false alarms (yellow),
-    with a colour key giving each class's pixel count (``mask_png`` writes the bare, pixel-aligned mask)."""
-    plt = _plt()
+    with a colour key giving each class's pixel count (``mask_png`` writes the bare, pixel-aligned mask).
+
+    Args:
+        path: the PNG to write.
+        mask: (H, W) the detector's decision per pixel.
+        truth: (H, W) the skin pixels, or None.
+        title: the figure's title.
+    """
+    plt = pyplot()
     rgb = _mask_rgb(mask, truth)
     h, w = rgb.shape[:2]
     fig, ax = plt.subplots(figsize=(5.2, 5.2 * h / w + 0.9), layout="constrained")
@@ -239,13 +265,23 @@ def mask_image(path, mask: torch.Tensor, truth: torch.Tensor | None = None, titl
     save_figure(fig, path)
 
 
-def mask_comparison(path, image, masks: dict, truth, image_title: str = "reflectance", crop: float = 0.25) -> None:
+def mask_comparison(path: StrPath, image: torch.Tensor | np.ndarray, masks: Mapping[str, torch.Tensor | np.ndarray],
+                    truth: torch.Tensor | np.ndarray, image_title: str = "reflectance", crop: float = 0.25) -> None:
     """One reflectance band of a frame beside several detectors' masks of it (green: detected skin, red: missed
-    skin, yellow: false alarm); ``masks`` maps a title to an (H, W) mask. The masks are shown around the skin
-    pixels (their bounding box widened by ``crop`` of its size on every side)."""
+    skin, yellow: false alarm). The masks are shown around the skin pixels (their bounding box widened by
+    ``crop`` of its size on every side).
+
+    Args:
+        path: the PNG to write.
+        image: (H, W) reflectance of one band.
+        masks: a title per detector -> its (H, W) mask.
+        truth: (H, W) the skin pixels.
+        image_title: the band panel's title.
+        crop: the margin around the skin's bounding box, as a fraction of its size.
+    """
     import numpy as np
 
-    plt = _plt()
+    plt = pyplot()
     img = _numpy(image)
     t = _numpy(truth).astype(bool)
     rows, cols = np.flatnonzero(t.any(1)), np.flatnonzero(t.any(0))
@@ -271,9 +307,18 @@ def mask_comparison(path, image, masks: dict, truth, image_title: str = "reflect
     save_figure(fig, path)
 
 
-def rules_scatter(ax, ndgri, ndsi, box: RulesBox = DEFAULT_BOX, label: str | None = None, color="C0") -> None:
-    """Skin pixels in the NDGRI x NDSI plane with the rules box (Fig 32/37 style)."""
-    plt = _plt()
+def rules_scatter(ax: Axes, ndgri: torch.Tensor, ndsi: torch.Tensor, box: RulesBox = DEFAULT_BOX,
+                  label: str | None = None, color: str = "C0") -> None:
+    """Skin pixels in the NDGRI x NDSI plane with the rules box (Fig 32/37 style).
+
+    Args:
+        ax: the axes to draw in.
+        ndgri, ndsi: the pixels' indices (any shape, flattened).
+        box: the rules box drawn with them.
+        label: the points' legend label, or None.
+        color: the points' matplotlib colour.
+    """
+    plt = pyplot()
     g = ndgri.detach().cpu().reshape(-1).numpy()
     s = ndsi.detach().cpu().reshape(-1).numpy()
     ax.scatter(g, s, s=2, alpha=0.4, color=color, label=label, rasterized=True)
@@ -285,9 +330,19 @@ def rules_scatter(ax, ndgri, ndsi, box: RulesBox = DEFAULT_BOX, label: str | Non
     ax.grid(alpha=0.3)
 
 
-def fit_spectra(path, names, wavelengths, measured, fitted, rmse, max_panels: int = 12) -> None:
-    """Measured (dots) and fitted (line) spectra, up to ``max_panels`` of them."""
-    plt = _plt()
+def fit_spectra(path: StrPath, names: Sequence[str], wavelengths: torch.Tensor, measured: torch.Tensor,
+                fitted: torch.Tensor, rmse: torch.Tensor | Sequence[float], max_panels: int = 12) -> None:
+    """Measured (dots) and fitted (line) spectra, one panel each, up to ``max_panels`` of them.
+
+    Args:
+        path: the PNG to write.
+        names: the N spectra's names.
+        wavelengths: (W,) nm.
+        measured, fitted: (N, W) reflectance.
+        rmse: (N,) each fit's root-mean-square error (in the panel titles).
+        max_panels: the most spectra drawn.
+    """
+    plt = pyplot()
     n = min(len(names), max_panels)
     cols = min(n, 4)
     rows = (n + cols - 1) // cols
@@ -311,12 +366,21 @@ def fit_spectra(path, names, wavelengths, measured, fitted, rmse, max_panels: in
     save_figure(fig, path)
 
 
-def fit_brdf_curves(path, theta_i, theta_r, delta_phi, measured, fitted_fn, bands_nm) -> None:
+def fit_brdf_curves(path: StrPath, theta_i: torch.Tensor, theta_r: torch.Tensor, delta_phi: torch.Tensor,
+                    measured: torch.Tensor, fitted_fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+                    bands_nm: Sequence[float]) -> None:
     """In-plane BRDF, measured (dots) and fitted (lines), per band and incidence (like the thesis's Fig 21).
-    ``fitted_fn(ti, tr, dphi)`` returns (M, B) model values."""
+
+    Args:
+        path: the PNG to write.
+        theta_i, theta_r, delta_phi: (M,) the measurements' angles, radians (in plane: cos(delta_phi) = ±1).
+        measured: (M, B) BRDF values, 1/sr.
+        fitted_fn: ``fitted_fn(ti, tr, dphi)`` -> (M, B) model values.
+        bands_nm: the B bands' centres, nm.
+    """
     import numpy as np
 
-    plt = _plt()
+    plt = pyplot()
     ti_deg = np.round(np.degrees(theta_i.cpu().numpy()), 3)
     inplane = (np.abs(np.cos(delta_phi.cpu().numpy())) > 0.999)
     incid = sorted(set(ti_deg[inplane].tolist()))
@@ -345,11 +409,19 @@ def fit_brdf_curves(path, theta_i, theta_r, delta_phi, measured, fitted_fn, band
     save_figure(fig, path)
 
 
-def surface_energy(path, skin: str = "I-II", n_quad: int = 128) -> dict:
+def surface_energy(path: StrPath, skin: str = "I-II", n_quad: int = 128) -> dict[str, Any]:
     """The energy of the two skin surface models (``optics.skin_diffuse``): the directional-hemispherical
     reflectance of eq 3.1.1 (``optics.dhr``, quadrature) against incidence for a ``skin`` preset at 633 and
-    1580 nm, each model with and without Smith shadowing; DHR > 1 means more light out than in. Writes a PNG;
-    returns the curves ``{label: {band_nm: [DHR per angle]}}`` and the angles."""
+    1580 nm, each model with and without Smith shadowing; DHR > 1 means more light out than in.
+
+    Args:
+        path: the PNG to write.
+        skin: the ``tissue`` preset.
+        n_quad: quadrature points per hemisphere axis.
+
+    Returns:
+        ``{"angles_deg": [...], "dhr": {label: {band_nm: [DHR per angle]}}}``.
+    """
     from . import tissue
     from .optics import SURFACE_MODELS, THESIS_SPECULAR, dhr, skin_brdf
 
@@ -357,14 +429,17 @@ def surface_energy(path, skin: str = "I-II", n_quad: int = 128) -> dict:
     wl = torch.tensor([633.0, 1580.0], dtype=torch.float64)
     r_sub = tissue.subsurface_reflectance(tissue.preset(skin, dtype=torch.float64), wl)[:, None, None, None]
     sig, rho0 = (x[:, None, None, None] for x in THESIS_SPECULAR.at(wl))
-    curves = {}
+    curves: dict[str, dict[str, list[float]]] = {}
     for surface in SURFACE_MODELS:
         for shadowing in (False, True):
-            d = dhr(lambda a, b, c, s=surface, g=shadowing: skin_brdf(a, b, c, r_sub, sig, rho0, s, shadowing=g),
-                    angles * (math.pi / 180), n_quad, n_quad)  # (2, angles)
+            def brdf(a: torch.Tensor, b: torch.Tensor, c: torch.Tensor, s: str = surface,
+                     g: bool = shadowing) -> torch.Tensor:
+                return skin_brdf(a, b, c, r_sub, sig, rho0, s, shadowing=g)
+
+            d = dhr(brdf, angles * (math.pi / 180), n_quad, n_quad)  # (2, angles)
             label = f"{surface}{', Smith shadowing' if shadowing else ''}"
             curves[label] = {f"{w:g}": d[k].tolist() for k, w in enumerate(wl.tolist())}
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.9), sharey=True)
     styles = {"thesis": ("C3", "-"), "thesis, Smith shadowing": ("C3", "--"), "conserving": ("C0", "-"),
               "conserving, Smith shadowing": ("C0", "--")}

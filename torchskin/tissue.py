@@ -30,15 +30,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
+import numpy as np
 import torch
 
 from . import data
-from ._checks import as_tensor, broadcast_shapes, check_range
+from ._checks import TensorLike, as_tensor, broadcast_shapes, check_range
 from .bands import MAX_GRID_POINTS
-from .optics import DEFAULT_SURFACE, schlick_cos, skin_diffuse, surface_front
+from .optics import DEFAULT_SURFACE, MAX_INCIDENCE_RAD, schlick_cos, skin_diffuse, surface_front
 
 #: wavelengths covered by every table the model uses (nm)
 MODEL_RANGE_NM = (400.0, 1700.0)
@@ -63,9 +65,9 @@ class SkinLayers:
 
     Tuples hold one value per layer in ``LAYER_NAMES`` order. The reticular dermis's thickness and collagen
     fraction come from ``SkinParams`` (``reticular_depth``, ``collagen``); its entries here are unused.
-    Values may be floats or tensors (tensors keep autograd, e.g. for calibration).
+    Values may be floats or tensors (tensors keep autograd, e.g. for fitting them).
 
-    Calibration (``scripts/calibrate_skin.py``): the epidermal thicknesses, the water and nominal blood
+    Fit (``scripts/fit_skin_layers.py``): the epidermal thicknesses, the water and nominal blood
     fractions and the scattering power laws were fitted by gradient descent through this model together with
     ``FITZPATRICK_RANGES`` and ``COMMON_RANGES``, bounded to literature ranges, so that at once (a) for
     measured in-vivo skin spectra (ISSA 2025, 450-740 nm, total reflectance) the random population of
@@ -100,13 +102,71 @@ class SkinLayers:
     carotene_blood_molar: float = 1.5e-6
     bilirubin_blood_molar: float = 8.5e-6
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for f in ("thickness_cm", "water", "collagen", "blood", "melanosome_share", "scatter_a500", "scatter_b"):
             if len(getattr(self, f)) != 9:
                 raise ValueError(f"SkinLayers.{f} must have 9 entries (one per layer), got {len(getattr(self, f))}")
 
 
 DEFAULT_LAYERS = SkinLayers()
+
+#: reference thicknesses (cm) of the five epidermal layers: ``layers_from_fit_values`` scales the first three by
+#: ``t_top``, the spinosum and basale by ``t_mel``
+EPIDERMIS_REFERENCE_CM = (0.0015, 0.0008, 0.0015, 0.0040, 0.0015)
+#: the 16 values of the reduced layer parameterisation the layer-constant fits optimise (``layers_from_fit_values``)
+LAYER_FIT_KEYS = ("a_top", "a_mel", "a_derm", "a_ret", "b_top", "b_mel", "b_derm", "b_ret", "t_top", "t_mel",
+                  "blood6", "blood7", "blood8", "blood9", "water_derm", "water_epi")
+
+
+def layers_from_fit_values(values: Mapping[str, float | torch.Tensor],
+                           base: SkinLayers = DEFAULT_LAYERS) -> SkinLayers:
+    """``SkinLayers`` from the reduced parameterisation that ``scripts/fit_skin_layers.py`` and
+    ``scripts/fit_box.py`` fit (``LAYER_FIT_KEYS``); what it does not set comes from ``base``.
+
+    Args:
+        values: ``a_top``, ``a_mel``, ``a_derm``, ``a_ret``: reduced scattering at 500 nm (cm^-1) of the
+            stratum corneum..granulosum, the spinosum and basale, the non-reticular dermis and the reticular
+            dermis (per unit collagen fraction); ``b_*``: their power-law exponents; ``t_top``, ``t_mel``:
+            scales of the ``EPIDERMIS_REFERENCE_CM`` thicknesses of layers 1-3 and 4-5; ``blood6``..``blood9``:
+            nominal blood fractions of the four dermal layers; ``water_epi``: water fraction of the spinosum
+            and basale; ``water_derm``: of the deeper dermis (the papillary dermis 0.1 less). Floats or tensors
+            (tensors keep autograd).
+        base: the layer constants the others come from (thicknesses of the dermis, collagen, ...).
+
+    Returns:
+        The layer constants; ``fit_values_from_layers`` is the inverse on the values it sets.
+
+    >>> L = layers_from_fit_values(fit_values_from_layers(DEFAULT_LAYERS))
+    >>> [round(x, 6) for x in L.thickness_cm[:5]] == list(DEFAULT_LAYERS.thickness_cm[:5])
+    True
+    """
+    v = values
+    th = [EPIDERMIS_REFERENCE_CM[i] * (v["t_top"] if i < 3 else v["t_mel"]) for i in range(5)] + list(
+        base.thickness_cm[5:])
+    a = [v["a_top"]] * 3 + [v["a_mel"]] * 2 + [v["a_derm"]] * 2 + [v["a_ret"], v["a_derm"]]
+    b = [v["b_top"]] * 3 + [v["b_mel"]] * 2 + [v["b_derm"]] * 2 + [v["b_ret"], v["b_derm"]]
+    blood = [0.0] * 5 + [v["blood6"], v["blood7"], v["blood8"], v["blood9"]]
+    water = list(base.water[:3]) + [v["water_epi"]] * 2 + [v["water_derm"] - 0.1] + [v["water_derm"]] * 3
+    return dataclasses.replace(base, thickness_cm=tuple(th), scatter_a500=tuple(a), scatter_b=tuple(b),
+                               blood=tuple(blood), water=tuple(water))
+
+
+def fit_values_from_layers(layers: SkinLayers) -> dict[str, float | torch.Tensor]:
+    """The reduced parameterisation (``LAYER_FIT_KEYS``) of ``layers``, read from the layers
+    ``layers_from_fit_values`` sets: a fit's start from given constants.
+
+    >>> round(fit_values_from_layers(DEFAULT_LAYERS)["t_mel"], 6)
+    0.84075
+    """
+    L = layers
+    return {
+        "a_top": L.scatter_a500[0], "a_mel": L.scatter_a500[3], "a_derm": L.scatter_a500[5],
+        "a_ret": L.scatter_a500[7], "b_top": L.scatter_b[0], "b_mel": L.scatter_b[3], "b_derm": L.scatter_b[5],
+        "b_ret": L.scatter_b[7], "t_top": L.thickness_cm[0] / EPIDERMIS_REFERENCE_CM[0],
+        "t_mel": L.thickness_cm[3] / EPIDERMIS_REFERENCE_CM[3],
+        "blood6": L.blood[5], "blood7": L.blood[6], "blood8": L.blood[7], "blood9": L.blood[8],
+        "water_derm": L.water[6], "water_epi": L.water[3],
+    }
 
 #: allowed range of each free parameter (validation); units: fractions, blood level is a multiplier of the
 #: nominal layer blood fractions, reticular depth in cm.
@@ -153,7 +213,8 @@ class SkinParams:
     layers: SkinLayers = field(default=DEFAULT_LAYERS)
 
     @classmethod
-    def create(cls, dtype=None, device=None, layers: SkinLayers = DEFAULT_LAYERS, validate: bool = True, **values):
+    def create(cls, dtype: torch.dtype | None = None, device: torch.device | str | None = None,
+               layers: SkinLayers = DEFAULT_LAYERS, validate: bool = True, **values: TensorLike) -> SkinParams:
         """Build from scalars/sequences/tensors; missing parameters take ``PARAM_DEFAULTS``."""
         unknown = set(values) - set(PARAM_NAMES)
         if unknown:
@@ -189,24 +250,29 @@ class SkinParams:
         self.shape  # noqa: B018  (raises on shapes that do not broadcast)
         return self
 
-    def to(self, device=None, dtype=None) -> SkinParams:
-        return dataclasses.replace(self, **{k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()})
+    def _with_tensors(self, tensors: Mapping[str, torch.Tensor]) -> SkinParams:
+        """A copy with the parameter tensors in ``tensors`` replaced (the layer constants kept)."""
+        fields: dict[str, Any] = dict(tensors)
+        return dataclasses.replace(self, **fields)
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> SkinParams:
+        return self._with_tensors({k: v.to(device=device, dtype=dtype) for k, v in self.tensors().items()})
 
     def expand(self) -> SkinParams:
         """All parameters broadcast to the common batch shape (contiguous)."""
         shp = self.shape
-        return dataclasses.replace(self, **{k: v.expand(shp).contiguous() for k, v in self.tensors().items()})
+        return self._with_tensors({k: v.expand(shp).contiguous() for k, v in self.tensors().items()})
 
-    def replace(self, **values) -> SkinParams:
-        return dataclasses.replace(self, **{k: as_tensor(v, like=self.melanosome) for k, v in values.items()})
+    def replace(self, **values: TensorLike) -> SkinParams:
+        return self._with_tensors({k: as_tensor(v, like=self.melanosome) for k, v in values.items()})
 
-    def as_dict(self) -> dict[str, list | float]:
+    def as_dict(self) -> dict[str, Any]:
         """Plain-Python values (for JSON)."""
         return {k: v.detach().cpu().tolist() for k, v in self.expand().tensors().items()}
 
-    def __getitem__(self, idx) -> SkinParams:
+    def __getitem__(self, idx: int | slice | torch.Tensor | tuple) -> SkinParams:
         e = self.expand()
-        return dataclasses.replace(e, **{k: v[idx] for k, v in e.tensors().items()})
+        return e._with_tensors({k: v[idx] for k, v in e.tensors().items()})
 
     @staticmethod
     def cat(items: Sequence[SkinParams]) -> SkinParams:
@@ -214,13 +280,12 @@ class SkinParams:
         if not items:
             raise ValueError("cat needs at least one SkinParams")
         flat = [p.expand() for p in items]
-        vals = {k: torch.cat([getattr(p, k).reshape(-1) for p in flat]) for k in PARAM_NAMES}
-        return dataclasses.replace(flat[0], **vals)
+        return flat[0]._with_tensors({k: torch.cat([getattr(p, k).reshape(-1) for p in flat]) for k in PARAM_NAMES})
 
 
 # ------------------------------------------------------------------------------------- Fitzpatrick presets
 #: per-type parameter ranges used for random sampling (uniform within each range), fitted together with the
-#: ``SkinLayers`` defaults by ``scripts/calibrate_skin.py`` against measured skin (ISSA 2025) and the rules
+#: ``SkinLayers`` defaults by ``scripts/fit_skin_layers.py`` against measured skin (ISSA 2025) and the rules
 #: box (see ``SkinLayers``). Melanosome fractions: contiguous type edges, each bounded around Jacques's
 #: epidermal melanosome volume fractions (light 1.3-6.3 %: I-II 1.3-6.2 %; moderate 11-16 %: IV 11.7-16.8 %;
 #: dark 18-43 %: V-VI 16.8-43 %; III fills the gap). Blood level and oxygenation are one range for all types
@@ -260,13 +325,30 @@ PRESETS: dict[str, dict[str, float]] = {
 }
 
 
-def preset(name: str | Sequence[str], dtype=None, device=None, layers: SkinLayers = DEFAULT_LAYERS) -> SkinParams:
-    """Skin parameters of one preset (0-D batch) or several (1-D batch), e.g. ``preset(["I-II", "V-VI"])``."""
+def preset(name: str | Sequence[str], dtype: torch.dtype | None = None, device: torch.device | str | None = None,
+           layers: SkinLayers = DEFAULT_LAYERS) -> SkinParams:
+    """Skin parameters of one named preset (``PRESETS``: the Fitzpatrick types I..VI and the thesis's Table 2
+    fits "I-II", "V-VI") or of several.
+
+    Args:
+        name: a preset name, or a sequence of them.
+        dtype, device: of the parameter tensors (default: torch's default dtype, the CPU).
+        layers: the layer constants (default ``DEFAULT_LAYERS``).
+
+    Shape:
+        A 0-D batch for one name, a 1-D batch ``(len(name),)`` for a sequence.
+
+    Returns:
+        ``SkinParams``; parameters a preset leaves unset take ``PARAM_DEFAULTS``.
+
+    >>> preset(["I-II", "V-VI"]).shape
+    torch.Size([2])
+    """
     names = [name] if isinstance(name, str) else list(name)
     for n in names:
         if n not in PRESETS:
             raise ValueError(f"unknown preset {n!r}; choose from {', '.join(PRESETS)}")
-    vals = {k: [PRESETS[n].get(k, PARAM_DEFAULTS[k]) for n in names] for k in PARAM_NAMES}
+    vals: dict[str, Any] = {k: [PRESETS[n].get(k, PARAM_DEFAULTS[k]) for n in names] for k in PARAM_NAMES}
     if isinstance(name, str):
         vals = {k: v[0] for k, v in vals.items()}
     return SkinParams.create(dtype=dtype, device=device, layers=layers, **vals)
@@ -274,16 +356,38 @@ def preset(name: str | Sequence[str], dtype=None, device=None, layers: SkinLayer
 
 def sample(
     n: int,
-    generator: torch.Generator | int | None = None,
+    generator: torch.Generator | np.random.Generator | int | None = None,
     types: Iterable[str] = FITZPATRICK_TYPES,
-    dtype=None,
-    device=None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
     layers: SkinLayers = DEFAULT_LAYERS,
 ) -> tuple[SkinParams, list[str]]:
-    """Draw ``n`` skins: a type uniformly from ``types``, then each parameter uniformly within its range.
+    """Draw ``n`` random skins: a type uniformly from ``types``, then each parameter uniformly within its
+    range (``FITZPATRICK_RANGES``, ``COMMON_RANGES``).
 
-    Returns ``(params, type_names)``. Sampling happens on the CPU with ``generator`` (or a seed), so the
-    same seed gives the same skins on every device.
+    Sampling happens on the CPU with ``generator`` (or a seed; None means seed 0), so the same seed gives the
+    same skins on every device. Draw order: the n type indices, then n uniforms per parameter in
+    ``PARAM_NAMES`` order (``scripts/fit_skin_layers.py`` reproduces it). With a ``numpy.random.Generator``
+    (the dataset's pose groups, which draw everything else from the same stream) the draws go skin by skin: a
+    type index (``integers``), then ``uniform(lo, hi)`` per parameter in ``PARAM_NAMES`` order.
+
+    Args:
+        n: number of skins (>= 1).
+        generator: a ``torch.Generator``, a ``numpy.random.Generator`` (skin by skin, see above) or an integer
+            seed.
+        types: the Fitzpatrick types to draw from.
+        dtype, device: of the parameter tensors (default: torch's default dtype, the CPU).
+        layers: the layer constants (default ``DEFAULT_LAYERS``).
+
+    Shape:
+        A 1-D batch ``(n,)``.
+
+    Returns:
+        ``(params, type_names)``: the ``SkinParams`` and the drawn type of every skin.
+
+    >>> skins, types = sample(5, 0)
+    >>> skins.shape, types
+    (torch.Size([5]), ['III', 'IV', 'VI', 'I', 'II'])
     """
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
@@ -291,19 +395,37 @@ def sample(
     for t in types:
         if t not in FITZPATRICK_RANGES:
             raise ValueError(f"unknown Fitzpatrick type {t!r}; choose from {', '.join(FITZPATRICK_TYPES)}")
+    if isinstance(generator, np.random.Generator):
+        return _sample_skin_by_skin(n, generator, types, dtype, device, layers)
     if not isinstance(generator, torch.Generator):
         g = torch.Generator()
         g.manual_seed(0 if generator is None else int(generator))
         generator = g
     dtype = dtype or torch.get_default_dtype()
     which = torch.randint(len(types), (n,), generator=generator)
-    vals = {}
+    vals: dict[str, Any] = {}
     for k in PARAM_NAMES:
         lo = torch.tensor([{**FITZPATRICK_RANGES[t], **COMMON_RANGES}[k][0] for t in types], dtype=torch.float64)
         hi = torch.tensor([{**FITZPATRICK_RANGES[t], **COMMON_RANGES}[k][1] for t in types], dtype=torch.float64)
         u = torch.rand(n, generator=generator, dtype=torch.float64)
         vals[k] = (lo[which] + u * (hi[which] - lo[which])).to(dtype=dtype, device=device)
     return SkinParams.create(layers=layers, **vals), [types[i] for i in which.tolist()]
+
+
+def _sample_skin_by_skin(n: int, rng: np.random.Generator, types: list[str], dtype: torch.dtype | None,
+                         device: torch.device | str | None, layers: SkinLayers) -> tuple[SkinParams, list[str]]:
+    """``sample``'s draws from a numpy generator, skin by skin (see ``sample``)."""
+    names: list[str] = []
+    vals: dict[str, Any] = {k: [] for k in PARAM_NAMES}
+    for _ in range(n):
+        t = types[int(rng.integers(len(types)))]
+        ranges = {**FITZPATRICK_RANGES[t], **COMMON_RANGES}
+        names.append(t)
+        for k in PARAM_NAMES:
+            lo, hi = ranges[k]
+            vals[k].append(float(rng.uniform(lo, hi)) if lo < hi else float(lo))
+    dtype = dtype or torch.get_default_dtype()
+    return SkinParams.create(layers=layers, dtype=dtype, device=device, **vals), names
 
 
 # ------------------------------------------------------------------------------------------ KM primitives
@@ -332,7 +454,11 @@ def km_layer(K: torch.Tensor, S: torch.Tensor, d: torch.Tensor) -> tuple[torch.T
     return S * dh / den, 2 * u / den
 
 
-def add_layers(top, bottom):
+#: a layer or stack as ``add_layers`` takes it: (reflectance from above, reflectance from below, transmittance)
+LayerTriple = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def add_layers(top: LayerTriple, bottom: LayerTriple) -> LayerTriple:
     """Stack ``top`` over ``bottom``; each is ``(R, R_below, T)`` (reflectance from above, from below,
     transmittance). Returns the same triple for the combined stack (eqs 2.4.12-2.4.13, generalised)."""
     R1, R1b, T1 = top
@@ -341,7 +467,8 @@ def add_layers(top, bottom):
     return R1 + T1 * T1 * R2 / den, R2b + T2 * T2 * R1b / den, T1 * T2 / den
 
 
-def add_over_base(r: torch.Tensor, t: torch.Tensor, R_base: torch.Tensor, r_below: torch.Tensor | None = None):
+def add_over_base(r: torch.Tensor, t: torch.Tensor, R_base: torch.Tensor,
+                  r_below: torch.Tensor | None = None) -> torch.Tensor:
     """Reflectance of a layer (``r`` from above, ``r_below`` from below, default ``r``) over a base ``R_base``."""
     rb = r if r_below is None else r_below
     return r + t * t * R_base / (1 - rb * R_base)
@@ -372,7 +499,8 @@ def _layer_value(layers: SkinLayers, name: str, i: int, like: torch.Tensor) -> t
     return as_tensor(getattr(layers, name)[i], like=like)
 
 
-def check_wavelengths(wavelengths) -> torch.Tensor:
+def check_wavelengths(wavelengths: TensorLike) -> torch.Tensor:
+    """``wavelengths`` as a 1-D tensor, or ``ValueError`` unless 1-D and within ``MODEL_RANGE_NM`` nm."""
     wl = as_tensor(wavelengths)
     if wl.ndim != 1:
         raise ValueError(f"wavelengths must be a 1-D tensor of nm, got shape {tuple(wl.shape)}")
@@ -436,7 +564,7 @@ def _prepare(params: SkinParams, wavelengths):
     return wl, _spectra(params.layers, wl)
 
 
-def km_over(mu_a: torch.Tensor, mu_s: torch.Tensor, d, R: torch.Tensor) -> torch.Tensor:
+def km_over(mu_a: torch.Tensor, mu_s: torch.Tensor, d: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     """Reflectance of one layer (``mu_a``, ``mu_s'`` in cm^-1, thickness ``d`` cm) over a base of reflectance
     ``R``: ``km_coefficients`` + ``km_layer`` + ``add_over_base`` fused into one expression with few
     temporaries (the model's hot loop). With N = S d h and D = (S+K) d h + 1 + u² (see ``km_layer``),
@@ -480,33 +608,80 @@ def _hot_tensors(layers: SkinLayers, wl: torch.Tensor, sp: _Spectra) -> _Hot:
     for i in (4, 3):
         base = lv("collagen", i) * sp.col + lv("water", i) * sp.wat + sp.car_epi
         melanin.append((base, lv("melanosome_share", i) * sp.mel, sp.scatter[i], lv("thickness_cm", i)))
-    top = None
+    top: LayerTriple | None = None
     for i in range(3):
         mu_a = lv("collagen", i) * sp.col + lv("water", i) * sp.wat + sp.car_epi
         r, t = km_layer(*km_coefficients(mu_a, sp.scatter[i]), lv("thickness_cm", i))
         top = (r, r, t) if top is None else add_layers(top, (r, r, t))
+    assert top is not None
     return _Hot(sp.substrate, sp.blood_deoxy, sp.blood_delta, dermal, ret, melanin, top)
 
 
-def _stack(v, B, gam, dret, col, scale, h: _Hot, r0: torch.Tensor | None = None) -> torch.Tensor:
-    """R_sub for skin parameters of shape (P, 1) and the hot tensors: bottom-up adding; with ``r0`` (shape
-    () or (W,)) the front surface is added too, giving the total reflectance."""
-    hb = torch.addcmul(h.hb0, gam, h.hbd)  # blood absorption per unit volume fraction (P, W)
-    R = scale * h.substrate
-    base, mu_s, d, b = h.dermal[0]  # deep blood net
-    R = km_over(torch.addcmul(base, B * b, hb), mu_s, d, R)
-    wat, acol, s_unit, b = h.reticular
-    R = km_over(torch.addcmul(torch.addcmul(wat, col, acol), B * b, hb), col * s_unit, dret, R)
-    for base, mu_s, d, b in h.dermal[1:]:  # upper blood net, papillary
-        R = km_over(torch.addcmul(base, B * b, hb), mu_s, d, R)
-    for base, mel, mu_s, d in h.melanin:  # basale, spinosum
-        R = km_over(torch.addcmul(base, v, mel), mu_s, d, R)
-    R_top, R_top_below, T_top = h.top
+def _stack(melanosome: torch.Tensor, blood: torch.Tensor, oxygenation: torch.Tensor,
+           reticular_depth: torch.Tensor, collagen: torch.Tensor, subcutaneous_scale: torch.Tensor, hot: _Hot,
+           r0: torch.Tensor | None = None) -> torch.Tensor:
+    """The model's hot loop: R_sub of a flat batch of P skins by bottom-up layer adding; with ``r0`` the front
+    surface is added too, giving the total reflectance.
+
+    Args:
+        melanosome, blood, oxygenation, reticular_depth, collagen, subcutaneous_scale: the free skin
+            parameters (``SkinParams``, in ``PARAM_NAMES`` order: the positional order ``_evaluate`` passes).
+        hot: the wavelength-only tensors (``_hot_tensors``).
+        r0: front-surface reflectance R0, or None for R_sub.
+
+    Shape:
+        Skin parameters (P, 1); the tensors of ``hot`` (W,) or (); ``r0`` () or (W,). Returns (P, W).
+    """
+    hb = torch.addcmul(hot.hb0, oxygenation, hot.hbd)  # blood absorption per unit volume fraction (P, W)
+    R = subcutaneous_scale * hot.substrate
+    base, mu_s, d, b = hot.dermal[0]  # deep blood net
+    R = km_over(torch.addcmul(base, blood * b, hb), mu_s, d, R)
+    wat, acol, s_unit, b = hot.reticular
+    mu_a_reticular = torch.addcmul(torch.addcmul(wat, collagen, acol), blood * b, hb)
+    R = km_over(mu_a_reticular, collagen * s_unit, reticular_depth, R)
+    for base, mu_s, d, b in hot.dermal[1:]:  # upper blood net, papillary
+        R = km_over(torch.addcmul(base, blood * b, hb), mu_s, d, R)
+    for base, mel, mu_s, d in hot.melanin:  # basale, spinosum
+        R = km_over(torch.addcmul(base, melanosome, mel), mu_s, d, R)
+    R_top, R_top_below, T_top = hot.top
     R = add_over_base(R_top, T_top, R, R_top_below)
     return R if r0 is None else surface_total(r0, R)
 
 
-_COMPILED = {}
+class CompiledKernels:
+    """A cache of ``torch.compile``d model kernels (the hot loop, for ``compile=True``), one per kernel name.
+
+    ``COMPILED_KERNELS`` is the one the model uses unless a caller passes its own (``kernels=``); ``clear()``
+    drops the compiled kernels (they are compiled again on next use). A kernel takes every wavelength- and
+    table-derived tensor as an input and holds none of their values, so it needs no key on the table version
+    (``data.tables_version()``): it stays correct after ``data.register_table``. ``torch.compile`` itself
+    specialises it per shape, dtype and device.
+
+    >>> kernels = CompiledKernels()
+    >>> len(kernels)
+    0
+    """
+
+    def __init__(self) -> None:
+        self._kernels: dict[str, Callable[..., torch.Tensor]] = {}
+
+    def get(self, name: str, fn: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+        """The compiled ``fn`` cached under ``name`` (compiled on first use, ``dynamic=False``)."""
+        kernel = self._kernels.get(name)
+        if kernel is None:
+            kernel = self._kernels[name] = torch.compile(fn, dynamic=False)
+        return kernel
+
+    def clear(self) -> None:
+        """Drop every compiled kernel."""
+        self._kernels.clear()
+
+    def __len__(self) -> int:
+        return len(self._kernels)
+
+
+#: the compiled-kernel cache of ``compile=True`` evaluations that pass no ``kernels``
+COMPILED_KERNELS = CompiledKernels()
 #: elements (skins x wavelengths) per block on the CPU: the hot loop's temporaries then stay in cache
 CPU_BLOCK = 1 << 17
 
@@ -524,12 +699,14 @@ def _working(params: SkinParams) -> tuple[SkinParams, torch.dtype]:
 
 
 def _check_angles(theta_i: torch.Tensor, rho0: torch.Tensor) -> None:
-    check_range("theta_i", theta_i, 0.0, math.pi / 2 * (1 + 1e-6), "rad")
+    check_range("theta_i", theta_i, 0.0, MAX_INCIDENCE_RAD, "rad")
     check_range("rho0", rho0, 0.0, 1.0)
 
 
-def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -> torch.Tensor:
-    """R_sub (``r0`` None) or the total reflectance with a front surface of reflectance ``r0``."""
+def _evaluate(params: SkinParams, wavelengths: TensorLike, r0: TensorLike | None = None, compile: bool = False,
+              kernels: CompiledKernels | None = None) -> torch.Tensor:
+    """R_sub (``r0`` None) or the total reflectance with a front surface of reflectance ``r0``; with
+    ``compile`` through the compiled hot loop of ``kernels`` (default ``COMPILED_KERNELS``)."""
     params, out_dtype = _working(params)
     wl, sp = _prepare(params, wavelengths)
     h = _hot_tensors(params.layers, wl, sp)
@@ -539,11 +716,8 @@ def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -
         r0 = as_tensor(r0, like=wl)
         if r0.dim() > 1 or (r0.dim() == 1 and r0.shape[0] not in (1, wl.numel())):
             late_r0, r0 = r0, None  # batch-dependent surface: applied after the blocked stack
-    fn = _stack
-    if compile:
-        fn = _COMPILED.get("stack")
-        if fn is None:
-            fn = _COMPILED["stack"] = torch.compile(_stack, dynamic=False)
+    fn: Callable[..., torch.Tensor] = (
+        (COMPILED_KERNELS if kernels is None else kernels).get("stack", _stack) if compile else _stack)
     cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
     n = cols[0].shape[0]
     block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // max(wl.numel(), 1))
@@ -555,20 +729,37 @@ def _evaluate(params: SkinParams, wavelengths, r0=None, compile: bool = False) -
     return (out if late_r0 is None else surface_total(late_r0, out)).to(out_dtype)
 
 
-def subsurface_reflectance(params: SkinParams, wavelengths, *, compile: bool = False) -> torch.Tensor:
-    """Diffuse reflectance R_sub of the nine layers over the substrate, without the front surface.
+def subsurface_reflectance(params: SkinParams, wavelengths: TensorLike, *, compile: bool = False,
+                           kernels: CompiledKernels | None = None) -> torch.Tensor:
+    """Diffuse reflectance R_sub of the nine layers over the substrate, without the front surface (eqs
+    2.4.1-2.4.13).
 
-    ``params`` of batch shape P and ``wavelengths`` (W,) in nm give ``P + (W,)``. Differentiable in every
-    tensor of ``params`` (and of its ``layers`` when those are tensors). Evaluated bottom-up, so only
-    reflectances are carried; the three top layers do not depend on the skin parameters and are combined
-    once per wavelength. On the CPU large batches are processed in cache-sized blocks of skins.
-    ``compile=True`` runs the hot loop through ``torch.compile`` (one fused kernel; the first call per
-    shape and dtype compiles, which takes tens of seconds; worth it for millions of evaluations).
+    Differentiable in every tensor of ``params`` (and of its ``layers`` when those are tensors). Evaluated
+    bottom-up, so only reflectances are carried; the three top layers do not depend on the skin parameters
+    and are combined once per wavelength. On the CPU large batches are processed in cache-sized blocks of
+    skins. The absorption tables are read at every call, so a ``data.register_table`` takes effect at once.
+
+    Args:
+        params: the skins.
+        wavelengths: in nm, within ``MODEL_RANGE_NM``.
+        compile: run the hot loop through ``torch.compile`` (one fused kernel; the first call per shape and
+            dtype compiles, which takes tens of seconds; worth it for millions of evaluations).
+        kernels: the compiled-kernel cache for ``compile=True`` (default ``COMPILED_KERNELS``).
+
+    Shape:
+        ``params`` of batch shape P and ``wavelengths`` (W,) give ``P + (W,)``.
+
+    Returns:
+        R_sub in [0, 1], in ``params``' dtype and on its device.
+
+    >>> R = subsurface_reflectance(preset("I-II"), [544.0, 633.0, 1080.0, 1580.0])
+    >>> tuple(R.shape), round(float(R[3]), 4)
+    ((4,), 0.0465)
     """
-    return _evaluate(params, wavelengths, None, compile)
+    return _evaluate(params, wavelengths, None, compile, kernels)
 
 
-def layer_stack(params: SkinParams, wavelengths) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def layer_stack(params: SkinParams, wavelengths: TensorLike) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Per-layer ``(r, τ)`` of the nine layers (top to bottom) then ``(R_substrate, 0)``, each ``P + (W,)``:
     for inspection and for checking ``subsurface_reflectance`` against an explicit recursion."""
     wl, sp = _prepare(params, wavelengths)
@@ -580,12 +771,30 @@ def layer_stack(params: SkinParams, wavelengths) -> list[tuple[torch.Tensor, tor
 
 
 # ------------------------------------------------------------------------------------- angular dependence
-def total_reflectance(params: SkinParams, wavelengths, r0=0.04, *, compile: bool = False) -> torch.Tensor:
-    """Total diffuse-model reflectance R0 + (1-R0)² R_sub / (1 - R0 R_sub); ``r0`` broadcasts with the output."""
-    return _evaluate(params, wavelengths, r0, compile)
+def total_reflectance(params: SkinParams, wavelengths: TensorLike, r0: TensorLike = 0.04, *, compile: bool = False,
+                      kernels: CompiledKernels | None = None) -> torch.Tensor:
+    """Total diffuse-model reflectance R0 + (1-R0)² R_sub / (1 - R0 R_sub) (section 3.2.3): the subsurface
+    stack under a front surface of reflectance R0.
+
+    Args:
+        params: the skins.
+        wavelengths: in nm, within ``MODEL_RANGE_NM``.
+        r0: front-surface reflectance R0 (0.04: n = 1.5 at normal incidence).
+        compile, kernels: as in ``subsurface_reflectance``.
+
+    Shape:
+        ``params`` of batch shape P and ``wavelengths`` (W,) give ``P + (W,)``; ``r0`` broadcasts with it.
+
+    Returns:
+        The total reflectance, in ``params``' dtype and on its device.
+
+    >>> round(float(total_reflectance(preset("I-II"), [1580.0])[0]), 4)
+    0.0829
+    """
+    return _evaluate(params, wavelengths, r0, compile, kernels)
 
 
-def diffuse_from_subsurface(R_sub: torch.Tensor, r0, surface: str = "conserving") -> torch.Tensor:
+def diffuse_from_subsurface(R_sub: torch.Tensor, r0: TensorLike, surface: str = "conserving") -> torch.Tensor:
     """Eq 3.1.1's ρ_d(R0) from R_sub (section 3.2.3, exact): ``surface="conserving"`` (this function's
     default, kept for compatibility) the subsurface part (1-R0)² R_sub / (1 - R0 R_sub); ``"thesis"`` the
     same plus R0. See ``optics.skin_diffuse``."""
@@ -615,9 +824,9 @@ def polyval(coeffs: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 def diffuse_reflectance(
     params: SkinParams,
-    wavelengths,
-    theta_i=0.0,
-    rho0=0.04,
+    wavelengths: TensorLike,
+    theta_i: TensorLike = 0.0,
+    rho0: TensorLike = 0.04,
     angular: str = "exact",
     degree: int = 4,
     surface: str = DEFAULT_SURFACE,
@@ -646,12 +855,31 @@ def diffuse_reflectance(
     return polyval(fit_r0_polynomial(R_sub, degree, surface=surface), r0).to(out_dtype)
 
 
-def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular: str = "exact", *,
-                compile: bool = False) -> torch.Tensor:
-    """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i`` (rad).
+def reflectance(params: SkinParams, wavelengths: TensorLike, theta_i: TensorLike = 0.0, rho0: TensorLike = 0.04,
+                angular: str = "exact", *, compile: bool = False,
+                kernels: CompiledKernels | None = None) -> torch.Tensor:
+    """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i``, with the front surface
+    R0 = Schlick(ρ0, θi) (eq 2.2.7). At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that
+    set the rules-detector box. Half-precision skins are evaluated in float32.
 
-    At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that set the rules-detector box.
-    ``theta_i`` must lie in [0, π/2] and ``rho0`` in [0, 1]. Half-precision skins are evaluated in float32.
+    Args:
+        params: the skins.
+        wavelengths: in nm, within ``MODEL_RANGE_NM``.
+        theta_i: incidence angle, rad, in [0, π/2].
+        rho0: Schlick normal reflectance ρ0 of the surface, in [0, 1].
+        angular: "exact" (the closed form in R0) or "polynomial" (the thesis's fit in R0, Fig 18).
+        compile, kernels: as in ``subsurface_reflectance`` (for ``angular="exact"``).
+
+    Shape:
+        ``params`` of batch shape P and ``wavelengths`` (W,) give ``P + (W,)``; ``theta_i`` and ``rho0``
+        broadcast with it.
+
+    Returns:
+        The reflectance, in ``params``' dtype and on its device.
+
+    >>> R = reflectance(preset(["I-II", "V-VI"]), [544.0, 633.0], theta_i=math.radians(60.0))
+    >>> tuple(R.shape), round(float(R[0, 0]), 4)
+    ((2, 2), 0.3189)
     """
     if angular not in ("exact", "polynomial"):
         raise ValueError(f"angular must be 'exact' or 'polynomial', got {angular!r}")
@@ -661,12 +889,13 @@ def reflectance(params: SkinParams, wavelengths, theta_i=0.0, rho0=0.04, angular
     _check_angles(theta, rho0)
     r0 = schlick_cos(rho0, torch.cos(theta).clamp(0.0, 1.0))  # a float32 π/2 rounds above π/2
     if angular == "exact":
-        return _evaluate(params, wl, r0, compile).to(out_dtype)
-    R_sub = subsurface_reflectance(params, wl, compile=compile)
+        return _evaluate(params, wl, r0, compile, kernels).to(out_dtype)
+    R_sub = subsurface_reflectance(params, wl, compile=compile, kernels=kernels)
     return (r0 + polyval(fit_r0_polynomial(R_sub), r0)).to(out_dtype)
 
 
-def wavelength_grid(start: float = 400.0, stop: float = 1700.0, step: float = 5.0, dtype=None, device=None):
+def wavelength_grid(start: float = 400.0, stop: float = 1700.0, step: float = 5.0, dtype: torch.dtype | None = None,
+                    device: torch.device | str | None = None) -> torch.Tensor:
     """An inclusive wavelength grid in nm, of at most ``bands.MAX_GRID_POINTS`` wavelengths (checked before
     anything is allocated)."""
     vals = []

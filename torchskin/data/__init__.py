@@ -13,7 +13,7 @@ from importlib import resources
 import numpy as np
 import torch
 
-from .._checks import as_tensor, check_range
+from .._checks import TensorLike, as_tensor, check_range
 
 LN10 = float(np.log(10.0))
 HB_GRAMS_PER_LITRE = 150.0  # hemoglobin concentration of whole blood (Prahl's convention)
@@ -21,12 +21,32 @@ HB_MOLAR_MASS = 64500.0  # g/mol
 
 _TABLES: dict[str, np.ndarray] = {}
 _COLUMNS: dict[str, tuple[str, ...]] = {}
+_tables_version = 0
 
 
-def register_table(name: str, wavelengths_nm, values) -> None:
+def tables_version() -> int:
+    """The version of the table registry: it starts at 0 and every ``register_table`` or ``unregister_table``
+    increments it. Anything computed from the tables and kept (a cache) must be keyed on it, so that it is
+    never served from a replaced table.
+
+    >>> v = tables_version()
+    >>> register_table("my_table", [400.0, 1700.0], [1.0, 2.0]); unregister_table("my_table")
+    >>> tables_version() - v
+    2
+    """
+    return _tables_version
+
+
+def _tables_changed() -> None:
+    global _tables_version
+    _tables_version += 1
+
+
+def register_table(name: str, wavelengths_nm: TensorLike, values: TensorLike) -> None:
     """Register (or replace) a one-column table ``name`` so loaders use it instead of the packaged file.
 
-    ``values`` must be in the units of the table it replaces (see ``README.md``).
+    ``values`` must be in the units of the table it replaces (see ``README.md``). Increments
+    ``tables_version()``; ``unregister_table`` restores the packaged table.
     """
     w = np.asarray(wavelengths_nm, dtype=np.float64)
     v = np.asarray(values, dtype=np.float64)
@@ -36,7 +56,16 @@ def register_table(name: str, wavelengths_nm, values) -> None:
         raise ValueError("wavelengths_nm must be strictly increasing")
     _TABLES[name] = np.stack([w, v], axis=1)
     _COLUMNS[name] = ("wavelength_nm", "value")
-    _derived_cache_clear()
+    _tables_changed()
+
+
+def unregister_table(name: str) -> None:
+    """Remove the table ``register_table`` registered as ``name``: loaders use the packaged file again.
+    Increments ``tables_version()``; ``ValueError`` if no table of that name is registered."""
+    if name not in _TABLES:
+        raise ValueError(f"no registered table {name!r}; registered: {', '.join(sorted(_TABLES)) or 'none'}")
+    del _TABLES[name], _COLUMNS[name]
+    _tables_changed()
 
 
 @functools.cache
@@ -59,6 +88,7 @@ def table(name: str) -> tuple[tuple[str, ...], np.ndarray]:
 
 
 def available_tables() -> list[str]:
+    """Names of the packaged tables (file names without ``.csv``)."""
     return sorted(p.name[:-4] for p in resources.files(__name__).iterdir() if p.name.endswith(".csv"))
 
 
@@ -75,7 +105,8 @@ def interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
     return f0 + t * (f1 - f0)
 
 
-def _column(name: str, column: int, wavelengths, *, extend: str | None = None, scale: float = 1.0):
+def _column(name: str, column: int, wavelengths: TensorLike, *, extend: str | None = None,
+            scale: float = 1.0) -> torch.Tensor:
     """Interpolate column ``column`` of table ``name`` at ``wavelengths`` (nm).
 
     ``extend``: None raises outside the table; "zero" returns 0 outside; "hold" holds the end values.
@@ -96,7 +127,7 @@ def _column(name: str, column: int, wavelengths, *, extend: str | None = None, s
 
 
 # --------------------------------------------------------------------------------------------- chromophores
-def water(wavelengths, source: str = "segelstein") -> torch.Tensor:
+def water(wavelengths: TensorLike, source: str = "segelstein") -> torch.Tensor:
     """Absorption coefficient of pure water, cm^-1 (Segelstein 1981, or Hale & Querry 1973)."""
     name = {"segelstein": "water_segelstein", "hale_querry": "water_hale_querry"}.get(source)
     if name is None:
@@ -104,7 +135,7 @@ def water(wavelengths, source: str = "segelstein") -> torch.Tensor:
     return _column(name, 1, wavelengths)
 
 
-def melanosome(wavelengths) -> torch.Tensor:
+def melanosome(wavelengths: TensorLike) -> torch.Tensor:
     """Melanosome absorption, cm^-1: 6.6e11 * lambda^-3.33 (thesis eq 2.4.2, after Jacques 1996)."""
     wl = as_tensor(wavelengths)
     check_range("wavelengths (melanosome)", wl, 200.0, 3000.0, "nm")
@@ -115,9 +146,15 @@ def _hb_conc_molar() -> float:
     return HB_GRAMS_PER_LITRE / HB_MOLAR_MASS
 
 
-@functools.cache
 def _hemoglobin_table() -> np.ndarray:
-    """Hemoglobin-only mu_a of whole blood (cm^-1), columns wl, oxy, deoxy on a 1 nm grid 400-1995 nm."""
+    """Hemoglobin-only mu_a of whole blood (cm^-1), columns wl, oxy, deoxy on a 1 nm grid 400-1995 nm, from the
+    tables of the current ``tables_version()``."""
+    return _hemoglobin_table_at(tables_version())
+
+
+@functools.lru_cache(maxsize=1)
+def _hemoglobin_table_at(version: int) -> np.ndarray:
+    """``_hemoglobin_table`` at table version ``version`` (the cache key: a replaced table is never served)."""
     _, prahl = table("hemoglobin_prahl")
     _, boss = table("whole_blood_bosschaart")
     _, wat = table("water_segelstein")
@@ -148,7 +185,7 @@ def blood_water_fraction_bosschaart() -> float:
     return float(np.sum(b * w) / np.sum(w * w))
 
 
-def hemoglobin(wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+def hemoglobin(wavelengths: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
     """Hemoglobin-only absorption of whole blood (150 g/L), cm^-1: ``(oxy, deoxy)``, 400-1995 nm.
 
     Prahl's extinction in the visible, Bosschaart's whole blood minus its water above 1000 nm (README).
@@ -162,7 +199,7 @@ def hemoglobin(wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
     return out[0], out[1]
 
 
-def bilirubin(wavelengths, concentration_molar: float = 8.5e-6) -> torch.Tensor:
+def bilirubin(wavelengths: TensorLike, concentration_molar: float = 8.5e-6) -> torch.Tensor:
     """Bilirubin absorption, cm^-1, at ``concentration_molar`` (default 8.5 uM, ~0.5 mg/dL, normal plasma).
 
     PhotochemCAD extinction (240-700 nm); zero beyond 700 nm, where bilirubin does not absorb. Negative
@@ -173,17 +210,17 @@ def bilirubin(wavelengths, concentration_molar: float = 8.5e-6) -> torch.Tensor:
     return _column("bilirubin_li", 1, wl, extend="zero", scale=LN10 * concentration_molar).clamp_min(0.0)
 
 
-def beta_carotene(wavelengths, concentration_molar: float = 1.0e-6) -> torch.Tensor:
+def beta_carotene(wavelengths: TensorLike, concentration_molar: float = 1.0e-6) -> torch.Tensor:
     """Beta-carotene absorption, cm^-1, at ``concentration_molar`` (approximate table, see README)."""
     return _column("beta_carotene_approx", 1, wavelengths, scale=LN10 * concentration_molar)
 
 
-def collagen(wavelengths) -> torch.Tensor:
+def collagen(wavelengths: TensorLike) -> torch.Tensor:
     """Absorption of pure collagen, cm^-1 (approximate table after Sekar et al. 2017, see README)."""
     return _column("collagen_approx", 1, wavelengths)
 
 
-def salomatina(tissue: str, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
+def salomatina(tissue: str, wavelengths: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
     """Ex-vivo ``(mu_a, mu_s')`` in cm^-1 of ``tissue`` in {'epidermis', 'dermis', 'hypodermis'}."""
     if tissue not in ("epidermis", "dermis", "hypodermis"):
         raise ValueError(f"tissue must be 'epidermis', 'dermis' or 'hypodermis', got {tissue!r}")
@@ -191,14 +228,18 @@ def salomatina(tissue: str, wavelengths) -> tuple[torch.Tensor, torch.Tensor]:
     return _column(name, 1, wavelengths, scale=10.0), _column(name, 3, wavelengths, scale=10.0)
 
 
-def _derived_cache_clear() -> None:
-    _hemoglobin_table.cache_clear()
+def clear_caches() -> None:
+    """Empty this module's caches (the packaged files read, the hemoglobin table derived from them). Never
+    needed for correctness: derived values are keyed on ``tables_version()``; this only frees memory."""
+    _read_csv.cache_clear()
+    _hemoglobin_table_at.cache_clear()
 
 
 __all__ = [
     "available_tables",
     "beta_carotene",
     "bilirubin",
+    "clear_caches",
     "collagen",
     "hemoglobin",
     "interp",
@@ -206,5 +247,7 @@ __all__ = [
     "register_table",
     "salomatina",
     "table",
+    "tables_version",
+    "unregister_table",
     "water",
 ]

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import tomllib
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import torch
 
 from .. import tissue
 from ..optics import DEFAULT_SURFACE, SURFACE_MODELS
@@ -160,7 +162,7 @@ def resolve_config(overrides: dict | None = None) -> dict:
     return {s: {k: _check(s, k, v, SCHEMA[s][k][1]) for k, v in keys.items()} for s, keys in cfg.items()}
 
 
-def load_config(path=None) -> dict:
+def load_config(path: str | os.PathLike | None = None) -> dict:
     """Read and validate a TOML configuration (``None``: the built-in defaults)."""
     if path is None:
         return resolve_config()
@@ -184,7 +186,8 @@ class PoseGroup:
     camera: dict  # zenith_deg, azimuth_deg, range_m, width, height, fov_deg
     subject: dict  # kind "anny" (phenotype) or "file" (path); yaw_deg
     suns: list[dict] = field(default_factory=list)  # zenith_deg, azimuth_deg, sky_fraction
-    skins: list[dict] = field(default_factory=list)  # fitzpatrick type + tissue parameters
+    skins: tissue.SkinParams | None = None  # (K,) float64 batch of the group's skins (``tissue.sample``)
+    skin_types: list[str] = field(default_factory=list)  # their Fitzpatrick types
     atmosphere: dict = field(default_factory=dict)
     sensor: dict = field(default_factory=dict)
     panels: str = "lambertian"
@@ -193,7 +196,10 @@ class PoseGroup:
     surface: str = DEFAULT_SURFACE  # skin surface model
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The group as JSON-ready data (skins as parameter lists)."""
+        d = asdict(self)
+        d["skins"] = None if self.skins is None else self.skins.as_dict()
+        return d
 
 
 def group_seed(master_seed: int, index: int) -> int:
@@ -230,12 +236,7 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
     sn = cfg["sun"]
     suns = [{"zenith_deg": u(sn["zenith_deg"]), "azimuth_deg": u(sn["azimuth_deg"]) % 360.0,
              "sky_fraction": u(sn["sky_fraction"])} for _ in range(sn["per_pose"])]
-    types = cfg["skin"]["types"]
-    skins = []
-    for _ in range(cfg["skin"]["per_pose"]):
-        t = types[int(rng.integers(len(types)))]
-        ranges = {**tissue.FITZPATRICK_RANGES[t], **tissue.COMMON_RANGES}
-        skins.append({"type": t, **{k: u(ranges[k]) for k in tissue.PARAM_NAMES}})
+    skins, skin_types = tissue.sample(cfg["skin"]["per_pose"], rng, cfg["skin"]["types"], dtype=torch.float64)
     a = cfg["atmosphere"]
     atmosphere = {"transmittance": u(a["transmittance"]), "path_radiance_scale": u(a["path_radiance_scale"])}
     sensor = {"noise": cfg["sensor"]["noise"], "read_noise_e": u(cfg["sensor"]["read_noise_e"]),
@@ -257,7 +258,7 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
     if cfg["clothing"]["partition"] != "fixed":
         from ..confusers import clothing_library
 
-        names = clothing_library(cfg["clothing"]["partition"])
-        clothing = names[int(rng.integers(len(names)))]
-    return PoseGroup(index, seed, camera, subject, suns, skins, atmosphere, sensor, panels, confusers, clothing,
+        wardrobe = list(clothing_library(cfg["clothing"]["partition"]))
+        clothing = wardrobe[int(rng.integers(len(wardrobe)))]
+    return PoseGroup(index, seed, camera, subject, suns, skins, skin_types, atmosphere, sensor, panels, confusers, clothing,
                      cfg["skin"]["surface"])

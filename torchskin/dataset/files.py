@@ -5,12 +5,28 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ..io import StrPath
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+    import pyarrow.dataset as ds
 
 MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
 
 
-def sha256_file(path) -> str:
+def sha256_file(path: StrPath) -> str:
+    """The SHA-256 of a file's bytes, read in 1 MiB chunks.
+
+    Args:
+        path: the file.
+
+    Returns:
+        The hex digest (64 characters).
+    """
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -18,13 +34,20 @@ def sha256_file(path) -> str:
     return h.hexdigest()
 
 
-def manifest(data_dir) -> dict | None:
-    """The dataset's manifest, or None when the folder has none."""
+def manifest(data_dir: StrPath) -> dict[str, Any] | None:
+    """The dataset's manifest.
+
+    Args:
+        data_dir: the dataset folder.
+
+    Returns:
+        The parsed ``_manifest.json``, or None when the folder has none.
+    """
     p = Path(data_dir) / MANIFEST
     return json.loads(p.read_text()) if p.is_file() else None
 
 
-def dataset_surface(data_dir) -> str:
+def dataset_surface(data_dir: StrPath) -> str:
     """The skin surface model a dataset was rendered with (its config's ``skin.surface``; datasets written
     before the option existed used the subsurface-only form, "conserving"). "" without a manifest."""
     man = manifest(data_dir)
@@ -33,15 +56,23 @@ def dataset_surface(data_dir) -> str:
     return man.get("config", {}).get("skin", {}).get("surface", "conserving")
 
 
-def manifest_sha256(data_dir) -> str:
+def manifest_sha256(data_dir: StrPath) -> str:
     """SHA-256 of the dataset's manifest ("" without one): names the exact data a model was trained on."""
     p = Path(data_dir) / MANIFEST
     return sha256_file(p) if p.is_file() else ""
 
 
-def open_dataset(data_dir, columns=()):
-    """The pyarrow dataset of the Parquet shards in ``data_dir``, checked to hold ``columns``; one-line
-    ``ValueError`` for a missing folder, a folder without shards or a foreign schema."""
+def open_dataset(data_dir: StrPath, columns: Sequence[str] = ()) -> ds.Dataset:
+    """The pyarrow dataset of the Parquet shards in ``data_dir``, checked to hold ``columns``.
+
+    Args:
+        data_dir: the dataset folder (``torchskin generate`` writes one).
+        columns: the columns the caller will read.
+
+    Returns:
+        The ``pyarrow.dataset.Dataset``; a one-line ``ValueError`` for a missing folder, a folder without shards
+        or a foreign schema.
+    """
     import pyarrow.dataset as ds
 
     folder = Path(data_dir)
@@ -60,10 +91,17 @@ def open_dataset(data_dir, columns=()):
     return d
 
 
-def read_valid(data_dir, columns):
-    """A pyarrow table of ``columns`` from the Parquet shards in ``data_dir``, keeping only frames whose
-    reference panels were sunlit (``elm_valid``; datasets without the column keep every row), and the number
-    of rows left out."""
+def read_valid(data_dir: StrPath, columns: Sequence[str]) -> tuple[pa.Table, int]:
+    """The rows training and evaluation use: those of frames whose reference panels were sunlit.
+
+    Args:
+        data_dir: the dataset folder.
+        columns: the columns to read.
+
+    Returns:
+        A pyarrow table of ``columns`` keeping only the rows with ``elm_valid`` true (datasets without that
+        column keep every row), and the number of rows left out.
+    """
     import numpy as np
 
     d = open_dataset(data_dir, columns)

@@ -15,22 +15,29 @@ from __future__ import annotations
 import json
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import torch
 
-from .. import __version__
+from .. import __version__, tissue
+from ..angles import relative_azimuth_deg
+from ..bands import INDEX_BANDS_NM
+from ..boundaries import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
-from ..raycast import Raycaster
-from ..render import Sensor, build_meshes, panel_pixels, render
-from ..scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials
+from ..optics import local_angles
+from ..render.elm import ELM_MIN_SUNLIT, panel_pixels
+from ..render.pipeline import RenderResult, render, render_pixels
+from ..render.raycast import GBuffer, rasterize
+from ..render.scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
+from ..render.sensor import Sensor
 from .config import PoseGroup, sample_group
 from .files import MANIFEST, sha256_file
 
 SCHEMA_VERSION = 3  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
 # clothing and material columns, clothing drawn from earthlib
-BANDS_NM = (544, 633, 1080, 1580)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
@@ -107,63 +114,59 @@ def panel_tilt_deg(camera_zenith_deg: float) -> float:
     return 90.0 - max(0.0, float(camera_zenith_deg) - PANEL_MAX_VIEW_DEG)
 
 
-def group_scene(g: PoseGroup) -> Scene:
+def group_scene(group: PoseGroup) -> Scene:
     """The scene of a pose group: subject at the origin (yawed), two reference panels beside it on 0.8 m
     stands, level as panels are laid out for ELM in the field (every sun above the horizon lights them unless
     the subject shadows them) and tilted towards cameras lower than 20° elevation (``panel_tilt_deg``), a
     ground plane, the group's camera and suns. The skin material is set per skin later."""
-    cam = Camera(width=g.camera["width"], height=g.camera["height"], zenith_deg=g.camera["zenith_deg"],
-                 azimuth_deg=g.camera["azimuth_deg"], range_m=g.camera["range_m"],
-                 target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=g.camera["fov_deg"])
+    cam_cfg, subject = group.camera, group.subject
+    cam = Camera(width=cam_cfg["width"], height=cam_cfg["height"], zenith_deg=cam_cfg["zenith_deg"],
+                 azimuth_deg=cam_cfg["azimuth_deg"], range_m=cam_cfg["range_m"],
+                 target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=cam_cfg["fov_deg"])
     from ..confusers import spectrum
 
-    clothing = spectrum(g.clothing, BANDS_NM) if g.clothing else FIXED_CLOTHING
-    mats = {"skin": Material("skin", skin="I-II", surface=g.surface),
+    clothing = spectrum(group.clothing, INDEX_BANDS_NM) if group.clothing else FIXED_CLOTHING
+    mats = {"skin": Material("skin", skin="I-II", surface=group.surface),
             "clothing": Material("lambertian", reflectance=clothing),
-            "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(g.panels)}
-    if g.subject["kind"] == "anny":
-        pose = {"head": [g.subject["head_pitch_deg"], 0.0, g.subject["head_yaw_deg"]]}
-        body = MeshSpec("subject", "anny", "skin", params={"phenotype": g.subject["phenotype"], "pose": pose,
+            "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(group.panels)}
+    if subject["kind"] == "anny":
+        pose = {"head": [subject["head_pitch_deg"], 0.0, subject["head_yaw_deg"]]}
+        body = MeshSpec("subject", "anny", "skin", params={"phenotype": subject["phenotype"], "pose": pose,
                                                            "cache": False},
-                        yaw_deg=g.subject["yaw_deg"], other_material="clothing")
+                        yaw_deg=subject["yaw_deg"], other_material="clothing")
     else:
-        body = MeshSpec("subject", "file", "skin", params={"path": g.subject["path"]}, yaw_deg=g.subject["yaw_deg"])
-    az = math.radians(g.camera["azimuth_deg"])
-    side = np.array([-math.sin(az), math.cos(az), 0.0])
-    tilt = panel_tilt_deg(g.camera["zenith_deg"])
-    panels = [MeshSpec(name, "plane", mat, params={"width": 0.5, "height": 0.5},
-                       position=list(side * sgn * 0.9 + np.array([0.0, 0.0, 0.8])), yaw_deg=g.camera["azimuth_deg"],
-                       tilt_deg=tilt) for name, mat, sgn in (("panel_white", "white", 1.0), ("panel_dark", "dark", -1.0))]
+        body = MeshSpec("subject", "file", "skin", params={"path": subject["path"]}, yaw_deg=subject["yaw_deg"])
+    panels = reference_panels(cam_cfg["azimuth_deg"], panel_tilt_deg(cam_cfg["zenith_deg"]), size_m=0.5,
+                              height_m=0.8)
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
-    conf = []
-    for k, c in enumerate(g.confusers):  # flat patches on the ground around the subject
-        mats[f"confuser{k}"] = Material("lambertian", reflectance=spectrum(c["name"], BANDS_NM))
-        conf.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}", params={"width": c["size"], "height": c["size"]},
-                             position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
+    confusers = []
+    for k, c in enumerate(group.confusers):  # flat patches on the ground around the subject
+        mats[f"confuser{k}"] = Material("lambertian", reflectance=spectrum(c["name"], INDEX_BANDS_NM))
+        confusers.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}",
+                                  params={"width": c["size"], "height": c["size"]},
+                                  position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
     suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], sky_fraction=s["sky_fraction"])
-            for s in g.suns]
-    return Scene(mats, [body, *panels, ground, *conf], [cam], suns)
+            for s in group.suns]
+    return Scene(mats, [body, *panels, ground, *confusers], [cam], suns)
 
 
-def _sensor(g: PoseGroup) -> Sensor:
+def group_sensor(group: PoseGroup) -> Sensor:
+    """The sensor of a pose group: its noise draw, read noise and atmosphere."""
     base = Sensor()
-    return Sensor(noise=g.sensor["noise"], read_noise_e=g.sensor["read_noise_e"], seed=g.sensor["seed"],
-                  atmosphere_transmittance=g.atmosphere["transmittance"],
-                  path_radiance=[p * g.atmosphere["path_radiance_scale"] for p in base.path_radiance])
+    return Sensor(noise=group.sensor["noise"], read_noise_e=group.sensor["read_noise_e"], seed=group.sensor["seed"],
+                  atmosphere_transmittance=group.atmosphere["transmittance"],
+                  path_radiance=[p * group.atmosphere["path_radiance_scale"] for p in cast(list, base.path_radiance)])
 
 
-def _local_angles(gb, idx: torch.Tensor, sun_dir: torch.Tensor):
-    n = gb.normal.reshape(-1, 3)[idx].double()
-    v = gb.view.reshape(-1, 3)[idx].double()
-    s = sun_dir.double()
-    ci, cr = (n @ s).clamp(-1, 1), (n * v).sum(-1).clamp(-1, 1)
-    st, vt = s - ci[:, None] * n, v - cr[:, None] * n
-    cphi = ((st * vt).sum(-1) / (st.norm(dim=-1) * vt.norm(dim=-1)).clamp_min(1e-12)).clamp(-1, 1)
-    deg = 180.0 / math.pi
-    return torch.acos(ci) * deg, torch.acos(cr) * deg, torch.acos(cphi) * deg
+def pixel_angles_deg(gb: GBuffer, idx: torch.Tensor, sun_dir: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Local (θi, θr, Δφ) in degrees of the flat pixels ``idx`` of camera 0 (``optics.local_angles``, float64)."""
+    normal = gb.normal.reshape(-1, 3)[idx].double()
+    view = gb.view.reshape(-1, 3)[idx].double()
+    return tuple(a * (180.0 / math.pi) for a in local_angles(normal, sun_dir.double(), view))
 
 
-def panels_sunlit(gb, panel_names: list[str], sun_dirs: torch.Tensor, min_fraction: float = 0.5) -> torch.Tensor:
+def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
+                  min_fraction: float = ELM_MIN_SUNLIT) -> torch.Tensor:
     """Per sun (S,): whether every reference panel has at least ``min_fraction`` of its interior pixels
     sunlit (facing the sun and not in a cast shadow). Without sunlit panels the ELM gain is set by sky light
     alone and the frame's reflectance is meaningless."""
@@ -178,90 +181,106 @@ def panels_sunlit(gb, panel_names: list[str], sun_dirs: torch.Tensor, min_fracti
     return ok
 
 
-def group_rows(g: PoseGroup, pixels_per_class: int, device="cpu", images: list | None = None) -> dict[str, list]:
+@dataclass
+class PixelLabels:
+    """What each pixel of camera 0 of a group's G-buffer shows (flat H*W arrays)."""
+
+    skin: np.ndarray  # flat indices of skin pixels
+    other: np.ndarray  # flat indices of the other hit pixels (not skin, not a reference panel)
+    confuser: np.ndarray  # (H*W,) object: the earthlib confuser name ("" for none)
+    material: np.ndarray  # (H*W,) object: skin, clothing, ground, confuser, white/dark ("" for no hit)
+
+
+def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
+    """The skin and candidate non-skin pixels of a group's frame, and each pixel's confuser and material."""
+    conf_names = np.full(len(gb.mesh_names) + 1, "", dtype=object)  # indexed by mesh id + 1 (-1: no hit)
+    for k, c in enumerate(group.confusers):
+        conf_names[gb.mesh_names.index(f"confuser{k}") + 1] = c["name"]
+    mat_labels = np.array(["", *("confuser" if n.startswith("confuser") else n for n in gb.material_names)],
+                          dtype=object)  # indexed by material id + 1
+    is_panel = torch.zeros_like(gb.hit[0].reshape(-1))
+    for k in [gb.mesh_names.index(p) for p in scene.panels]:
+        is_panel |= gb.mesh[0].reshape(-1) == k
+    hit = gb.hit[0].reshape(-1)
+    skin_px = hit & (gb.material[0].reshape(-1) == gb.material_names.index("skin"))
+    other_px = hit & ~is_panel & ~skin_px
+    return PixelLabels(skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy(),
+                       conf_names[gb.mesh[0].reshape(-1).numpy() + 1], mat_labels[gb.material[0].reshape(-1).numpy() + 1])
+
+
+def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | str = "cpu",
+               images: list | None = None) -> dict[str, list]:
     """Rows for every sun x skin of a pose group, as column -> list of numpy chunks (one per configuration):
     ``pixels_per_class`` skin and as many non-skin pixels (fewer if fewer are visible; balanced per
     configuration). With a list ``images``, the full reflectance cubes of the group, (skins, suns, bands,
     H, W) float16, are appended to it."""
-    sc = group_scene(g)
-    meshes, names = build_meshes(sc)
-    rc = Raycaster(meshes, names)
-    gb = rc.gbuffer(sc.cameras, np.stack([s.direction for s in sc.suns]))
-    panel_ids = [gb.mesh_names.index(p) for p in sc.panels]
-    conf_names = np.full(len(gb.mesh_names) + 1, "", dtype=object)  # indexed by mesh id + 1 (-1: no hit)
-    for k, c in enumerate(g.confusers):
-        conf_names[gb.mesh_names.index(f"confuser{k}") + 1] = c["name"]
-    mesh_flat = gb.mesh[0].reshape(-1)
-    # what each pixel shows, indexed by material id + 1: skin, clothing, ground, confuser ("" for no hit)
-    mat_labels = np.array(["", *("confuser" if n.startswith("confuser") else n for n in gb.material_names)],
-                          dtype=object)
-    mat_flat = gb.material[0].reshape(-1)
-    is_panel = torch.zeros_like(gb.hit)
-    for k in panel_ids:
-        is_panel |= gb.mesh == k
-    sensor = _sensor(g)
-    rng = np.random.default_rng(g.seed)
+    scene = group_scene(group)
+    gb = rasterize(scene)
+    labels = pixel_labels(group, scene, gb)
+    sensor = group_sensor(group)
+    rng = np.random.default_rng(group.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
-    sun_dirs = torch.tensor(np.stack([s.direction for s in sc.suns]), dtype=torch.float32)
-    elm_valid = panels_sunlit(gb, list(sc.panels), sun_dirs)
-    skin_id = gb.material_names.index("skin")
-    hit = gb.hit[0].reshape(-1)
-    skin_px = hit & (gb.material[0].reshape(-1) == skin_id)
-    other_px = hit & ~is_panel[0].reshape(-1) & ~skin_px
-    skin_idx, other_idx = skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy()
-    m = min(pixels_per_class, len(skin_idx), len(other_idx))
-    skin_params = [{k: v for k, v in sk.items() if k != "type"} for sk in g.skins]
-    S = len(g.suns)
+    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
+    elm_valid = panels_sunlit(gb, list(scene.panels), sun_dirs)
+    m = min(pixels_per_class, len(labels.skin), len(labels.other))
+    n_suns, n_skins = len(group.suns), len(group.skin_types)
+    skins = group.skins
+    if skins is None:
+        raise ValueError(f"pose group {group.index} has no skins")
     if images is not None:  # full frames of every skin x sun in one batch
-        full = render(sc, device=device, sensor=sensor, gbuffer=gb, skins=skin_params)
+        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins)
         cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
-        images.append(cube.reshape(len(g.skins), S, *cube.shape[1:]))
+        images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
         return out
     # the pixels of every configuration (skin x sun), drawn first, then rendered together in one batch
-    picks = [np.concatenate([rng.choice(skin_idx, m, replace=False), rng.choice(other_idx, m, replace=False)])
-             for _ in range(len(g.skins) * S)]
+    picks = [np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
+             for _ in range(n_skins * n_suns)]
     union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
-    res = render(sc, device=device, sensor=sensor, gbuffer=gb, pixels=torch.from_numpy(union), skins=skin_params)
-    for ki, skin in enumerate(g.skins):
-        for si, sun in enumerate(g.suns):
-            c = ki * S + si  # skin-major configuration index
+    res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins)
+    for ki in range(n_skins):
+        skin = {"type": group.skin_types[ki], **{k: float(getattr(skins, k)[ki]) for k in tissue.PARAM_NAMES}}
+        for si, sun in enumerate(group.suns):
+            c = ki * n_suns + si  # skin-major configuration index
             pos = torch.from_numpy(inverse[c * 2 * m:(c + 1) * 2 * m])
-            idx = torch.from_numpy(picks[c])
-            refl = res.reflectance[c, 0, 0][pos].cpu().float()
-            g_, s_ = res.ndgri[c, 0, 0][pos].cpu(), res.ndsi[c, 0, 0][pos].cpu()
-            ti, tr, dp = _local_angles(gb, idx, sun_dirs[si])
-            shadow = ~res.lit[c, 0, 0][pos].cpu()  # cast shadow or facing away from the sun
-            rel = abs((sun["azimuth_deg"] - g.camera["azimuth_deg"] + 180.0) % 360.0 - 180.0)
-            n = 2 * m
-            const = {"group": g.index, "sun": si, "skin": ki, "sun_zenith_deg": sun["zenith_deg"],
-                     "sun_azimuth_deg": sun["azimuth_deg"], "camera_zenith_deg": g.camera["zenith_deg"],
-                     "camera_azimuth_deg": g.camera["azimuth_deg"], "relative_azimuth_deg": rel,
-                     "range_m": g.camera["range_m"], "sky_fraction": sun["sky_fraction"],
-                     "atmosphere_transmittance": g.atmosphere["transmittance"],
-                     "path_radiance_scale": g.atmosphere["path_radiance_scale"], "skin_type": skin["type"],
-                     **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
-                                             "subcutaneous_scale")},
-                     "subject_yaw_deg": g.subject["yaw_deg"], "subject": g.subject.get("path", "anny"),
-                     "head_yaw_deg": g.subject.get("head_yaw_deg", math.nan),
-                     "head_pitch_deg": g.subject.get("head_pitch_deg", math.nan),
-                     **{k: g.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
-                     "panels": g.panels, "surface": g.surface, "clothing": g.clothing}
-            for k, v in const.items():
-                out[k].append(np.full(n, v, dtype=object if isinstance(v, str) else None))
-            out["confuser"].append(conf_names[mesh_flat[idx].numpy() + 1])
-            out["material"].append(mat_labels[mat_flat[idx].numpy() + 1])
-            out["label"].append(np.repeat(np.array([True, False]), m))
-            out["theta_i_deg"].append(ti.numpy())
-            out["theta_r_deg"].append(tr.numpy())
-            out["delta_phi_deg"].append(dp.numpy())
-            out["shadow"].append(shadow.numpy())
-            out["elm_valid"].append(np.full(n, bool(elm_valid[si])))
-            for b, name in enumerate(("r544", "r633", "r1080", "r1580")):
-                out[name].append(refl[:, b].numpy())
-            out["ndgri"].append(g_.numpy())
-            out["ndsi"].append(s_.numpy())
+            rows = configuration_rows(group, ki, skin, si, sun, res, c, pos, torch.from_numpy(picks[c]), gb,
+                                      sun_dirs[si], labels, bool(elm_valid[si]))
+            for k, v in rows.items():
+                out[k].append(v)
     return out
+
+
+def configuration_rows(group: PoseGroup, skin_index: int, skin: dict, sun_index: int, sun: dict, res: RenderResult, config: int,
+                       pos: torch.Tensor, idx: torch.Tensor, gb: GBuffer, sun_dir: torch.Tensor,
+                       labels: PixelLabels, elm_valid: bool) -> dict[str, np.ndarray]:
+    """The rows of one configuration (skin x sun) of a group: its pixels ``idx`` (flat, camera 0), found at
+    ``pos`` of the pixel render ``res``'s row ``config``; first half skin, second half other pixels."""
+    n = len(idx)
+    refl = res.reflectance[config, 0, 0][pos].cpu().float()
+    ti, tr, dp = pixel_angles_deg(gb, idx, sun_dir)
+    const = {"group": group.index, "sun": sun_index, "skin": skin_index, "sun_zenith_deg": sun["zenith_deg"],
+             "sun_azimuth_deg": sun["azimuth_deg"], "camera_zenith_deg": group.camera["zenith_deg"],
+             "camera_azimuth_deg": group.camera["azimuth_deg"],
+             "relative_azimuth_deg": relative_azimuth_deg(sun["azimuth_deg"], group.camera["azimuth_deg"]),
+             "range_m": group.camera["range_m"], "sky_fraction": sun["sky_fraction"],
+             "atmosphere_transmittance": group.atmosphere["transmittance"],
+             "path_radiance_scale": group.atmosphere["path_radiance_scale"], "skin_type": skin["type"],
+             **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
+                                     "subcutaneous_scale")},
+             "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
+             "head_yaw_deg": group.subject.get("head_yaw_deg", math.nan),
+             "head_pitch_deg": group.subject.get("head_pitch_deg", math.nan),
+             **{k: group.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
+             "panels": group.panels, "surface": group.surface, "clothing": group.clothing}
+    rows = {k: np.full(n, v, dtype=object if isinstance(v, str) else None) for k, v in const.items()}
+    rows.update({"confuser": labels.confuser[idx.numpy()], "material": labels.material[idx.numpy()],
+                 "label": np.repeat(np.array([True, False]), n // 2), "theta_i_deg": ti.numpy(),
+                 "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
+                 "shadow": (~res.lit[config, 0, 0][pos].cpu()).numpy(),  # cast shadow or facing away from the sun
+                 "elm_valid": np.full(n, elm_valid), "ndgri": res.ndgri[config, 0, 0][pos].cpu().numpy(),
+                 "ndsi": res.ndsi[config, 0, 0][pos].cpu().numpy()})
+    rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
+    return {k: rows[k] for k in COLUMNS}
 
 
 # -------------------------------------------------------------------------------------------------- shards
@@ -324,7 +343,7 @@ def shard_groups(cfg: dict, k: int, n_groups: int) -> range:
     return range(k * gps, min((k + 1) * gps, n_groups))
 
 
-def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, device="cpu",
+def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, device: torch.device | str = "cpu",
                    images: bool = False) -> dict:
     """Generate and write shard ``k`` (a pure function of config, seed and k); with ``images`` also the
     full reflectance cubes of its groups."""
@@ -335,7 +354,7 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
         for c in COLUMNS:
             rows[c].extend(part[c])  # lists of numpy chunks
     entry = write_shard(out_dir, k, rows)
-    if images:
+    if cubes is not None:
         entry["images"] = write_images(out_dir, k, cubes)
     return entry
 
@@ -354,7 +373,7 @@ def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], i
             "shards": [done[k] for k in sorted(done)]}
 
 
-def verify(out_dir) -> dict:
+def verify(out_dir: str | os.PathLike) -> dict:
     """Check a dataset folder against its manifest: missing, partial (temporary leftovers or unreadable)
     and corrupted (checksum mismatch) shards. ``ok`` is True when everything matches."""
     out = Path(out_dir)
@@ -384,8 +403,8 @@ def _ray_shard(cfg, seed, k, n_groups, out_dir, device, images):
     return generate_shard(cfg, seed, k, n_groups, Path(out_dir), device, images)
 
 
-def generate(cfg: dict, n_configs: int, seed: int, out_dir, *, resume: bool = False, overwrite: bool = False,
-             quiet: bool = False, device="cpu", backend: str = "local", address: str | None = None,
+def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *, resume: bool = False,
+             overwrite: bool = False, quiet: bool = False, device: torch.device | str = "cpu", backend: str = "local", address: str | None = None,
              workers: int | None = None, images: bool = False) -> dict:
     """Generate a dataset into ``out_dir``. Returns the manifest.
 
@@ -479,7 +498,7 @@ def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, ima
         kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}
         ray.init(include_dashboard=False, log_to_driver=False, **kw)
     try:
-        opts = {"num_cpus": 1, "num_gpus": 1 if str(device).startswith("cuda") else 0, "max_retries": 2}
+        opts: dict[str, Any] = {"num_cpus": 1, "num_gpus": 1 if str(device).startswith("cuda") else 0, "max_retries": 2}
         task = ray.remote(**opts)(_ray_shard)
         pending = {task.remote(cfg, seed, k, n_groups, str(out), device, images): k for k in todo}
         while pending:

@@ -1,4 +1,4 @@
-"""Calibrate the tissue model's layer constants so the diffuse model reproduces the rules-detector box.
+"""Fit the tissue model's layer constants so the diffuse model reproduces the rules-detector box.
 
 The thesis's box (b1, b2 on NDGRI; c1, c2 on NDSI) is the range of its diffuse model over skin types I/II to
 V/VI. Our absorption tables differ from the thesis's (unavailable) ones, so the layer constants (scattering
@@ -7,20 +7,20 @@ through the differentiable model: the 0.5th/99.5th percentiles of NDGRI and NDSI
 I-VI population go to the box edges, and the two Table 2 presets go to typical measured spectra. Constants
 stay inside literature ranges (bounded by a sigmoid). Prints the fitted ``SkinLayers`` for tissue.py.
 
-Uses a different seed (12345) from the acceptance test (seed 0). Run: python scripts/calibrate_box.py
+Uses a different seed (12345) from the acceptance test (seed 0). Run: python scripts/fit_box.py
 """
 
-import dataclasses
 import math
 
 import torch
 
 from torchskin import tissue as T
+from torchskin.bands import INDEX_BANDS_NM
 from torchskin.detect import DEFAULT_BOX
 
 torch.manual_seed(0)
 DT = torch.float64
-WL = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=DT)
+WL = torch.tensor(INDEX_BANDS_NM, dtype=DT)
 
 # name -> (initial, low, high): bounded, optimised in logit space
 SPEC = {
@@ -50,20 +50,7 @@ def to_logit(x, lo, hi):
     return math.log(p / (1 - p))
 
 
-def current_defaults():
-    """The shipped defaults in SPEC's parameterisation: the fit refines them."""
-    L = T.DEFAULT_LAYERS
-    return {
-        "a_top": L.scatter_a500[0], "a_mel": L.scatter_a500[3], "a_derm": L.scatter_a500[5],
-        "a_ret": L.scatter_a500[7], "b_top": L.scatter_b[0], "b_mel": L.scatter_b[3], "b_derm": L.scatter_b[5],
-        "b_ret": L.scatter_b[7], "t_top": L.thickness_cm[0] / TH0[0], "t_mel": L.thickness_cm[3] / TH0[3],
-        "blood6": L.blood[5], "blood7": L.blood[6], "blood8": L.blood[7], "blood9": L.blood[8],
-        "water_derm": L.water[6], "water_epi": L.water[3],
-    }
-
-
-TH0 = (0.0015, 0.0008, 0.0015, 0.0040, 0.0015)
-INIT = current_defaults()
+INIT = T.fit_values_from_layers(T.DEFAULT_LAYERS)  # the shipped defaults in SPEC's parameterisation: refined here
 theta = {
     k: torch.tensor(to_logit(min(max(INIT[k], lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo)), lo, hi), dtype=DT,
                     requires_grad=True)
@@ -73,17 +60,6 @@ theta = {
 
 def values():
     return {k: lo + (hi - lo) * torch.sigmoid(theta[k]) for k, (_, lo, hi) in SPEC.items()}
-
-
-def layers_from(v):
-    base = T.DEFAULT_LAYERS
-    th = [TH0[i] * (v["t_top"] if i < 3 else v["t_mel"]) for i in range(5)] + list(base.thickness_cm[5:])
-    a = [v["a_top"]] * 3 + [v["a_mel"]] * 2 + [v["a_derm"]] * 2 + [v["a_ret"], v["a_derm"]]
-    b = [v["b_top"]] * 3 + [v["b_mel"]] * 2 + [v["b_derm"]] * 2 + [v["b_ret"], v["b_derm"]]
-    blood = [0.0] * 5 + [v["blood6"], v["blood7"], v["blood8"], v["blood9"]]
-    water = list(base.water[:3]) + [v["water_epi"]] * 2 + [v["water_derm"] - 0.1] + [v["water_derm"]] * 3
-    return dataclasses.replace(base, thickness_cm=tuple(th), scatter_a500=tuple(a), scatter_b=tuple(b),
-                               blood=tuple(blood), water=tuple(water))
 
 
 def indices(R):
@@ -97,7 +73,7 @@ opt = torch.optim.Adam(theta.values(), lr=0.05)
 box = DEFAULT_BOX
 for step in range(STEPS):
     v = values()
-    L = layers_from(v)
+    L = T.layers_from_fit_values(v)
     skins, _ = T.sample(4000, 12345, dtype=DT, layers=L)
     ndgri, ndsi = indices(T.reflectance(skins, WL))
     q = torch.tensor([0.005, 0.995], dtype=DT)
@@ -123,6 +99,6 @@ for step in range(STEPS):
         print("   all presets ndgri", [round(x, 3) for x in gi.tolist()], "ndsi", [round(x, 3) for x in si.tolist()])
 v = {k: round(float(x.detach()), 4) for k, x in values().items()}
 print(v)
-L = layers_from(v)
+L = T.layers_from_fit_values(v)
 for f in ("thickness_cm", "water", "scatter_a500", "scatter_b", "blood"):
     print(f, tuple(round(float(x), 5) for x in getattr(L, f)))

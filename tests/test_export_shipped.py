@@ -37,7 +37,7 @@ def reexported(committed, tmp_path_factory):
 
 
 def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported):
-    from torchskin.onboard import Boundaries, Detector
+    from torchskin.onboard import Boundaries, OnboardDetector
 
     model, _, _ = committed
     lo, hi = model.domain[:, 0], model.domain[:, 1]
@@ -50,7 +50,8 @@ def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported)
     rng = np.random.default_rng(2)
     cube = (rng.random((2, 4, 40, 50)) * 0.6).astype(np.float32)
     cube[:, :, 10:30, 10:30] = np.array([0.3, 0.55, 0.55, 0.07], dtype=np.float32)[:, None, None]
-    a, b = Detector(EXPORTS / "detector.onnx")(cube, cfg[:2]), Detector(reexported / "detector.onnx")(cube, cfg[:2])
+    a = OnboardDetector(EXPORTS / "detector.onnx")(cube, cfg[:2])
+    b = OnboardDetector(reexported / "detector.onnx")(cube, cfg[:2])
     assert np.array_equal(a["score"], b["score"]) and a["mask"][:, 10:30, 10:30].all()
     for card in ("boundaries.md", "baseline_box.md", "detector.md"):  # a pure function of checkpoint + evaluation
         assert (reexported / card).read_text() == (EXPORTS / card).read_text(), card
@@ -96,12 +97,13 @@ def test_shipped_models_meet_their_claims(committed):
     assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.3
     for name in ("boundaries.pt", "baseline_box.pt"):
         model = Bd.load(EXPORTS / name)
-        grid = Bd.calibration_configs(model, torch.zeros(0, 3), grid=8)
+        grid = Bd.tuning_configs(model, torch.zeros(0, 3), grid=8)
         with torch.no_grad():
             pfa = Bd.false_alarm_rate(model(grid), Bd.confuser_indices("test"))
         assert float(pfa.max()) <= 1e-3, name
 
 
+@pytest.mark.slow
 def test_evaluate_runs_the_three_exports(tmp_path, capsys):
     """`torchskin evaluate` on boundaries.onnx, baseline_box.onnx and detector.onnx over a small generated
     dataset: one table row and one JSON entry each; detector.onnx (run on the pixels as a B x 4 x 1 x 1 cube)
@@ -109,11 +111,11 @@ def test_evaluate_runs_the_three_exports(tmp_path, capsys):
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
     from torchskin.evaluate import evaluate
-    from torchskin.scene import sphere_mesh
+    from torchskin.render.meshes import sphere_mesh, write_obj
 
     v, f = sphere_mesh(0.35, 3)
     obj = tmp_path / "head.obj"
-    obj.write_text("".join(f"v {a} {b} {c + 0.9}\n" for a, b, c in v) + "".join(f"f {a+1} {b+1} {c+1}\n" for a, b, c in f))
+    write_obj(obj, v + [0.0, 0.0, 0.9], f)
     cfg = resolve_config({"camera": {"width": 64, "height": 64, "range_m": [5.0, 10.0]}, "sun": {"per_pose": 4},
                           "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]},
                           "sampling": {"groups_per_shard": 2, "pixels_per_class": 32},
@@ -134,6 +136,8 @@ def test_evaluate_runs_the_three_exports(tmp_path, capsys):
     assert len(doc["models"]) == 4
 
 
+@pytest.mark.anny
+@pytest.mark.slow
 def test_shipped_detector_finds_sunlit_skin_in_the_thesis_geometry(tmp_path):
     """The flagship case end to end: the thesis geometry (horizontal camera at 9.449 m, Type I/II subject,
     panels beside it, sun 45° up and 20° round), rendered with sensor noise under the thesis's surface model,

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchskin.calibrate import elm_coefficients
-from torchskin.onboard import elm_apply, elm_fit, panel_signal, parse_roi
+from torchskin.onboard import elm_apply, elm_fit, panel_signal
+from torchskin.onboard_cli import parse_roi
+from torchskin.render.elm import elm_coefficients
 
 GAIN = np.array([12000.0, 9000.0, 15000.0, 7000.0])
 OFFSET = np.array([120.0, 80.0, 300.0, 40.0])
@@ -89,6 +90,14 @@ def test_bad_regions_and_nan():
         elm_apply(dn, -GAIN, OFFSET)
 
 
+@pytest.mark.parametrize("module", ["torchskin.onboard", "torchskin.onboard_cli", "torchskin.cli"])
+def test_onboard_modules_import_without_torch(module):
+    """The runtime, its command line and the dispatcher import with numpy (and onnxruntime) alone."""
+    r = subprocess.run([sys.executable, "-c", f"import sys, {module}; assert 'torch' not in sys.modules"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+
+
 def run_cli(args):
     """``torchskin calibrate`` in a subprocess where importing torch fails (the onboard path)."""
     script = ("import sys; sys.modules['torch'] = None; from torchskin.cli import main; "
@@ -96,6 +105,8 @@ def run_cli(args):
     return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.anny
+@pytest.mark.slow
 def test_cli_on_a_rendered_frame_reproduces_the_renderers_elm(tmp_path):
     """``render`` writes the signal cube and each panel's pixel region; ``calibrate`` with those regions (no
     torch) gives the renderer's reflectance cube (noise off: the panels are uniform, both medians agree)."""
@@ -120,6 +131,7 @@ def test_cli_on_a_rendered_frame_reproduces_the_renderers_elm(tmp_path):
     assert r.returncode == 0 and np.array_equal(np.load(again), ours)
 
 
+@pytest.mark.slow
 def test_cli_errors_write_nothing(tmp_path):
     _, dn = scene()
     np.save(tmp_path / "dn.npy", dn.astype(np.float32))
@@ -137,3 +149,29 @@ def test_cli_errors_write_nothing(tmp_path):
                  "--out", str(out)])
     assert r.returncode == 2 and "--cube" in r.stderr and "does not exist" in r.stderr and not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dn.npy"]  # no temporary file left behind
+
+
+def test_onboard_elm_equals_the_renderers_elm():
+    """The numpy ELM of the onboard runtime (``onboard.elm_fit`` + ``elm_apply``) and the renderer's torch ELM
+    (``render.elm.elm_coefficients`` + ``apply_elm``) give the same line and the same reflectance."""
+    import torch
+
+    from torchskin import onboard
+    from torchskin.render.elm import apply_elm, elm_coefficients
+
+    rng = np.random.default_rng(7)
+    gain, offset = rng.uniform(500, 5000, 4), rng.uniform(0, 300, 4)
+    rho = rng.uniform(0, 1, (4, 24, 32))
+    rho[:, 2:8, 2:8], rho[:, 2:8, 20:26] = 0.97, np.array([0.03, 0.04, 0.05, 0.06])[:, None, None]
+    signal = gain[:, None, None] * rho + offset[:, None, None]
+    fit = onboard.elm_fit(signal, [((2, 8, 2, 8), 0.97), ((2, 8, 20, 26), [0.03, 0.04, 0.05, 0.06])], erode=0)
+    a, b = elm_coefficients(torch.tensor(signal[:, 4, 4]), torch.tensor(signal[:, 4, 22]),
+                            torch.full((4,), 0.97, dtype=torch.float64), torch.tensor([0.03, 0.04, 0.05, 0.06]))
+    np.testing.assert_allclose(fit["gain"], a.numpy(), rtol=1e-6)  # onboard medians in float32
+    np.testing.assert_allclose(fit["offset"], b.numpy(), rtol=1e-6, atol=1e-3)
+    frame = torch.tensor(signal).permute(1, 2, 0)[None, None]  # (S, C, H, W, B)
+    panels = torch.tensor(np.stack([signal[:, 4, 4], signal[:, 4, 22]]))[None, None]
+    refs = torch.tensor([[0.97] * 4, [0.03, 0.04, 0.05, 0.06]], dtype=torch.float64)[None, None]
+    torch_rho = apply_elm(frame, panels, refs)[0, 0].permute(2, 0, 1).numpy()
+    np.testing.assert_allclose(onboard.elm_apply(signal, fit["gain"], fit["offset"]), torch_rho, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(torch_rho, rho, atol=1e-9)

@@ -1,4 +1,6 @@
-"""Ray casting with open3d's ``RaycastingScene`` (Embree, CPU): primary rays to a G-buffer, shadow rays.
+"""Stage 2 of the renderer: ray casting with open3d's ``RaycastingScene`` (Embree, CPU). Camera rays -> a
+G-buffer (the "Fragments" of this renderer), shadow rays -> a shadow mask per sun. ``rasterize(scene)`` does it
+all; ``Raycaster`` keeps the built scene to cast many times (datasets, benchmarks).
 
 The G-buffer holds, per camera and pixel: hit mask, hit distance, position, smooth normal (vertex normals
 interpolated with the hit's barycentrics, turned towards the viewer), geometric normal, unit vector to the
@@ -10,11 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from .scene import Camera, TriMesh
+from .meshes import TriMesh, build_meshes
+from .scene import Camera, Scene
 
 SHADOW_OFFSET_M = 1e-3  # shadow-ray origins are pushed this far off the surface along the geometric normal
 
@@ -34,20 +38,19 @@ class GBuffer:
     shadow: torch.Tensor
     material_names: list
     mesh_names: list
-    cache: dict = dataclasses.field(default_factory=dict)  # derived per-G-buffer data (panel pixels, ...)
 
-    def to(self, device=None, dtype=None) -> GBuffer:
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GBuffer:
         """The G-buffer on ``device`` with floating tensors in ``dtype`` (itself when nothing changes)."""
         same = all(v.device == torch.device(device or v.device) and (not v.is_floating_point() or dtype in (None, v.dtype))
                    for v in (self.normal, self.hit))
         if same:
             return self
-        out = {}
+        out: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, torch.Tensor):
                 out[f.name] = v.to(device=device, dtype=dtype if v.is_floating_point() and dtype else None)
-            elif f.name != "cache":
+            else:
                 out[f.name] = v
         return GBuffer(**out)
 
@@ -61,7 +64,7 @@ def rowsum(x: torch.Tensor) -> torch.Tensor:
 class Raycaster:
     """An open3d ``RaycastingScene`` over a list of ``TriMesh``; build once, cast many times."""
 
-    def __init__(self, meshes: list[TriMesh], material_names: list[str]):
+    def __init__(self, meshes: list[TriMesh], material_names: list[str]) -> None:
         import open3d as o3d
 
         if not meshes:
@@ -75,8 +78,8 @@ class Raycaster:
         nv = nf = 0
         for k, m in enumerate(meshes):
             tm = o3d.t.geometry.TriangleMesh()
-            tm.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(m.vertices, dtype=np.float32))
-            tm.triangle.indices = o3d.core.Tensor(np.ascontiguousarray(m.faces, dtype=np.uint32))
+            tm.vertex.positions = o3d.core.Tensor(np.ascontiguousarray(m.vertices, dtype=np.float32))  # type: ignore[call-overload]
+            tm.triangle.indices = o3d.core.Tensor(np.ascontiguousarray(m.faces, dtype=np.uint32))  # type: ignore[call-overload]
             gid = self.scene.add_triangles(tm)
             gid_to_mesh[gid] = k
             face_off.append(nf)
@@ -97,6 +100,22 @@ class Raycaster:
         self._faces = torch.from_numpy(np.concatenate(faces + [np.zeros((1, 3), dtype=np.int64)]))
         self._vnormals = torch.from_numpy(np.concatenate(normals).astype(np.float32))
         self._fmat = torch.from_numpy(np.concatenate(fmat + [np.array([-1])]))
+        self.rays: dict = {}  # camera rays by camera parameters: a fixed camera's rays are computed once
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> Raycaster:
+        """The ray caster of ``scene``'s meshes (built with ``meshes.build_meshes``)."""
+        return cls(build_meshes(scene), list(scene.materials))
+
+    def camera_rays(self, camera: Camera) -> torch.Tensor:
+        """``camera_rays(camera)``, kept by the camera's parameters on this ray caster."""
+        key = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in dataclasses.asdict(camera).items()))
+        r = self.rays.get(key)
+        if r is None:
+            if len(self.rays) > 16:
+                self.rays.clear()
+            r = self.rays[key] = camera_rays(camera)
+        return r
 
     def _tensor(self, x: torch.Tensor):
         return self.o3d.core.Tensor.from_numpy(np.ascontiguousarray(x.numpy()))
@@ -118,14 +137,14 @@ class Raycaster:
             return torch.zeros(rays.shape[:-1], dtype=torch.bool)
         return torch.from_numpy(self.scene.test_occlusions(self._tensor(rays)).numpy().astype(bool))
 
-    def gbuffer(self, cameras: list[Camera], sun_directions) -> GBuffer:
+    def gbuffer(self, cameras: list[Camera], sun_directions: np.ndarray) -> GBuffer:
         """G-buffer for every camera (same resolution) and shadow masks for every sun direction (S, 3)."""
         if len({(c.width, c.height) for c in cameras}) != 1:
             raise ValueError("all cameras of one G-buffer must share a resolution")
-        rays = camera_rays(cameras[0])[None] if len(cameras) == 1 else torch.stack([camera_rays(c) for c in cameras])
+        rays = self.camera_rays(cameras[0])[None] if len(cameras) == 1 else torch.stack([self.camera_rays(c) for c in cameras])
         return self.gbuffer_from_rays(rays, sun_directions)
 
-    def gbuffer_from_rays(self, rays: torch.Tensor, sun_directions) -> GBuffer:
+    def gbuffer_from_rays(self, rays: torch.Tensor, sun_directions: np.ndarray) -> GBuffer:
         """G-buffer of (C, H, W, 6) float32 rays. Values at missed pixels are unspecified except ``hit``
         (False), ``t`` (inf), ``material`` and ``mesh`` (-1)."""
         ans = self.cast(rays)
@@ -165,15 +184,51 @@ class Raycaster:
                        material_names=self.material_names, mesh_names=self.mesh_names)
 
 
-_RAY_CACHE: dict = {}
+def kornia_camera(camera: Camera, dtype: torch.dtype = torch.float64) -> Any:
+    """``camera`` as a ``kornia.geometry.camera.PinholeCamera`` (batch of one)."""
+    from kornia.geometry.camera import PinholeCamera
+
+    K = torch.eye(4, dtype=dtype)
+    K[0, 0] = K[1, 1] = camera.focal
+    K[0, 2], K[1, 2] = camera.width / 2, camera.height / 2
+    E = torch.as_tensor(camera.world_to_camera(), dtype=dtype)
+    return PinholeCamera(K[None], E[None], torch.tensor([float(camera.height)], dtype=dtype),
+                         torch.tensor([float(camera.width)], dtype=dtype))
 
 
 def camera_rays(camera: Camera) -> torch.Tensor:
-    """``camera.rays()``, cached by the camera's parameters (a fixed camera's rays are computed once)."""
-    key = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in dataclasses.asdict(camera).items()))
-    r = _RAY_CACHE.get(key)
-    if r is None:
-        if len(_RAY_CACHE) > 16:
-            _RAY_CACHE.clear()
-        r = _RAY_CACHE[key] = camera.rays()
-    return r
+    """Primary rays through each pixel centre, from the kornia camera's inverse intrinsics and camera-to-world
+    rotation.
+
+    Returns:
+        (H, W, 6) float32: origin and unit direction per pixel.
+
+    >>> from torchskin.render.scene import Camera
+    >>> r = camera_rays(Camera(width=4, height=2, zenith_deg=90.0, azimuth_deg=0.0))
+    >>> tuple(r.shape), round(float(r[..., 3].mean()), 2)  # looking along -x at the subject
+    ((2, 4, 6), -1.0)
+    """
+    cam = kornia_camera(camera)
+    Kinv = cam.intrinsics_inverse()[0, :3, :3]
+    R = cam.rotation_matrix[0]  # world -> camera
+    M = (R.T @ Kinv).to(torch.float32)  # pixel (u, v, 1) -> world direction
+    v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float32) + 0.5,
+                          torch.arange(camera.width, dtype=torch.float32) + 0.5, indexing="ij")
+    d = u[..., None] * M[:, 0] + v[..., None] * M[:, 1] + M[:, 2]
+    d = d / d.norm(dim=-1, keepdim=True)
+    o = torch.as_tensor(camera.position, dtype=torch.float32).expand_as(d)
+    return torch.cat([o, d], -1)
+
+
+def rasterize(scene: Scene, raycaster: Raycaster | None = None) -> GBuffer:
+    """The G-buffer of every camera of ``scene`` and the shadow masks of every sun (on the CPU).
+
+    Args:
+        scene: cameras (one resolution), suns and meshes.
+        raycaster: a ray caster of the scene's meshes to reuse (default: built from ``scene``).
+
+    Shape:
+        G-buffer fields (C, H, W[, 3]); ``shadow`` (S, C, H, W).
+    """
+    raycaster = raycaster or Raycaster.from_scene(scene)
+    return raycaster.gbuffer(scene.cameras, np.stack([s.direction for s in scene.suns]))

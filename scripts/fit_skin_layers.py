@@ -1,7 +1,7 @@
-"""Calibrate the skin model's layer constants AND its Fitzpatrick sampling ranges against measured skin (ISSA)
-and the rules-detector box at the same time (issue 11, item 3).
+"""Fit the skin model's layer constants AND its Fitzpatrick sampling ranges to measured skin (ISSA) and the
+rules-detector box at the same time (issue 11, item 3).
 
-``scripts/calibrate_box.py`` fitted the layer constants only to the index percentiles of the thesis's box.
+``scripts/fit_box.py`` fitted the layer constants only to the index percentiles of the thesis's box.
 This script adds the visible shape: the sampled population must contain, for each measured in-vivo spectrum
 of the International Skin Spectra Archive (ISSA, 17 Jan 2025 release, ``../shared/data/measured_skin``;
 SCI mode, i.e. total reflectance, compared with ``tissue.reflectance`` over 450-740 nm), a model skin close
@@ -14,14 +14,14 @@ to it. Gradient descent (Adam, float64) through the differentiable model on
   (steep penalty beyond +-BOX_TOL);
 - every named preset inside the box with a 0.02 margin (hinge);
 - the NIR that ISSA cannot see: the Table 2 presets keep their 1080/1580 nm total reflectance (hinge on
-  NIR_LO..NIR_HI around the values calibrate_box.py fitted to the thesis's radiometer spectra).
+  NIR_LO..NIR_HI around the values fit_box.py fitted to the thesis's radiometer spectra).
 
 The samples are reparameterised: ``tissue.sample``'s random numbers (type index, then one uniform u per
 parameter, drawn exactly as ``tissue.sample`` draws them) are fixed, and each skin parameter is lo + u (hi - lo),
 so the population is differentiable in the range bounds. Constants and range bounds are optimised in logit
 space inside literature ranges (SPEC, MEL_EDGES, SHARED_RANGES, COMMON below). Blood and oxygenation ranges
 are shared by all types (blood does not follow the skin type; per-type ranges with a smoothness penalty were
-tried and gained nothing: 0.0126 vs 0.0128). The fit starts from the calibrate_box.py constants (PREVIOUS),
+tried and gained nothing: 0.0126 vs 0.0128). The fit starts from the fit_box.py constants (PREVIOUS),
 whatever tissue.py holds, so reruns give the same result.
 
 Fitting uses sample seeds 12345 (ISSA term, 2,000 skins) and 12346 (box term, 8,000 skins) and 1,000 ISSA
@@ -30,7 +30,7 @@ rows disjoint from the acceptance draw (1,000 rows picked by ``default_rng(0)``)
 acceptance draw, as ``tests/test_tissue.py`` does, with the rounded constants that are printed for tissue.py.
 ``--figure`` also draws ``docs/issa_fit.png`` (before/after).
 
-Run: .venv/bin/python scripts/calibrate_skin.py [--figure]   (~80 s on one core of this 2-core machine)
+Run: .venv/bin/python scripts/fit_skin_layers.py [--figure]   (~80 s on one core of this 2-core machine)
 Development script: reads ../shared; not run by the tests.
 """
 
@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from torchskin import tissue as T
+from torchskin.bands import INDEX_BANDS_NM
 from torchskin.detect import DEFAULT_BOX
 
 T0 = time.time()
@@ -54,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ISSA = ROOT.parent / "shared" / "data" / "measured_skin" / "issa2025_visible.csv"
 SUBSET = ROOT / "tests" / "data" / "issa2025_subset.csv"
 FIGURE = ROOT / "docs" / "issa_fit.png"
-BANDS = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=DT)
+BANDS = torch.tensor(INDEX_BANDS_NM, dtype=DT)
 FIT_SEED, ACCEPT_SEED = 12345, 0
 N_SAMPLES = 2000  # skins for the ISSA term (as in the acceptance metric)
 N_BOX = 8000  # skins for the box percentiles (4 bands only; the 0.5 % tails need many)
@@ -108,7 +109,7 @@ def write_subset():
 
 
 # ----------------------------------------------------------------------------------------------- parameters
-#: the constants before this calibration (scripts/calibrate_box.py): start of the fit, "before" in the figure
+#: the constants before this fit (scripts/fit_box.py): start of the fit, "before" in the figure
 PREVIOUS_LAYERS = T.SkinLayers(
     thickness_cm=(0.00046, 0.00024, 0.00046, 0.00358, 0.00134, 0.015, 0.008, 0.0, 0.01),
     water=(0.15, 0.20, 0.30, 0.70, 0.70, 0.571, 0.671, 0.671, 0.671),
@@ -127,7 +128,6 @@ PREVIOUS_TYPES = {
 }
 PREVIOUS_COMMON = {"reticular_depth": (0.10, 0.25), "collagen": (0.55, 0.85), "subcutaneous_scale": (0.40, 0.80)}
 
-TH0 = (0.0015, 0.0008, 0.0015, 0.0040, 0.0015)  # reference thicknesses of the five epidermal layers (cm)
 # layer constants: name -> (low, high), optimised in logit space
 SPEC = {
     # reduced scattering at 500 nm (cm^-1, effective KM values; floors at 20: "tens of cm^-1"; ex vivo / in
@@ -176,14 +176,7 @@ def squash(z, lo, hi):
 
 
 def init_theta():
-    L = PREVIOUS_LAYERS
-    v = {
-        "a_top": L.scatter_a500[0], "a_mel": L.scatter_a500[3], "a_derm": L.scatter_a500[5],
-        "a_ret": L.scatter_a500[7], "b_top": L.scatter_b[0], "b_mel": L.scatter_b[3], "b_derm": L.scatter_b[5],
-        "b_ret": L.scatter_b[7], "t_top": L.thickness_cm[0] / TH0[0], "t_mel": L.thickness_cm[3] / TH0[3],
-        "blood6": L.blood[5], "blood7": L.blood[6], "blood8": L.blood[7], "blood9": L.blood[8],
-        "water_derm": L.water[6], "water_epi": L.water[3],
-    }
+    v = T.fit_values_from_layers(PREVIOUS_LAYERS)
     th = {k: logit(v[k], lo, hi) for k, (lo, hi) in SPEC.items()}
     edges = [PREVIOUS_TYPES["I"]["melanosome"][0]] + [PREVIOUS_TYPES[t]["melanosome"][1] for t in TYPES]
     for i, (lo, hi) in enumerate(MEL_EDGES):
@@ -213,14 +206,9 @@ def decode(th):
     return v, ranges, common
 
 
-def layers_from(v, base=PREVIOUS_LAYERS):
-    th = [TH0[i] * (v["t_top"] if i < 3 else v["t_mel"]) for i in range(5)] + list(base.thickness_cm[5:])
-    a = [v["a_top"]] * 3 + [v["a_mel"]] * 2 + [v["a_derm"]] * 2 + [v["a_ret"], v["a_derm"]]
-    b = [v["b_top"]] * 3 + [v["b_mel"]] * 2 + [v["b_derm"]] * 2 + [v["b_ret"], v["b_derm"]]
-    blood = [0.0] * 5 + [v["blood6"], v["blood7"], v["blood8"], v["blood9"]]
-    water = list(base.water[:3]) + [v["water_epi"]] * 2 + [v["water_derm"] - 0.1] + [v["water_derm"]] * 3
-    return dataclasses.replace(base, thickness_cm=tuple(th), scatter_a500=tuple(a), scatter_b=tuple(b),
-                               blood=tuple(blood), water=tuple(water))
+def layers_from(v):
+    """The layer constants of the fitted values ``v`` over PREVIOUS_LAYERS (``tissue.layers_from_fit_values``)."""
+    return T.layers_from_fit_values(v, PREVIOUS_LAYERS)
 
 
 def draws(n, seed):
@@ -403,9 +391,9 @@ def figure(L, rt, rc):
     ax.grid(alpha=0.3)
     bins = np.linspace(0, 0.08, 41)
     bx.hist(db.values.numpy(), bins=bins, alpha=0.6, color="tab:gray",
-            label=f"before (calibrate_box.py): median {db.values.median():.4f}")
+            label=f"before (fit_box.py): median {db.values.median():.4f}")
     bx.hist(da.values.numpy(), bins=bins, alpha=0.6, color="tab:red",
-            label=f"after (calibrate_skin.py): median {da.values.median():.4f}")
+            label=f"after (fit_skin_layers.py): median {da.values.median():.4f}")
     bx.axvline(0.015, color="k", ls=":", label="acceptance: median <= 0.015")
     bx.set_xlabel("RMSE to the nearest model skin, 450-740 nm (reflectance)")
     bx.set_ylabel("ISSA spectra (of 1,000)")

@@ -74,6 +74,7 @@ def test_cli_refuses_huge_sampling_with_one_line(argv, capsys, tmp_path):
 
 
 # ------------------------------------------------------------------------------- 2. fit identifiability
+@pytest.mark.slow
 def test_fit_at_one_wavelength_leaves_every_parameter_undetermined():
     """Was: 550 nm alone reported oxygenation 0.70 +- 5e-5 (truth 0.50) as determined."""
     wl = torch.tensor([550.0], dtype=DT)
@@ -107,6 +108,7 @@ def test_fisher_std_uses_the_rank_of_the_jacobian():
     assert bool(torch.isnan(fit.fisher_std(J, sigma, scale)).all())
 
 
+@pytest.mark.slow
 def test_degenerate_spectrum_is_not_converged_and_does_not_stop_the_others():
     """Was: a constant 0.999 (or 0 / 1) spectrum raised LinAlgError for the whole batch."""
     wl = tissue.wavelength_grid(450, 1650, 100, dtype=DT)
@@ -258,6 +260,7 @@ def test_brdf_csv_errors_name_the_file(tmp_path, body, msg):
         fit.read_brdf_csv(p)
 
 
+@pytest.mark.slow
 def test_cli_fit_skin_one_wavelength_and_dark_spectra(tmp_path, capsys):
     """Was: a one-wavelength CSV reported parameters as determined; a dark spectrum ended in LinAlgError."""
     out = tmp_path / "params.csv"

@@ -38,13 +38,15 @@ def colorbar_labels(fig):
     return [cb.ax.get_ylabel() for ax in fig.axes if (cb := getattr(ax, "_colorbar", None)) is not None]
 
 
+@pytest.mark.anny
+@pytest.mark.slow
 def test_render_mask_png_is_the_frame_pixel_for_pixel(tmp_path):
     from torchskin.render import Sensor, render, write_outputs
-    from torchskin.scene import Camera, default_scene
+    from torchskin.render.scene import Camera, default_scene
 
     sc = default_scene(camera=Camera(width=96, height=72))
     res = render(sc, sensor=Sensor(seed=0))
-    write_outputs(res, sc, tmp_path)
+    write_outputs(res, sc.to_dict(), tmp_path)
     a = read_png(tmp_path / "mask.png")
     m, t = res.mask[0, 0].cpu().numpy(), res.skin[0].cpu().numpy()
     assert a.shape == (72, 96, 3)  # H x W, one PNG pixel per frame pixel
@@ -56,6 +58,8 @@ def test_render_mask_png_is_the_frame_pixel_for_pixel(tmp_path):
     assert read_png(ann, mode=None).shape[:2] != (72, 96)  # the annotated figure: axes, title and key
 
 
+@pytest.mark.anny
+@pytest.mark.slow
 def test_cli_render_mask_png_matches_render_json(tmp_path):
     from torchskin.cli import main
 
@@ -89,6 +93,7 @@ def test_band_image_says_what_it_clips(tmp_path, figures):
     assert "reflectance" in label and "clipped to [0, 1]" in label and "min -0.25" in label and "max 1.5" in label
 
 
+@pytest.mark.slow
 def test_spectra_colour_key(tmp_path, figures):
     from torchskin import tissue
     from torchskin.detect import indices
@@ -106,6 +111,7 @@ def test_spectra_colour_key(tmp_path, figures):
     assert colorbar_labels(figures[-1]) == ["skin (order given)"]
 
 
+@pytest.mark.slow
 def test_pd_heatmap_labelled_and_not_overlapping(tmp_path, figures):
     from torchskin import evaluate
 

@@ -1,5 +1,6 @@
 """Kubelka-Munk layer physics and layer adding."""
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -50,6 +51,7 @@ def test_pure_absorber_transmits_exponentially():
     torch.testing.assert_close(tau, torch.exp(-K * d))
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(
     K=st.floats(0, 1e3), S=st.floats(1e-3, 1e3), d=st.floats(1e-5, 10.0),
@@ -108,6 +110,7 @@ def test_km_coefficients_limits():
     torch.testing.assert_close(S, t(75.0), rtol=1e-6, atol=0)
 
 
+@pytest.mark.slow
 def test_closed_form_in_r0_equals_recursion_with_surface_first():
     """R_total(R0) = R0 + (1-R0)^2 R_sub/(1-R0 R_sub) equals adding the surface as the first layer, then
     each of the nine layers and the substrate top-down (eqs 2.4.12-2.4.13 with the below-reflectance)."""

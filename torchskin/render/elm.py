@@ -1,0 +1,148 @@
+"""Stage 6 of the renderer: the empirical line method (eqs 2.5.4-2.5.7), digital numbers + reference-panel
+pixels -> reflectance; and its BRDF form (eqs 3.3.1-3.3.3) through the panels' BRDF at the scene geometry.
+
+The onboard runtime (numpy only) has its own copy, ``onboard.elm_apply``, tested equal to ``apply_elm``.
+
+>>> import torch
+>>> L1, L2, ref1, ref2 = (torch.tensor([x], dtype=torch.float64) for x in (970.0, 30.0, 0.97, 0.03))
+>>> a, b = elm_coefficients(L1, L2, ref1, ref2)
+>>> round(float(a), 9), round(float(b), 9) + 0.0  # L = a ρ + b
+(1000.0, 0.0)
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .._checks import TensorLike, as_tensor
+from .materials import MaterialTables
+from .raycast import GBuffer
+from .shade import gather_params, local_cosines
+
+#: a frame's ELM is physical when at least this share of every reference panel's interior is sunlit (the rule
+#: of the dataset generator's ``elm_valid``)
+ELM_MIN_SUNLIT = 0.5
+
+
+def elm_coefficients(L1: TensorLike, L2: TensorLike, ref1: TensorLike,
+                     ref2: TensorLike) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gain and offset ``(a, b)`` of L = a·ρ + b from two panels (eqs 2.5.5-2.5.6).
+
+    ``L1``, ``L2``: measured signals of panels 1 and 2; ``ref1``, ``ref2``: their known reflectances (or,
+    for BRDF-ELM, their BRDF values at the scene geometry).
+    """
+    L1 = as_tensor(L1)
+    L2, ref1, ref2 = (as_tensor(x, like=L1) for x in (L2, ref1, ref2))
+    dref = ref2 - ref1
+    if bool((dref == 0).any()):
+        raise ValueError("ref1 and ref2 must differ in every band (the empirical line is undefined otherwise)")
+    a = (L2 - L1) / dref
+    b = (L1 * ref2 - L2 * ref1) / dref
+    return a, b
+
+
+def erode(mask: torch.Tensor, pixels: int = 1) -> torch.Tensor:
+    """Binary erosion of (..., H, W) masks with a (2p+1)² square (on the mask's device)."""
+    if pixels <= 0:
+        return mask
+    shp = mask.shape
+    m = (~mask).reshape(-1, 1, *shp[-2:]).to(torch.float32)
+    grown = F.max_pool2d(m, 2 * pixels + 1, stride=1, padding=pixels)
+    return (grown < 0.5).reshape(shp) & mask
+
+
+def panel_pixels(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> list[list[torch.Tensor]]:
+    """Flat indices (into H*W) of each panel's interior pixels per camera: ``[panel][camera]``. Raises if
+    a camera sees no interior pixel of a panel (ELM impossible)."""
+    out = []
+    W = gb.mesh.shape[-1]
+    for name in panel_names:
+        k = gb.mesh_names.index(name)
+        per_cam = []
+        for c in range(gb.mesh.shape[0]):
+            m = gb.mesh[c] == k
+            rows, cols = m.any(1).nonzero().flatten(), m.any(0).nonzero().flatten()
+            if rows.numel() == 0:
+                per_cam.append(rows)
+                continue
+            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            inner = erode(m[y0:y1, x0:x1], erode_px).nonzero()  # erode only the panel's bounding box
+            per_cam.append((inner[:, 0] + y0) * W + inner[:, 1] + x0)
+        empty = [c for c, ix in enumerate(per_cam) if ix.numel() == 0]
+        if empty:
+            raise ValueError(f"camera(s) {empty} see no interior pixel of reference panel {name!r}: ELM impossible")
+        out.append(per_cam)
+    return out
+
+
+def panel_regions(pixels: list[list[torch.Tensor]], panel_names: list[str], height: int, width: int,
+                  camera: int = 0) -> dict[str, list[int]]:
+    """An axis-aligned rectangle [y0, y1, x0, x1] (rows y0..y1-1, columns x0..x1-1) of each panel's interior
+    pixels in one camera's image: the bounding box of the interior, shrunk from its emptiest side until every
+    pixel inside is interior (for ELM from pixel regions, e.g. ``torchskin calibrate``), from the
+    panels' interior ``pixels`` (``panel_pixels``) in an image of ``height`` x ``width``."""
+    H, W = height, width
+    out = {}
+    for name, per_cam in zip(panel_names, pixels):
+        flat = np.zeros(H * W, dtype=bool)
+        flat[per_cam[camera].cpu().numpy()] = True
+        m = flat.reshape(H, W)
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        while y1 > y0 and x1 > x0 and not m[y0:y1, x0:x1].all():
+            sub = m[y0:y1, x0:x1]
+            empty = [(~sub[0]).mean(), (~sub[-1]).mean(), (~sub[:, 0]).mean(), (~sub[:, -1]).mean()]
+            k = int(np.argmax(empty))
+            y0, y1, x0, x1 = y0 + (k == 0), y1 - (k == 1), x0 + (k == 2), x1 - (k == 3)
+        out[name] = [y0, y1, x0, x1]
+    return out
+
+
+def panel_values(x: torch.Tensor, pixels: list[list[torch.Tensor]]) -> torch.Tensor:
+    """Median of ``x`` (S, C, H, W, B) over each panel's interior pixels: (S, C, P, B)."""
+    flat = x.flatten(2, 3)  # (S, C, H*W, B)
+    return torch.stack([torch.stack([flat[:, c].index_select(1, ix).median(dim=1).values
+                                     for c, ix in enumerate(per_cam)], dim=1) for per_cam in pixels], dim=2)
+
+
+def panel_references(panel_materials: list[int], gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor,
+                     pix: list[list[torch.Tensor]], elm: str = "dhr") -> torch.Tensor:
+    """Reference reflectance of each panel (S, C, P, B); ``panel_materials``: each panel's material id. ``elm="dhr"``: the panels' hemispherical
+    reflectance (the usual ELM, eqs 2.5.5-2.5.6); ``elm="brdf"``: π f_BRDF of each panel at its pixels'
+    source/view geometry (median over the interior), i.e. BRDF-ELM (eqs 3.3.1-3.3.3) in Lambertian-
+    equivalent units (identical to "dhr" for Lambertian panels)."""
+    if elm not in ("dhr", "brdf"):
+        raise ValueError(f"elm must be 'dhr' or 'brdf', got {elm!r}")
+    S, C = sun_dirs.shape[0], gb.hit.shape[0]
+    HW = gb.hit[0].numel()
+    out = []
+    for k, m in enumerate(panel_materials):
+        ref = tables.reference[m].expand(S, C, -1)
+        group = next((g for g in tables.groups.values() if m in g.ids), None)
+        if elm == "brdf" and group is not None:
+            per_cam = []
+            for c, ix in enumerate(pix[k]):
+                ci, cr, c2b = local_cosines(gb, ix + c * HW, sun_dirs)
+                f = group.brdf(ci, cr, c2b, gather_params(group.params, torch.full_like(ix, m)))  # (S, K, B)
+                per_cam.append(math.pi * f.median(dim=1).values)
+            ref = torch.stack(per_cam, dim=1)
+        out.append(ref)
+    return torch.stack(out, dim=2)
+
+
+def apply_elm(signal: torch.Tensor, panel_signal: torch.Tensor, references: torch.Tensor) -> torch.Tensor:
+    """Map signals (S, C, H, W, B) to reflectance with the line through the first two panels (eq 2.5.7)."""
+    a, b = elm_coefficients(panel_signal[:, :, 0], panel_signal[:, :, 1], references[:, :, 0], references[:, :, 1])
+    inv_a = 1 / a[:, :, None, None, :]
+    return torch.addcmul(-b[:, :, None, None, :] * inv_a, signal, inv_a)  # (L - b) / a
+
+
+def panel_sunlit_fraction(lit: torch.Tensor, pixels: list[list[torch.Tensor]], camera: int = 0) -> list[float]:
+    """Per reference panel, the sunlit share of its interior ``pixels`` (``panel_pixels``) in one frame's sunlit
+    mask ``lit`` (H, W) of camera ``camera``."""
+    flat = lit.reshape(-1)
+    return [float(flat.index_select(0, per_cam[camera]).float().mean()) for per_cam in pixels]

@@ -1,0 +1,368 @@
+"""Stage 3 of the renderer: materials -> per-band tables and BRDFs, through a registry of material kinds.
+
+Each ``Material`` of a scene resolves (``kind_name``) to an entry of ``KINDS``, a ``MaterialKind``:
+
+- ``compile(material, spectral, skins)`` -> ``Compiled``: the material's hemispherical reflectance per band
+  (``albedo``, (n, B): the sky term, the ELM reference of a panel, and the whole sunlit term of a Lambertian
+  kind) and the per-band parameters of its BRDF (``params``, each (n, X));
+- ``brdf(cos_i, cos_r, cos_2β, params)`` -> sr^-1, or ``None`` for a Lambertian kind (f = albedo / π);
+- ``check(material)``: ``ValueError`` naming what is wrong, before anything is computed.
+
+A new kind is one ``register("name", MaterialKind(...))`` call (as Mitsuba registers BSDF plugins); the skin
+surface models are entries ("skin-thesis", "skin-conserving", "skin-diffuse"), and so are the panels
+("lambertian", "spectralon", "spectralon-brdf").
+
+>>> import torch
+>>> from torchskin.render.scene import Material
+>>> register("grey-ramp", MaterialKind(
+...     compile=lambda m, sp, skins: Compiled(albedo=(sp.wavelengths / 2000.0)[None])))
+>>> tables = compile_materials({"m": Material("grey-ramp")}, [[500.0, 0.0], [1000.0, 0.0]], [Sun()])
+>>> tables.albedo.tolist()
+[[0.25, 0.5]]
+>>> unregister("grey-ramp")
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import cast
+
+import torch
+
+from .. import data, tissue
+from ..bands import Band, as_bands, band_sampling, per_band
+from ..optics import SURFACE_MODELS, THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
+from .light import sun_irradiance
+from .scene import Material, Sun
+
+#: Spectralon reference panels, directional-hemispherical reflectance per band (thesis Table 3)
+SPECTRALON_DHR = {
+    "white": {544.0: 0.989, 633.0: 0.990, 1080.0: 0.992, 1580.0: 0.988},
+    "dark": {544.0: 0.075, 633.0: 0.079, 1080.0: 0.104, 1580.0: 0.133},
+}
+#: the most a band centre may lie from a Table 3 wavelength for the Spectralon DHR to apply, nm
+SPECTRALON_MATCH_NM = 30.0
+#: the front-surface reflectance at normal incidence of the skin's albedo (sky term, diffuse-only skin)
+SKIN_R0 = 0.04
+
+
+@dataclass(frozen=True)
+class Spectral:
+    """What a material kind needs to compile its per-band tables (float64, CPU).
+
+    Shape:
+        ``grid`` (G,) nm; ``weights`` (G, B) band responses; ``sun_weights`` (G, B) band responses under the
+        first sun's spectrum, each column summing to 1; ``wavelengths`` (B,) band centres, nm.
+    """
+
+    bands: tuple[Band, ...]
+    grid: torch.Tensor
+    weights: torch.Tensor
+    sun_weights: torch.Tensor
+    wavelengths: torch.Tensor
+
+
+@dataclass
+class Compiled:
+    """A material's tables: ``albedo`` (n, B) and the BRDF's ``params`` (each (n, X)); n = 1, or the batch of
+    skins for the material named "skin" when ``compile_materials`` gets ``skins``."""
+
+    albedo: torch.Tensor
+    params: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+BRDF = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class MaterialKind:
+    """A registry entry: how one kind of material is compiled and shaded (module docstring)."""
+
+    compile: Callable[[Material, Spectral, tissue.SkinParams | None], Compiled]
+    brdf: BRDF | None = None
+    check: Callable[[Material], None] | None = None
+
+
+KINDS: dict[str, MaterialKind] = {}
+
+
+def register(name: str, kind: MaterialKind) -> None:
+    """Add (or replace) the material kind ``name``: a ``Material(kind=name)`` then renders with it."""
+    if not isinstance(kind, MaterialKind):
+        raise TypeError(f"register needs a MaterialKind, got {type(kind).__name__}")
+    KINDS[name] = kind
+
+
+def unregister(name: str) -> None:
+    """Remove the material kind ``name`` (``ValueError`` if it is not registered)."""
+    if name not in KINDS:
+        raise ValueError(f"no material kind {name!r} is registered")
+    del KINDS[name]
+
+
+def kind_name(material: Material) -> str:
+    """The registry entry of ``material``: its ``kind``, except "spectralon" with ``brdf`` ("spectralon-brdf")
+    and "skin" ("skin-<surface>", or "skin-diffuse" without the specular lobe)."""
+    if material.brdf and material.kind != "spectralon":
+        raise ValueError("brdf=True is for spectralon materials")
+    if material.kind == "spectralon" and material.brdf:
+        return "spectralon-brdf"
+    if material.kind == "skin":
+        return "skin-diffuse" if not material.specular else f"skin-{material.surface}"
+    return material.kind
+
+
+def check_material(material: Material) -> MaterialKind:
+    """The registry entry of ``material`` after its own ``check``; ``ValueError`` naming what is wrong."""
+    if material.kind == "skin" and material.surface not in SURFACE_MODELS:
+        raise ValueError(f"surface must be one of {', '.join(SURFACE_MODELS)} (skin surface model), "
+                         f"got {material.surface!r}")
+    name = kind_name(material)
+    if name not in KINDS:
+        known = sorted({k.split("-")[0] for k in KINDS})
+        raise ValueError(f"material kind must be one of {', '.join(known)}, got {material.kind!r}")
+    entry = KINDS[name]
+    if entry.check is not None:
+        entry.check(material)
+    return entry
+
+
+def check_materials(materials: dict[str, Material]) -> None:
+    """``check_material`` of every material (names the first bad one): cheap, so renderers call it before any
+    geometry is built."""
+    for name, material in materials.items():
+        try:
+            check_material(material)
+        except ValueError as e:
+            raise ValueError(f"material {name!r}: {e}") from None
+
+
+# ------------------------------------------------------------------------------------------ built-in kinds
+def _check_lambertian(m: Material) -> None:
+    if m.reflectance is None:
+        raise ValueError("a lambertian material needs reflectance (one value or one per band)")
+    vals = m.reflectance if isinstance(m.reflectance, list) else [m.reflectance]
+    for v in vals:
+        if not (0.0 <= float(v) <= 1.0):
+            raise ValueError(f"reflectance must lie in [0, 1], got {v}")
+
+
+def _lambertian(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
+    r = torch.tensor(per_band(cast(float | list[float], m.reflectance), sp.bands, "a lambertian reflectance"),
+                     dtype=torch.float64)  # checked: not None
+    return Compiled(albedo=r[None])
+
+
+def _check_spectralon(m: Material) -> None:
+    if m.panel not in SPECTRALON_DHR:
+        raise ValueError(f"spectralon panel must be 'white' or 'dark', got {m.panel!r}")
+
+
+def spectralon_dhr(panel: str, bands: Sequence[Band]) -> list[float]:
+    """Table 3 DHR of the Spectralon ``panel`` ("white", "dark") at each band (the nearest tabulated wavelength,
+    at most ``SPECTRALON_MATCH_NM`` away)."""
+    table = SPECTRALON_DHR[panel]
+    out = []
+    for b in bands:
+        near = min(table, key=lambda c: abs(c - b.center_nm))
+        if abs(near - b.center_nm) > SPECTRALON_MATCH_NM:
+            raise ValueError(f"no Spectralon value near {b.center_nm:g} nm (Table 3 has {list(table)})")
+        out.append(table[near])
+    return out
+
+
+def _spectralon(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
+    r = torch.tensor(spectralon_dhr(str(m.panel), sp.bands), dtype=torch.float64)[None]
+    return Compiled(albedo=r, params={"dhr": r, "wavelength": sp.wavelengths[None]})
+
+
+def _spectralon_brdf(ci: torch.Tensor, cr: torch.Tensor, c2b: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
+    return spectralon_brdf_cos(ci, cr, c2b, p["dhr"], p["wavelength"])
+
+
+def _check_skin(m: Material) -> None:
+    skin_params(m)
+
+
+def skin_params(material: Material, dtype: torch.dtype = torch.float64) -> tissue.SkinParams:
+    """The ``tissue.SkinParams`` of a skin material (a preset name or a parameter dict)."""
+    if isinstance(material.skin, str):
+        return tissue.preset(material.skin, dtype=dtype)
+    if not isinstance(material.skin, dict):
+        raise ValueError(f"skin must be a preset name or a dict of tissue parameters, got {material.skin!r}")
+    return tissue.SkinParams.create(dtype=dtype, **dict(material.skin))
+
+
+def skin_batch(skins: tissue.SkinParams | Sequence[str | dict]) -> tissue.SkinParams:
+    """A 1-D batch of skins from a ``SkinParams`` batch or a list of presets / parameter dicts."""
+    if isinstance(skins, tissue.SkinParams):
+        return tissue.SkinParams.cat([skins])  # 0-D -> one skin; N-D -> flat
+    if not skins:
+        raise ValueError("skins needs at least one skin")
+    return tissue.SkinParams.cat([skin_params(Material("skin", skin=s)) for s in skins])
+
+
+def _skin(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
+    """R_sub per band (under the first sun's spectrum) of one skin or a batch, once: the albedo (front surface
+    R0 = ``SKIN_R0`` over it) and the BRDF's parameters derive from it."""
+    p = skins if skins is not None else skin_params(m)
+    r_sub_grid = tissue.subsurface_reflectance(p.to(dtype=torch.float64), sp.grid).reshape(-1, len(sp.grid))
+    r_sub = r_sub_grid @ sp.sun_weights  # (n, B)
+    albedo = tissue.surface_total(torch.tensor(SKIN_R0, dtype=torch.float64), r_sub_grid) @ sp.sun_weights
+    if not m.specular:  # the diffuse-only model: a Lambertian surface with the normal-incidence skin reflectance
+        return Compiled(albedo=albedo)
+    sigma2, rho0 = THESIS_SPECULAR.at(sp.wavelengths)
+    front = torch.tensor([[surface_front(m.surface)]], dtype=torch.float64)
+    return Compiled(albedo=albedo, params={"r_sub": r_sub, "sigma2": sigma2[None], "rho0": rho0[None],
+                                           "front": front})
+
+
+def _skin_brdf(ci: torch.Tensor, cr: torch.Tensor, c2b: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Eq 3.1.1 with ρ_d from the exact closed form in R0 = Schlick(ρ0, θi), per the material's skin surface
+    model (``optics.skin_brdf_cos``)."""
+    return skin_brdf_cos(ci, cr, c2b, p["r_sub"], p["sigma2"], p["rho0"], p["front"])
+
+
+register("lambertian", MaterialKind(_lambertian, None, _check_lambertian))
+register("spectralon", MaterialKind(_spectralon, None, _check_spectralon))
+register("spectralon-brdf", MaterialKind(_spectralon, _spectralon_brdf, _check_spectralon))
+for _surface in SURFACE_MODELS:
+    register(f"skin-{_surface}", MaterialKind(_skin, _skin_brdf, _check_skin))
+register("skin-diffuse", MaterialKind(_skin, None, _check_skin))
+
+
+# ---------------------------------------------------------------------------------------------- compilation
+@dataclass
+class BrdfGroup:
+    """The materials shaded by one BRDF: ``ids`` (host tuple), ``member`` (M,) bool, ``params`` each
+    ([N,] M, X) with zero rows for the other materials, or (X,) when shared by every member (``group_param``)."""
+
+    brdf: BRDF
+    ids: tuple[int, ...]
+    member: torch.Tensor
+    params: dict[str, torch.Tensor]
+
+
+@dataclass
+class MaterialTables:
+    """Per-material, per-band quantities gathered by material id (M materials, B bands, S suns; N = K·S
+    skin-major rows for a batch of K skins, else the leading axis is absent).
+
+    Shape:
+        ``lambert_f`` ([N,] M, B): albedo/π of Lambertian kinds, 0 for BRDF kinds; ``albedo`` ([N,] M, B);
+        ``reference`` (M, B): hemispherical reflectance (ELM references); ``irradiance`` (S or N, B): sun
+        normal irradiance per band, W m^-2 nm^-1; ``wavelengths`` (B,) nm; ``is_skin`` (M,) bool.
+    """
+
+    names: list[str]
+    lambert_f: torch.Tensor
+    albedo: torch.Tensor
+    reference: torch.Tensor
+    irradiance: torch.Tensor
+    wavelengths: torch.Tensor
+    is_skin: torch.Tensor
+    groups: dict[str, BrdfGroup]
+
+
+def group_param(rows: list[torch.Tensor | None], table: Callable[[list[torch.Tensor]], torch.Tensor]) -> torch.Tensor:
+    """One BRDF parameter of a group from its members' rows (n, X) (``None``: not a member): the table ([N,] M, X)
+    with zero rows for the other materials, or, when every member and batch row holds the same values, that one
+    row (X,), shared by every pixel without a gather (``shade.gather_params``)."""
+    members = [r for r in rows if r is not None]
+    first = members[0][:1]
+    if all(bool((r == first).all()) for r in members):
+        return first[0]
+    return table([r if r is not None else torch.zeros_like(first) for r in rows])
+
+
+def spectral_context(bands: Sequence[Band], suns: Sequence[Sun]) -> tuple[Spectral, torch.Tensor]:
+    """The band sampling of ``bands`` and the suns' band irradiance (S, B), float64."""
+    grid, W = band_sampling(bands, dtype=torch.float64)
+    E = torch.stack([sun_irradiance(s, grid) for s in suns])  # (S, G)
+    wE = W * E[0][:, None]  # band responses under the first sun's spectrum
+    wE = wE / wE.sum(0)
+    wl = torch.tensor([b.center_nm for b in bands], dtype=torch.float64)
+    return Spectral(tuple(bands), grid, W, wE, wl), E @ W
+
+
+def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[float]] | Sequence[Band],
+                      suns: Sequence[Sun], names: Sequence[str] | None = None, dtype: torch.dtype = torch.float32,
+                      device: torch.device | str = "cpu", skins: tissue.SkinParams | None = None) -> MaterialTables:
+    """Compile the materials ``names`` (default: all, in order) for ``bands`` under ``suns``.
+
+    Args:
+        materials: name -> ``Material``.
+        bands: ``Band`` objects or (centre, fwhm) pairs, nm.
+        suns: the sources (their spectra weight the band values; the first sun's weights the skin's R_sub).
+        names: the material order of the tables (a G-buffer's ``material_names``).
+        skins: a batch of K skins for the material named "skin": every table row is then repeated per sun,
+            skin-major (N = K·S rows), as ``render(..., skins=...)`` shades every skin under every sun.
+
+    Returns:
+        ``MaterialTables`` on ``device`` in ``dtype`` (float64 computation, cast once).
+    """
+    names = list(materials) if names is None else list(names)
+    bands = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
+    if skins is not None and "skin" not in names:
+        raise ValueError("skins needs a material named 'skin'")
+    entries = {n: check_material(materials[n]) for n in names}
+    spectral, e_band = spectral_context(bands, suns)
+    compiled = {n: entries[n].compile(materials[n], spectral, skins if n == "skin" else None) for n in names}
+    K = 1 if skins is None else compiled["skin"].albedo.shape[0]
+    S = len(suns)
+
+    def table(rows: list[torch.Tensor]) -> torch.Tensor:  # (n, X) per material -> ([N,] M, X)
+        t = torch.stack([r.expand(K, -1) for r in rows], dim=1)  # (K, M, X)
+        return t[0] if skins is None else t.repeat_interleave(S, 0)
+
+    def to(x: torch.Tensor) -> torch.Tensor:
+        return x.to(device=device, dtype=dtype) if x.is_floating_point() else x.to(device)
+
+    albedo = [compiled[n].albedo for n in names]
+    lam = [a / math.pi if entries[n].brdf is None else torch.zeros_like(a) for n, a in zip(names, albedo)]
+    groups: dict[str, BrdfGroup] = {}
+    for n in names:
+        kn, brdf = kind_name(materials[n]), entries[n].brdf
+        if brdf is not None and kn not in groups:
+            ids = tuple(k for k, m in enumerate(names) if kind_name(materials[m]) == kn)
+            params = {key: to(group_param([compiled[m].params[key] if k in ids else None for k, m in enumerate(names)],
+                                          table)) for key in compiled[n].params}
+            member = torch.tensor([k in ids for k in range(len(names))])
+            groups[kn] = BrdfGroup(brdf, ids, member.to(device), params)
+    is_skin = torch.tensor([materials[n].kind == "skin" for n in names], device=device)
+    irradiance = e_band if skins is None else e_band.repeat(K, 1)
+    return MaterialTables(names, to(table(lam)), to(table(albedo)), to(torch.stack([a[0] for a in albedo])),
+                          to(irradiance), to(spectral.wavelengths), is_skin, groups)
+
+
+class MaterialCache:
+    """Compiled tables kept by everything they depend on (materials, bands, suns, dtype, device and
+    ``data.tables_version()``, so a ``data.register_table`` is never served stale tables). Hold one across
+    frames of the same materials (a benchmark, an experiment); ``clear()`` frees it."""
+
+    def __init__(self, max_entries: int = 64) -> None:
+        self.max_entries = max_entries
+        self.entries: dict[tuple, MaterialTables] = {}
+
+    def compile(self, materials: dict[str, Material], bands: Sequence[Sequence[float]], suns: Sequence[Sun],
+                names: Sequence[str] | None = None, dtype: torch.dtype = torch.float32,
+                device: torch.device | str = "cpu") -> MaterialTables:
+        """``compile_materials`` through the cache (single skins; batches are compiled directly)."""
+        names = list(materials) if names is None else list(names)
+        key = (json.dumps([[asdict(materials[n]) for n in names], [list(b) for b in bands],
+                           [(s.temperature_k, s.scale) for s in suns]], sort_keys=True),
+               str(dtype), str(torch.device(device)), data.tables_version())
+        hit = self.entries.get(key)
+        if hit is None:
+            if len(self.entries) >= self.max_entries:
+                self.entries.clear()
+            hit = self.entries[key] = compile_materials(materials, bands, suns, names, dtype, device)
+        return hit
+
+    def clear(self) -> None:
+        """Forget every compiled table."""
+        self.entries.clear()
+

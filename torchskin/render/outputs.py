@@ -1,0 +1,86 @@
+"""Stage 7 of the renderer: what a frame reports and writes. The frame's summary (skin pixels, the detected
+fraction, whether its ELM is physical), connected components of the detection mask, and the files: band PNGs,
+the reflectance and signal cubes, the mask PNGs and ``render.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..detect import has_index_bands
+from ..io import save_npy, write_text
+from .elm import ELM_MIN_SUNLIT, panel_regions, panel_sunlit_fraction
+from .pipeline import RenderResult
+
+
+def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int = 4) -> list[dict]:
+    """Connected components of a 2-D mask (scikit-image): bounding box, area, centroid, and the fraction
+    of the component on the truth mask when given."""
+    from skimage.measure import label, regionprops
+
+    lab = label(mask, connectivity=2)
+    out = []
+    for r in regionprops(lab):
+        if r.area < min_area:
+            continue
+        d = {"bbox": [int(x) for x in r.bbox], "area": int(r.area),
+             "centroid": [float(r.centroid[0]), float(r.centroid[1])]}
+        if truth is not None:
+            d["on_subject"] = float(truth[lab == r.label].mean())
+        out.append(d)
+    return sorted(out, key=lambda d: -d["area"])
+
+
+def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
+    """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``; whether the
+    frame's ELM is physical (``elm_valid``: every reference panel at least ``ELM_MIN_SUNLIT`` sunlit; without
+    sunlit panels the empirical line is set by sky light and reflectance can exceed 1)."""
+    skin = result.skin[c]
+    lit = skin & result.lit[s, c]
+    det = result.mask[s, c]
+    n, nl = int(skin.sum()), int(lit.sum())
+    sunlit = panel_sunlit_fraction(result.lit[s, c], result.panel_pixels, c)
+    return {
+        "skin_pixels": n,
+        "sunlit_skin_pixels": nl,
+        "detected_fraction": float(det[skin].float().mean()) if n else 0.0,
+        "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
+        "false_alarm_pixels": int((det & ~skin).sum()),
+        "rules_detector": has_index_bands(result.bands),  # false: the bands lack 544/633/1080/1580 nm
+        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit),
+        "panel_sunlit_fraction": sunlit,
+    }
+
+
+def write_outputs(result: RenderResult, scene: dict, out_dir: str | Path, s: int = 0, c: int = 0) -> dict:
+    """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
+    sensor signal cube before ELM (``signal.npy``, digital numbers), the rules detector's mask, ``mask.png``: an
+    RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
+    detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
+    everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
+    ``render.json`` (``scene``: the scene as data, ``Scene.to_dict()``; timing, panels with their pixel regions,
+    detections) in ``out_dir``, for sun ``s`` and camera ``c``. Returns the summary."""
+    from ..plots import band_image, mask_image, mask_png
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_npy(out / "reflectance.npy", result.cube(s, c))
+    save_npy(out / "signal.npy", result.cube(s, c, "signal"))
+    for k, b in enumerate(result.bands):
+        band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
+                   f"{b.center_nm:g} nm reflectance (ELM)")
+    mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
+    mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
+               f"rules detector mask ({result.mask.shape[-1]} x {result.mask.shape[-2]} px)")
+    info = summary(result, s, c)
+    dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
+    H, W = result.mask.shape[-2:]
+    regions = panel_regions(result.panel_pixels, list(result.panels), H, W, camera=c)
+    panels = {p: {**v, "region": regions[p]} for p, v in result.panels.items()}
+    doc = {"summary": info, "timing_s": result.timing, "panels": panels, "detections": dets,
+           "scene": scene, "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands]}
+    write_text(out / "render.json", json.dumps(doc, indent=1))
+    return info

@@ -1,0 +1,219 @@
+"""The renderer's stages called in order: scene -> meshes -> ray cast (G-buffer) -> materials -> shading ->
+sensor -> ELM -> NDGRI/NDSI rules. ``render`` gives whole frames, ``render_pixels`` chosen pixels of one camera
+(the dataset generator's fast path); both run the same stages (``render_gbuffer``).
+
+Shapes: S suns (S·K skin-major rows for a batch of K skins), C cameras, H x W pixels, B bands; images are
+``(S, C, H, W, B)``. Everything after the G-buffer runs on the requested device and dtype, without Python loops
+over pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+import torch
+
+from .. import tissue
+from ..bands import Band
+from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, indices, rules_detector
+from .elm import apply_elm, panel_pixels, panel_references, panel_values
+from .materials import MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
+from .raycast import GBuffer, Raycaster, rasterize
+from .scene import Scene
+from .sensor import Sensor, sensor_signal
+from .shade import shade
+
+
+@dataclass
+class RenderResult:
+    """Everything a render produced. Shape: images (S, C, H, W[, B]) (``render_pixels``: (S, 1, 1, K[, B]))."""
+
+    radiance: torch.Tensor  # at-surface radiance, W m^-2 sr^-1 nm^-1
+    signal: torch.Tensor  # DN (or radiance without a sensor)
+    reflectance: torch.Tensor  # ELM-calibrated
+    ndgri: torch.Tensor  # (S, C, H, W)
+    ndsi: torch.Tensor
+    mask: torch.Tensor  # rules detector
+    skin: torch.Tensor  # (C, H, W) ground truth: skin pixels
+    lit: torch.Tensor  # (S, C, H, W) sunlit
+    panels: dict  # per reference panel: "reference" and "signal" (S x C x B lists)
+    gbuffer: GBuffer
+    timing: dict
+    bands: tuple[Band, ...]
+    panel_pixels: list  # [panel][camera] flat interior pixel indices (``elm.panel_pixels``)
+
+    def cube(self, s: int = 0, c: int = 0, what: str = "reflectance") -> np.ndarray:
+        """Frame (sun ``s``, camera ``c``) of ``what`` ("reflectance", "signal" or "radiance") as a (B, H, W)
+        float32 numpy cube: the layout of ``reflectance.npy`` and of the onboard runtime (add a leading batch
+        axis for ``onboard``'s detector)."""
+        if what not in ("reflectance", "signal", "radiance"):
+            raise ValueError(f"what must be 'reflectance', 'signal' or 'radiance', got {what!r}")
+        return getattr(self, what)[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
+
+
+def sync(device: torch.device) -> None:
+    """Wait for queued device work (for stage timings)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    elif device.type == "mps":
+        torch.mps.synchronize()
+
+
+def geometry(scene: Scene, raycaster: Raycaster | None, gbuffer: GBuffer | None, timing: dict) -> GBuffer:
+    """The scene's G-buffer: ``gbuffer`` if given, else a ray cast (with ``raycaster``, or one built now)."""
+    if gbuffer is not None:
+        return gbuffer
+    t0 = time.perf_counter()
+    if raycaster is None:
+        raycaster = Raycaster.from_scene(scene)
+        timing["build_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    gb = rasterize(scene, raycaster)
+    timing["raycast_s"] = time.perf_counter() - t1
+    return gb
+
+
+def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
+    """A G-buffer of the pixels ``flat`` (indices into the single camera's H*W), shaped (1, 1, K)."""
+    if gb.hit.shape[0] != 1:
+        raise ValueError("pixel subsets need a single camera")
+    out: dict[str, Any] = {}
+    for f in fields(gb):
+        v = getattr(gb, f.name)
+        if f.name == "shadow":
+            out[f.name] = v.flatten(1).index_select(1, flat).reshape(v.shape[0], 1, 1, -1)
+        elif isinstance(v, torch.Tensor):
+            tail = v.shape[3:]
+            out[f.name] = v.reshape(-1, *tail).index_select(0, flat).reshape(1, 1, -1, *tail)
+        else:
+            out[f.name] = v
+    return GBuffer(**out)
+
+
+def material_tables(scene: Scene, gb: GBuffer, dtype: torch.dtype, device: torch.device,
+                    skins: tissue.SkinParams | None, cache: MaterialCache | None) -> MaterialTables:
+    """The scene's materials compiled in the G-buffer's material order (through ``cache`` when given)."""
+    if skins is None and cache is not None:
+        return cache.compile(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device)
+    return compile_materials(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device, skins)
+
+
+def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+           sensor: Sensor | None = None, box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None,
+           gbuffer: GBuffer | None = None, erode_px: int = 1, elm: str = "dhr",
+           skins: tissue.SkinParams | Sequence[str | dict] | None = None,
+           cache: MaterialCache | None = None) -> RenderResult:
+    """Render every sun x camera of ``scene`` and calibrate with ELM.
+
+    Args:
+        scene: the scene (``render.scene``).
+        sensor: the sensor chain; ``None`` is an ideal linear sensor (ELM then recovers Lambertian reflectance
+            exactly).
+        box: the rules detector's thresholds.
+        raycaster, gbuffer: reuse geometry across calls.
+        erode_px: pixels eroded off each reference panel's edge before its median enters ELM.
+        elm: "dhr" (the panels' hemispherical reflectance) or "brdf" (BRDF-ELM: their BRDF at the geometry).
+        skins: a batch of skins (``tissue.SkinParams``, or presets / parameter dicts) for the material named
+            "skin", every one under every sun in one pass: the leading axis is then skin-major (K x S).
+        cache: compiled material tables to reuse across frames (``materials.MaterialCache``).
+
+    Returns:
+        ``RenderResult``; images (S, C, H, W, B).
+
+    >>> from torchskin.render.scene import Camera, Material, MeshSpec, Scene, Sun
+    >>> mats = {"grey": Material(reflectance=0.4), "white": Material(reflectance=0.97),
+    ...         "dark": Material(reflectance=0.03)}
+    >>> meshes = [MeshSpec("wall", "plane", "grey", {"width": 6, "height": 6}, position=[-1, 0, -2]),
+    ...           MeshSpec("panel_white", "plane", "white", {"width": 0.4, "height": 0.4}, position=[0, 0.5, 0.8]),
+    ...           MeshSpec("panel_dark", "plane", "dark", {"width": 0.4, "height": 0.4}, position=[0, -0.5, 0.8])]
+    >>> res = render(Scene(mats, meshes, [Camera(width=32, height=32, fov_deg=20.0)], [Sun(zenith_deg=40.0)]))
+    >>> res.reflectance.shape
+    torch.Size([1, 1, 32, 32, 4])
+    >>> [round(float(x), 4) for x in res.reflectance[0, 0, 2, 2]]  # ideal sensor: ELM recovers the wall's 0.4
+    [0.4, 0.4, 0.4, 0.4]
+    """
+    timing: dict = {}
+    t0 = time.perf_counter()
+    check_materials(scene.materials)  # before any mesh is built
+    gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
+    pix = panel_pixels(gb, list(scene.panels), erode_px)
+    return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
+
+
+def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str = "cpu",
+                  dtype: torch.dtype = torch.float32, sensor: Sensor | None = None, box: RulesBox = DEFAULT_BOX,
+                  raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None, erode_px: int = 1,
+                  elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
+                  cache: MaterialCache | None = None) -> RenderResult:
+    """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
+    only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
+    brightest of them and the panels (the dataset generator's fast path). Arguments as ``render``."""
+    timing: dict = {}
+    t0 = time.perf_counter()
+    check_materials(scene.materials)
+    gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
+    panel_flat = [per_cam[0] for per_cam in panel_pixels(gb, list(scene.panels), erode_px)]
+    pixels = pixels.to(gb.hit.device).long()
+    sizes = [len(pixels)] + [len(x) for x in panel_flat]
+    gb = gather_pixels(gb, torch.cat([pixels, *panel_flat]))
+    offs = np.cumsum(sizes)
+    pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
+    res = render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
+    n = len(pixels)
+    for name in ("radiance", "signal", "reflectance", "ndgri", "ndsi", "mask", "skin", "lit"):
+        setattr(res, name, getattr(res, name)[..., :n, :] if getattr(res, name).dim() == 5 else getattr(res, name)[..., :n])
+    return res
+
+
+def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], device: torch.device,
+                   dtype: torch.dtype, sensor: Sensor | None, box: RulesBox, elm: str,
+                   skins: tissue.SkinParams | Sequence[str | dict] | None, cache: MaterialCache | None,
+                   timing: dict, t0: float) -> RenderResult:
+    """The stages after the ray cast, on a G-buffer already on ``device``: materials, shading, sensor, ELM with
+    the panels' interior pixels ``pix``, the rules. Arguments as ``render``."""
+    batch = None if skins is None else skin_batch(skins)
+    reps = 1 if batch is None else batch.shape[0]
+    t2 = time.perf_counter()
+    tables = material_tables(scene, gb, dtype, device, batch, cache)
+    if reps > 1:
+        gb = GBuffer(**{**{f.name: getattr(gb, f.name) for f in fields(gb)},
+                        "shadow": gb.shadow.repeat(reps, *([1] * (gb.shadow.dim() - 1)))})
+    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
+    sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
+    sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky")
+    sync(device)
+    timing["shade_s"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    gen = None
+    if sensor is not None and sensor.noise:
+        gen = torch.Generator(device=device)
+        gen.manual_seed(int(sensor.seed))
+    signal = sensor_signal(sh.radiance, sensor, scene.band_list, scene.cameras[0].focal, gen)
+    pv = panel_values(signal, pix)  # (S, C, P, B)
+    panel_ids = [gb.material_names.index(scene.mesh(p).material) for p in scene.panels]
+    refs = panel_references(panel_ids, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
+    refl = apply_elm(signal, pv, refs)
+    g, s, mask = detect_skin(refl, gb.hit, scene.band_list, box)
+    skin = gb.hit & tables.is_skin[gb.material.clamp_min(0)]
+    sync(device)
+    timing["sensor_elm_s"] = time.perf_counter() - t3
+    timing["total_s"] = time.perf_counter() - t0
+    panels = {p: {"reference": refs[:, :, k].tolist(), "signal": pv[:, :, k].tolist()}
+              for k, p in enumerate(scene.panels)}
+    return RenderResult(sh.radiance, signal, refl, g, s, mask, skin, sh.lit, panels, gb, timing, scene.band_list, pix)
+
+
+def detect_skin(reflectance: torch.Tensor, hit: torch.Tensor, bands: tuple[Band, ...],
+                box: RulesBox) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """NDGRI, NDSI and the rules detector's mask of a reflectance cube (..., B) on hit pixels; without the four
+    index bands (544, 633, 1080, 1580 nm) NaN indices and an empty mask."""
+    if has_index_bands(bands):
+        g, s = indices(reflectance, bands)
+        return g, s, rules_detector(g, s, box) & hit
+    g = s = torch.full(reflectance.shape[:-1], math.nan, dtype=reflectance.dtype, device=reflectance.device)
+    return g, s, torch.zeros_like(hit).expand(reflectance.shape[:-1])
