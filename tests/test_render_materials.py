@@ -113,3 +113,22 @@ def test_scene_stage_imports_neither_torch_nor_the_skin_model():
             "print(sorted(m for m in ('torch', 'torchskin.tissue', 'numpy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "['numpy']"
+
+
+def test_material_cache_keeps_tables_by_what_they_depend_on():
+    """The same materials, bands and suns give the kept tables (the same object); a changed material, band,
+    dtype or sun spectrum compiles anew; ``clear`` forgets."""
+    sc = wall_scene(Material("skin", skin="I-II"))
+    cache = M.MaterialCache()
+    first = cache.compile(sc.materials, sc.bands, sc.suns)
+    assert cache.compile(sc.materials, sc.bands, sc.suns) is first
+    darker = {**sc.materials, "wall": Material("skin", skin="V-VI")}
+    assert cache.compile(darker, sc.bands, sc.suns) is not first
+    assert cache.compile(sc.materials, sc.bands, sc.suns, dtype=DT) is not first
+    assert cache.compile(sc.materials, sc.bands, [Sun(temperature_k=3000.0)]) is not first
+    assert cache.compile(sc.materials, sc.bands[:2], sc.suns).albedo.shape == (3, 2)
+    assert len(cache.entries) == 5
+    cache.clear()
+    assert cache.compile(sc.materials, sc.bands, sc.suns) is not first
+    skin_rows = first.albedo[list(sc.materials).index("wall")]
+    assert bool((cache.compile(darker, sc.bands, sc.suns).albedo[0] < skin_rows).all())  # V-VI darker than I-II

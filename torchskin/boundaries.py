@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from .bands import INDEX_BANDS_NM
+from .detect import normalized_difference, rules_detector
 
 if TYPE_CHECKING:
     from .classifier import SkinClassifier
@@ -82,9 +83,9 @@ def ratio_indices(R: torch.Tensor, zero_undefined: bool = False) -> tuple[torch.
     (tensor([0.]), tensor([0.]), tensor([0.]))
     """
     g, r, n, s = R.unbind(-1)
+    if not zero_undefined:  # detect's normalised difference: NDGRI and NDSI exactly as ``detect.indices``
+        return normalized_difference(g, r), normalized_difference(n, s), normalized_difference(g + r, n + s)
     vis, nir = g + r, n + s
-    if not zero_undefined:
-        return (g - r) / vis, (n - s) / nir, (vis - nir) / (vis + nir)
     tiny = torch.finfo(R.dtype).tiny
 
     def nd(a, b, d):
@@ -515,7 +516,8 @@ def confuser_indices(part: str = "train") -> torch.Tensor:
 def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
     """The rules detector (eq 2.5.10 with a box per configuration): whether (NDGRI, NDSI) = (``g``, ``s``) lies in
     the box, b1 <= g <= b2 and c1 <= s <= c2 (edges included), and, with ``v`` (NDVN) and a fifth column,
-    NDVN >= d1. The one torch form of the test (the onboard runtime's is the exported detector graph).
+    NDVN >= d1. The box test itself is ``detect.rules_detector``'s (the onboard runtime's is the exported
+    detector graph).
 
     Args:
         boxes: (b1, b2, c1, c2[, d1]) on axis 1 (``BOX_ORDER``).
@@ -534,7 +536,7 @@ def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.T
     >>> inside_box(boxes, torch.tensor([-0.3]), torch.tensor([0.6]), torch.tensor([-0.6]))
     tensor([False])
     """
-    ok = (g >= boxes[:, 0]) & (g <= boxes[:, 1]) & (s >= boxes[:, 2]) & (s <= boxes[:, 3])
+    ok = rules_detector(g, s, torch.movedim(boxes[:, :4], 1, -1))  # eq 2.5.10's test, the box on the last axis
     if v is not None and boxes.shape[1] > 4:
         ok = ok & (v >= boxes[:, 4])
     return ok
