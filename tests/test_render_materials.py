@@ -132,3 +132,16 @@ def test_material_cache_keeps_tables_by_what_they_depend_on():
     assert cache.compile(sc.materials, sc.bands, sc.suns) is not first
     skin_rows = first.albedo[list(sc.materials).index("wall")]
     assert bool((cache.compile(darker, sc.bands, sc.suns).albedo[0] < skin_rows).all())  # V-VI darker than I-II
+
+
+def test_default_scene_takes_any_subject_mesh():
+    """``default_scene(subject=MeshSpec(...))``: a skin sphere where the camera aims, no mesh file needed."""
+    from torchskin.render.scene import default_scene
+
+    ball = MeshSpec("subject", "sphere", "skin", {"radius": 0.3, "subdivisions": 3}, position=[0.0, 0.0, 1.0])
+    sc = default_scene(subject=ball, camera=Camera(width=48, height=48))
+    assert Scene.from_json(sc.to_json()) == sc
+    res = render(sc)
+    assert int(res.skin[0].sum()) > 40 and bool(res.mask[0, 0][res.skin[0] & res.lit[0, 0]].any())
+    with pytest.raises(ValueError, match="subject must be"):
+        default_scene(subject="cube")

@@ -433,17 +433,11 @@ def _checkpoint(path, what: str):
     """(model, training summary) of a boundary or classifier checkpoint; one-line errors for bad files."""
     from pathlib import Path
 
-    from . import boundaries as Bd
-    from . import classifier as Cl
-    from .evaluate import load_checkpoint
+    from .evaluate import load_model
 
     if not Path(path).is_file():
         raise ValueError(f"{what} {str(path)!r} does not exist")
-    ck = load_checkpoint(path)
-    try:
-        model = Cl.load(path) if ck.get("kind") == "classifier" else Bd.load(path)
-    except (KeyError, RuntimeError, TypeError) as e:
-        raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
+    model, ck = load_model(path, what)
     return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
 
 

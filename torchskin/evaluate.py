@@ -19,7 +19,16 @@ import torch
 from numpy.typing import ArrayLike
 
 from .bands import INDEX_BANDS_NM
-from .boundaries import BAND_COLUMNS, FEATURES, confuser_indices, false_alarm_rate, inside_box, ratio_indices
+from .boundaries import (
+    BAND_COLUMNS,
+    FEATURES,
+    BoundaryModel,
+    confuser_indices,
+    false_alarm_rate,
+    inside_box,
+    ratio_indices,
+)
+from .classifier import SkinClassifier
 from .dataset.files import open_dataset, read_valid
 from .detect import DEFAULT_BOX
 
@@ -88,18 +97,29 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
         b = Boundaries(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
         return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
-    ck = load_checkpoint(p)
-    if ck.get("kind") == "classifier":
-        from .classifier import load as load_classifier
-
-        clf = load_classifier(p)
+    model, ck = load_model(p)
+    if isinstance(model, SkinClassifier):
+        clf = model
         decide = lambda R, X: clf.decide(R, X)  # noqa: E731
         return Candidate(name, "classifier", list(clf.features), decide, None, p, ck.get("meta", {}))
-    from .boundaries import load
-
-    m = load(p)
+    m = model
     boxes_of = lambda X: m(torch.as_tensor(X, dtype=torch.float32)).detach()  # noqa: E731
     return Candidate(name, "boxes", list(m.features), _box_decide(boxes_of), boxes_of, p, ck.get("meta", {}))
+
+
+def load_model(path: str | os.PathLike, what: str = "model") -> tuple[BoundaryModel | SkinClassifier, dict]:
+    """The model of a torchskin checkpoint (``boundaries.BoundaryModel`` or ``classifier.SkinClassifier``, by the
+    checkpoint's ``kind``) and the checkpoint dict; ``ValueError`` with one line naming ``what`` and the file for
+    anything else."""
+    from . import boundaries, classifier
+
+    ck = load_checkpoint(path)
+    try:
+        model: BoundaryModel | SkinClassifier = (classifier.load(path) if ck.get("kind") == "classifier"
+                                                 else boundaries.load(path))
+    except (KeyError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
+    return model, ck
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:

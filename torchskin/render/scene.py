@@ -359,7 +359,7 @@ def reference_panels(camera_azimuth_deg: float, tilt_deg: float, size_m: float, 
 
 
 def default_scene(
-    subject: str = "anny",
+    subject: str | MeshSpec = "anny",
     mesh_path: str | None = None,
     skin: str | dict = "I-II",
     camera: Camera | None = None,
@@ -372,21 +372,25 @@ def default_scene(
     """The thesis's layout: a subject at the origin facing +x, reference panels either side of it facing the
     camera (vertical for the default horizontal camera in front at 31 ft, 9.449 m; level for a camera overhead;
     turned with the camera's azimuth), 0.9 m off the subject's axis. ``panels``: see ``panel_materials``;
-    ``surface``: the skin surface model (``Material``). Metres, z up."""
+    ``surface``: the skin surface model (``Material``). ``subject``: "anny" (a parametric body), "file" (the
+    OBJ/PLY ``mesh_path``, all skin) or any ``MeshSpec`` of materials "skin" / "clothing" (e.g. a sphere). Metres,
+    z up."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
         "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
         "ground": Material("lambertian", reflectance=[0.15, 0.18, 0.30, 0.25]),
     }
     mats.update(panel_materials(panels))
-    if subject == "anny":
+    if isinstance(subject, MeshSpec):
+        body = subject
+    elif subject == "anny":
         body = MeshSpec("subject", "anny", "skin", other_material="clothing")
     elif subject == "file":
         if not mesh_path:
             raise ValueError("a file subject needs mesh_path")
         body = MeshSpec("subject", "file", "skin", params={"path": str(mesh_path)})
     else:
-        raise ValueError(f"subject must be 'anny' or 'file', got {subject!r}")
+        raise ValueError(f"subject must be 'anny', 'file' or a MeshSpec, got {subject!r}")
     cam = camera or Camera()
     # the panels face the camera wherever it is: vertical for a horizontal camera (the thesis's layout), level for
     # one overhead, tilted towards it in between
