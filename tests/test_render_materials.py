@@ -145,3 +145,57 @@ def test_default_scene_takes_any_subject_mesh():
     assert int(res.skin[0].sum()) > 40 and bool(res.mask[0, 0][res.skin[0] & res.lit[0, 0]].any())
     with pytest.raises(ValueError, match="subject must be"):
         default_scene(subject="cube")
+
+
+def test_review_edge_cases_fail_early_with_one_line():
+    """Variants are chosen by fields, not written as kinds; unknown kinds list the registered names in full;
+    per-band values are checked against the scene's bands before any geometry; skins must be a batch or a list;
+    a skins batch needs a skin material named "skin"."""
+    from torchskin.bands import DEFAULT_BANDS
+
+    with pytest.raises(ValueError, match="specular=False"):
+        M.check_material(Material("skin-diffuse", skin="I-II"))
+    with pytest.raises(ValueError, match="brdf=True"):
+        M.check_material(Material("spectralon-brdf", panel="white"))
+    M.register("grey-ramp", M.MaterialKind(compile=lambda m, sp, sk: M.Compiled(albedo=torch.ones(1, 4))))
+    try:
+        with pytest.raises(ValueError, match="grey-ramp, lambertian, skin, spectralon, got 'plaster'"):
+            M.check_material(Material("plaster"))
+    finally:
+        M.unregister("grey-ramp")
+    with pytest.raises(ValueError, match="material 'wall': a lambertian reflectance needs one value"):
+        M.check_materials({"wall": Material("lambertian", reflectance=[0.1, 0.2, 0.3])}, DEFAULT_BANDS)
+    M.check_materials({"wall": Material("lambertian", reflectance=(0.1, 0.2, 0.3, 0.4))}, DEFAULT_BANDS)
+    with pytest.raises(ValueError, match="skins must be"):
+        M.skin_batch("IV")
+    sc = wall_scene(Material(reflectance=0.3), name="skin")
+    sc.suns = [Sun(), Sun(zenith_deg=50.0)]
+    with pytest.raises(ValueError, match="of kind 'skin'"):
+        render(sc, skins=["I-II", "V-VI"])
+
+
+def test_material_cache_takes_band_objects_and_keys_on_names():
+    from torchskin.bands import DEFAULT_BANDS
+
+    sc = wall_scene(Material("skin", skin="I-II"))
+    cache = M.MaterialCache()
+    a = cache.compile(sc.materials, DEFAULT_BANDS, sc.suns)
+    assert cache.compile(sc.materials, sc.bands, sc.suns) is a  # Band objects and [centre, fwhm] pairs alike
+    renamed = {f"m{k}": v for k, v in enumerate(sc.materials.values())}
+    b = cache.compile(renamed, sc.bands, sc.suns)
+    assert b is not a and b.names == list(renamed)
+    assert M.SHARED_CACHE is not cache and isinstance(M.SHARED_CACHE, M.MaterialCache)
+
+
+def test_write_outputs_takes_a_scene_or_its_dict(tmp_path):
+    from torchskin.render.outputs import write_outputs
+
+    sc = wall_scene(Material(reflectance=0.3))
+    res = render(sc)
+    write_outputs(res, sc, tmp_path / "a")
+    write_outputs(res, sc.to_dict(), tmp_path / "b")
+    assert (tmp_path / "a" / "render.json").read_text().split('"scene"')[1] == \
+        (tmp_path / "b" / "render.json").read_text().split('"scene"')[1]
+    with pytest.raises(TypeError, match="scene must be"):
+        write_outputs(res, "scene.json", tmp_path / "c")
+    assert not (tmp_path / "c").exists()

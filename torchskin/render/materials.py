@@ -87,6 +87,13 @@ class MaterialKind:
 
 
 KINDS: dict[str, MaterialKind] = {}
+_registry_version = [0]  # bumped by every register / unregister: compiled tables are keyed on it
+
+
+def registry_version() -> int:
+    """The version of ``KINDS``: every ``register`` or ``unregister`` increments it (``MaterialCache`` keys on
+    it, so a replaced kind is never served the old kind's tables)."""
+    return _registry_version[0]
 
 
 def register(name: str, kind: MaterialKind) -> None:
@@ -94,6 +101,7 @@ def register(name: str, kind: MaterialKind) -> None:
     if not isinstance(kind, MaterialKind):
         raise TypeError(f"register needs a MaterialKind, got {type(kind).__name__}")
     KINDS[name] = kind
+    _registry_version[0] += 1
 
 
 def unregister(name: str) -> None:
@@ -101,6 +109,7 @@ def unregister(name: str) -> None:
     if name not in KINDS:
         raise ValueError(f"no material kind {name!r} is registered")
     del KINDS[name]
+    _registry_version[0] += 1
 
 
 def kind_name(material: Material) -> str:
@@ -115,27 +124,41 @@ def kind_name(material: Material) -> str:
     return material.kind
 
 
-def check_material(material: Material) -> MaterialKind:
-    """The registry entry of ``material`` after its own ``check``; ``ValueError`` naming what is wrong."""
+#: registry entries that ``Material`` fields select (``kind_name``), never written as a material's ``kind``
+VARIANTS = {"spectralon-brdf": "kind='spectralon', brdf=True", "skin-thesis": "kind='skin', surface='thesis'",
+            "skin-conserving": "kind='skin', surface='conserving'", "skin-diffuse": "kind='skin', specular=False"}
+
+
+def check_material(material: Material, bands: Sequence[Band] | None = None) -> MaterialKind:
+    """The registry entry of ``material`` after its own ``check`` (and, with ``bands``, its per-band values);
+    ``ValueError`` naming what is wrong."""
+    if material.kind in VARIANTS:
+        raise ValueError(f"material kind {material.kind!r} is chosen by the material's fields: use "
+                         f"{VARIANTS[material.kind]}")
     if material.kind == "skin" and material.surface not in SURFACE_MODELS:
         raise ValueError(f"surface must be one of {', '.join(SURFACE_MODELS)} (skin surface model), "
                          f"got {material.surface!r}")
     name = kind_name(material)
     if name not in KINDS:
-        known = sorted({k.split("-")[0] for k in KINDS})
+        known = sorted({k for k in KINDS if k not in VARIANTS} | {"skin"})
         raise ValueError(f"material kind must be one of {', '.join(known)}, got {material.kind!r}")
     entry = KINDS[name]
-    if entry.check is not None:
-        entry.check(material)
+    try:
+        if entry.check is not None:
+            entry.check(material)
+        if bands is not None and name == "lambertian":
+            per_band(cast(float | list[float], material.reflectance), bands, "a lambertian reflectance")
+    except TypeError as e:
+        raise ValueError(f"malformed {material.kind} material: {e}") from None
     return entry
 
 
-def check_materials(materials: dict[str, Material]) -> None:
+def check_materials(materials: dict[str, Material], bands: Sequence[Band] | None = None) -> None:
     """``check_material`` of every material (names the first bad one): cheap, so renderers call it before any
     geometry is built."""
     for name, material in materials.items():
         try:
-            check_material(material)
+            check_material(material, bands)
         except ValueError as e:
             raise ValueError(f"material {name!r}: {e}") from None
 
@@ -144,7 +167,7 @@ def check_materials(materials: dict[str, Material]) -> None:
 def _check_lambertian(m: Material) -> None:
     if m.reflectance is None:
         raise ValueError("a lambertian material needs reflectance (one value or one per band)")
-    vals = m.reflectance if isinstance(m.reflectance, list) else [m.reflectance]
+    vals = list(m.reflectance) if isinstance(m.reflectance, (list, tuple)) else [m.reflectance]
     for v in vals:
         if not (0.0 <= float(v) <= 1.0):
             raise ValueError(f"reflectance must lie in [0, 1], got {v}")
@@ -198,6 +221,8 @@ def skin_params(material: Material, dtype: torch.dtype = torch.float64) -> tissu
 
 def skin_batch(skins: tissue.SkinParams | Sequence[str | dict]) -> tissue.SkinParams:
     """A 1-D batch of skins from a ``SkinParams`` batch or a list of presets / parameter dicts."""
+    if isinstance(skins, (str, dict)):
+        raise ValueError(f"skins must be a SkinParams batch or a list of presets / parameter dicts, got {skins!r}")
     if isinstance(skins, tissue.SkinParams):
         return tissue.SkinParams.cat([skins])  # 0-D -> one skin; N-D -> flat
     if not skins:
@@ -208,8 +233,8 @@ def skin_batch(skins: tissue.SkinParams | Sequence[str | dict]) -> tissue.SkinPa
 def _skin(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
     """R_sub per band (under the first sun's spectrum) of one skin or a batch, once: the albedo (front surface
     R0 = ``SKIN_R0`` over it) and the BRDF's parameters derive from it."""
-    p = skins if skins is not None else skin_params(m)
-    r_sub_grid = tissue.subsurface_reflectance(p.to(dtype=torch.float64), sp.grid).reshape(-1, len(sp.grid))
+    p = (skins if skins is not None else skin_params(m)).to(device="cpu", dtype=torch.float64)  # tables: CPU float64
+    r_sub_grid = tissue.subsurface_reflectance(p, sp.grid).reshape(-1, len(sp.grid))
     r_sub = r_sub_grid @ sp.sun_weights  # (n, B)
     albedo = tissue.surface_total(torch.tensor(SKIN_R0, dtype=torch.float64), r_sub_grid) @ sp.sun_weights
     if not m.specular:  # the diffuse-only model: a Lambertian surface with the normal-incidence skin reflectance
@@ -306,12 +331,12 @@ def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[f
     """
     names = list(materials) if names is None else list(names)
     bands = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
-    if skins is not None and "skin" not in names:
-        raise ValueError("skins needs a material named 'skin'")
+    if skins is not None and ("skin" not in names or materials["skin"].kind != "skin"):
+        raise ValueError("skins needs a material named 'skin' of kind 'skin'")
     entries = {n: check_material(materials[n]) for n in names}
     spectral, e_band = spectral_context(bands, suns)
     compiled = {n: entries[n].compile(materials[n], spectral, skins if n == "skin" else None) for n in names}
-    K = 1 if skins is None else compiled["skin"].albedo.shape[0]
+    K = 1 if skins is None else skins.shape[0]
     S = len(suns)
 
     def table(rows: list[torch.Tensor]) -> torch.Tensor:  # (n, X) per material -> ([N,] M, X)
@@ -339,9 +364,10 @@ def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[f
 
 
 class MaterialCache:
-    """Compiled tables kept by everything they depend on (materials, bands, suns, dtype, device and
-    ``data.tables_version()``, so a ``data.register_table`` is never served stale tables). Hold one across
-    frames of the same materials (a benchmark, an experiment); ``clear()`` frees it."""
+    """Compiled tables kept by everything they depend on (the materials and their order, bands, the suns'
+    spectra, dtype, device, ``data.tables_version()`` and ``registry_version()``, so neither a
+    ``data.register_table`` nor a re-registered kind is ever served stale tables). ``render`` uses ``SHARED_CACHE`` unless given one; ``clear()`` frees it. Materials whose ``params``
+    are not JSON data are compiled every time."""
 
     def __init__(self, max_entries: int = 64) -> None:
         self.max_entries = max_entries
@@ -352,17 +378,25 @@ class MaterialCache:
                 device: torch.device | str = "cpu") -> MaterialTables:
         """``compile_materials`` through the cache (single skins; batches are compiled directly)."""
         names = list(materials) if names is None else list(names)
-        key = (json.dumps([[asdict(materials[n]) for n in names], [list(b) for b in bands],
-                           [(s.temperature_k, s.scale) for s in suns]], sort_keys=True),
-               str(dtype), str(torch.device(device)), data.tables_version())
+        band_list = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
+        try:
+            spec = json.dumps([names, [asdict(materials[n]) for n in names],
+                               [(b.center_nm, b.fwhm_nm) for b in band_list],
+                               [(s.temperature_k, s.scale) for s in suns]], sort_keys=True)
+        except TypeError:  # parameters that are not JSON data: no reliable key
+            return compile_materials(materials, band_list, suns, names, dtype, device)
+        key = (spec, str(dtype), str(torch.device(device)), data.tables_version(), registry_version())
         hit = self.entries.get(key)
         if hit is None:
             if len(self.entries) >= self.max_entries:
                 self.entries.clear()
-            hit = self.entries[key] = compile_materials(materials, bands, suns, names, dtype, device)
+            hit = self.entries[key] = compile_materials(materials, band_list, suns, names, dtype, device)
         return hit
 
     def clear(self) -> None:
         """Forget every compiled table."""
         self.entries.clear()
 
+
+#: the cache ``render`` uses when none is passed (keyed on everything the tables depend on, see ``MaterialCache``)
+SHARED_CACHE = MaterialCache()

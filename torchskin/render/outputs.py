@@ -14,6 +14,7 @@ from ..detect import has_index_bands
 from ..io import save_npy, write_text
 from .elm import ELM_MIN_SUNLIT, panel_regions, panel_sunlit_fraction
 from .pipeline import RenderResult
+from .scene import Scene
 
 
 def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int = 4) -> list[dict]:
@@ -55,14 +56,18 @@ def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
     }
 
 
-def write_outputs(result: RenderResult, scene: dict, out_dir: str | Path, s: int = 0, c: int = 0) -> dict:
+def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
     sensor signal cube before ELM (``signal.npy``, digital numbers), the rules detector's mask, ``mask.png``: an
     RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
     detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
     everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
-    ``render.json`` (``scene``: the scene as data, ``Scene.to_dict()``; timing, panels with their pixel regions,
+    ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``; timing, panels with their pixel regions,
     detections) in ``out_dir``, for sun ``s`` and camera ``c``. Returns the summary."""
+    if isinstance(scene, Scene):
+        scene = scene.to_dict()
+    if not isinstance(scene, dict):
+        raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
     from ..plots import band_image, mask_image, mask_png
 
     out = Path(out_dir)

@@ -22,7 +22,7 @@ from .. import tissue
 from ..bands import Band
 from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, indices, rules_detector
 from .elm import apply_elm, panel_pixels, panel_references, panel_values
-from .materials import MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
+from .materials import SHARED_CACHE, MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
 from .raycast import GBuffer, Raycaster, rasterize
 from .scene import Scene
 from .sensor import Sensor, sensor_signal
@@ -97,8 +97,10 @@ def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
 
 def material_tables(scene: Scene, gb: GBuffer, dtype: torch.dtype, device: torch.device,
                     skins: tissue.SkinParams | None, cache: MaterialCache | None) -> MaterialTables:
-    """The scene's materials compiled in the G-buffer's material order (through ``cache`` when given)."""
-    if skins is None and cache is not None:
+    """The scene's materials compiled in the G-buffer's material order, through ``cache`` (default:
+    ``materials.SHARED_CACHE``; batches of skins are compiled directly)."""
+    if skins is None:
+        cache = SHARED_CACHE if cache is None else cache
         return cache.compile(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device)
     return compile_materials(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device, skins)
 
@@ -120,7 +122,9 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
         elm: "dhr" (the panels' hemispherical reflectance) or "brdf" (BRDF-ELM: their BRDF at the geometry).
         skins: a batch of skins (``tissue.SkinParams``, or presets / parameter dicts) for the material named
             "skin", every one under every sun in one pass: the leading axis is then skin-major (K x S).
-        cache: compiled material tables to reuse across frames (``materials.MaterialCache``).
+        cache: where compiled material tables are kept across frames (``materials.MaterialCache``; default
+            ``materials.SHARED_CACHE``, keyed on everything the tables depend on, ``data.tables_version()``
+            included).
 
     Returns:
         ``RenderResult``; images (S, C, H, W, B).
@@ -139,7 +143,7 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     """
     timing: dict = {}
     t0 = time.perf_counter()
-    check_materials(scene.materials)  # before any mesh is built
+    check_materials(scene.materials, scene.band_list)  # before any mesh is built
     gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
     pix = panel_pixels(gb, list(scene.panels), erode_px)
     return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
@@ -155,7 +159,7 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
     brightest of them and the panels (the dataset generator's fast path). Arguments as ``render``."""
     timing: dict = {}
     t0 = time.perf_counter()
-    check_materials(scene.materials)
+    check_materials(scene.materials, scene.band_list)
     gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
     panel_flat = [per_cam[0] for per_cam in panel_pixels(gb, list(scene.panels), erode_px)]
     pixels = pixels.to(gb.hit.device).long()
