@@ -440,3 +440,21 @@ def test_sky_background_reads_the_sky_through_elm():
     with pytest.raises(ValueError, match="background"):
         sc.background = "stars"
         sc.__post_init__()
+
+
+def test_panel_pixels_found_once_give_the_same_frames():
+    """``render(..., panel_pixels=...)`` and ``render_pixels(..., panel_pixels=...)`` with the panels' interior found
+    once give exactly the frames that find it themselves."""
+    from torchskin.render.elm import panel_pixels
+
+    sc = panel_scene(sun_az=30.0, extra=[MeshSpec("ball", "sphere", "skin", params={"radius": 0.3},
+                                                 position=[1.0, 0.0, 1.4])])
+    sens = Sensor(noise=True, seed=3)
+    first = render(sc, sensor=sens)
+    pix = panel_pixels(first.gbuffer, list(sc.panels))
+    again = render(sc, sensor=sens, gbuffer=first.gbuffer, panel_pixels=pix)
+    assert torch.equal(again.signal, first.signal) and torch.equal(again.reflectance, first.reflectance)
+    idx = first.gbuffer.hit[0].flatten().nonzero().flatten()[::5]
+    a = render_pixels(sc, idx, sensor=sens, gbuffer=first.gbuffer)
+    b = render_pixels(sc, idx, sensor=sens, gbuffer=first.gbuffer, panel_pixels=pix)
+    assert torch.equal(a.reflectance, b.reflectance)

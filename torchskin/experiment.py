@@ -22,7 +22,7 @@ import torch
 from .detect import DEFAULT_BOX, bhattacharyya, histogram2d
 from .io import write_text
 from .optics import DEFAULT_SURFACE, SURFACE_MODELS, check_surface
-from .render.elm import apply_elm, panel_references, panel_values
+from .render.elm import apply_elm, panel_pixels, panel_references, panel_values
 from .render.materials import compile_materials
 from .render.pipeline import render
 from .render.raycast import rasterize
@@ -102,7 +102,8 @@ def run(out_dir: str | Path, angles: Sequence[float] = ANGLES_DEG, width: int = 
                                   panels=panels, surface=m if m != "diffuse" else DEFAULT_SURFACE) for m in MODELS}
     elm = "brdf" if panels == "spectralon-brdf" else "dhr"
     gb = rasterize(scenes[surface])
-    res = {m: render(sc, device=device, sensor=sensor, gbuffer=gb, elm=elm) for m, sc in scenes.items()}
+    pix = panel_pixels(gb, list(scenes[surface].panels))  # one geometry for every model
+    res = {m: render(sc, device=device, sensor=sensor, gbuffer=gb, elm=elm, panel_pixels=pix) for m, sc in scenes.items()}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = {"angles_deg": [float(a) for a in angles], "surface": surface, "panels": panels,

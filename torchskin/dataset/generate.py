@@ -166,14 +166,15 @@ def pixel_angles_deg(gb: GBuffer, idx: torch.Tensor, sun_dir: torch.Tensor) -> t
 
 
 def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
-                  min_fraction: float = ELM_MIN_SUNLIT) -> torch.Tensor:
+                  min_fraction: float = ELM_MIN_SUNLIT, pixels: list[list[torch.Tensor]] | None = None) -> torch.Tensor:
     """Per sun (S,): whether every reference panel has at least ``min_fraction`` of its interior pixels
     sunlit (facing the sun and not in a cast shadow). Without sunlit panels the ELM gain is set by sky light
-    alone and the frame's reflectance is meaningless."""
+    alone and the frame's reflectance is meaningless. ``pixels``: the panels' interior pixels if already found
+    (``elm.panel_pixels``)."""
     ok = torch.ones(sun_dirs.shape[0], dtype=torch.bool)
     normal = gb.normal[0].reshape(-1, 3).float()
     shadow = gb.shadow[:, 0].reshape(sun_dirs.shape[0], -1)
-    for per_cam in panel_pixels(gb, panel_names):
+    for per_cam in panel_pixels(gb, panel_names) if pixels is None else pixels:
         ix = per_cam[0]
         facing = normal[ix] @ sun_dirs.T.to(normal.dtype) > 0  # (K, S)
         lit = facing.T & ~shadow[:, ix]
@@ -221,14 +222,15 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     rng = np.random.default_rng(group.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
-    elm_valid = panels_sunlit(gb, list(scene.panels), sun_dirs)
+    pix = panel_pixels(gb, list(scene.panels))  # found once for the group's renders
+    elm_valid = panels_sunlit(gb, list(scene.panels), sun_dirs, pixels=pix)
     m = min(pixels_per_class, len(labels.skin), len(labels.other))
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     skins = group.skins
     if skins is None:
         raise ValueError(f"pose group {group.index} has no skins")
     if images is not None:  # full frames of every skin x sun in one batch
-        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins)
+        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins, panel_pixels=pix)
         cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
@@ -237,7 +239,8 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     picks = [np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
              for _ in range(n_skins * n_suns)]
     union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
-    res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins)
+    res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins,
+                        panel_pixels=pix)
     for ki in range(n_skins):
         skin = {"type": group.skin_types[ki], **{k: float(getattr(skins, k)[ki]) for k in tissue.PARAM_NAMES}}
         for si, sun in enumerate(group.suns):

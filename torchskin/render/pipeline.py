@@ -21,7 +21,8 @@ import torch
 from .. import tissue
 from ..bands import Band
 from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, indices, rules_detector
-from .elm import apply_elm, panel_pixels, panel_references, panel_values
+from .elm import apply_elm, panel_references, panel_values
+from .elm import panel_pixels as find_panel_pixels
 from .materials import SHARED_CACHE, MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
 from .raycast import GBuffer, Raycaster, rasterize
 from .scene import Scene
@@ -109,7 +110,7 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
            sensor: Sensor | None = None, box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None,
            gbuffer: GBuffer | None = None, erode_px: int = 1, elm: str = "dhr",
            skins: tissue.SkinParams | Sequence[str | dict] | None = None,
-           cache: MaterialCache | None = None) -> RenderResult:
+           cache: MaterialCache | None = None, panel_pixels: list[list[torch.Tensor]] | None = None) -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM.
 
     Args:
@@ -125,6 +126,8 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
         cache: where compiled material tables are kept across frames (``materials.MaterialCache``; default
             ``materials.SHARED_CACHE``, keyed on everything the tables depend on, ``data.tables_version()``
             included).
+        panel_pixels: the reference panels' interior pixels in ``gbuffer`` (``elm.panel_pixels``), to skip
+            finding them again when one G-buffer is rendered many times.
 
     Returns:
         ``RenderResult``; images (S, C, H, W, B).
@@ -145,7 +148,8 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)  # before any mesh is built
     gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
-    pix = panel_pixels(gb, list(scene.panels), erode_px)
+    pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
+        [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
     return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
 
 
@@ -153,7 +157,8 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
                   dtype: torch.dtype = torch.float32, sensor: Sensor | None = None, box: RulesBox = DEFAULT_BOX,
                   raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None, erode_px: int = 1,
                   elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
-                  cache: MaterialCache | None = None) -> RenderResult:
+                  cache: MaterialCache | None = None,
+                  panel_pixels: list[list[torch.Tensor]] | None = None) -> RenderResult:
     """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
     only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
     brightest of them and the panels (the dataset generator's fast path). Arguments as ``render``."""
@@ -161,7 +166,9 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)
     gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
-    panel_flat = [per_cam[0] for per_cam in panel_pixels(gb, list(scene.panels), erode_px)]
+    pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
+        [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
+    panel_flat = [per_cam[0] for per_cam in pix]
     pixels = pixels.to(gb.hit.device).long()
     sizes = [len(pixels)] + [len(x) for x in panel_flat]
     gb = gather_pixels(gb, torch.cat([pixels, *panel_flat]))
