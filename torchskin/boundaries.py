@@ -105,6 +105,18 @@ def ndvn_rule(v: torch.Tensor, quantile: float | None = NDVN_QUANTILE, margin: f
     return max(-1.0, float(torch.quantile(v.double(), quantile)) - margin)
 
 
+def config_buffers(features: Sequence[str], mean: Any = None, std: Any = None,
+                   domain: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The configuration inputs' standardisation (mean, std: (k,), default 0 and 1) and training domain (k, 2;
+    default ``FEATURE_DOMAIN``, unbounded for other features) that box models and classifiers keep as buffers."""
+    k = len(features)
+    if domain is None:
+        domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in features]
+    return (torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32),
+            torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32),
+            torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
+
+
 class BoundaryModel(nn.Module):
     """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``); d1, the NDVN rule,
     is the buffer ``ndvn_min``, the same for every configuration (-1: inactive)."""
@@ -125,14 +137,13 @@ class BoundaryModel(nn.Module):
             raise ValueError(f"hidden must be >= 0 (0: a constant box), got {hidden}")
         self.hidden = int(hidden)
         self.standardize = True  # False once the standardisation is folded into the first layer (export)
-        self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
-        self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
+        mean_t, std_t, domain_t = config_buffers(self.features, mean, std, domain)
+        self.register_buffer("mean", mean_t)
+        self.register_buffer("std", std_t)
         self.register_buffer("scale", torch.ones(()))  # false-alarm tuning: box half-widths x scale
         self.register_buffer("ndvn_min", torch.full((), -1.0))  # d1 of the visible/NIR rule (-1: inactive)
-        if domain is None:
-            domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
         # the training domain of each feature (k, 2): configurations outside it are flagged onboard
-        self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
+        self.register_buffer("domain", domain_t)
         if hidden == 0:  # a constant box: the input weights stay zero
             first = nn.Linear(k, 4)
             nn.init.zeros_(first.weight)

@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from .bands import INDEX_BANDS_NM
-from .boundaries import BAND_COLUMNS, FEATURE_DOMAIN, FEATURES, distinct_configs, ratio_indices, tuning_configs
+from .boundaries import BAND_COLUMNS, FEATURES, config_buffers, distinct_configs, ratio_indices, tuning_configs
 
 
 def ratio_features(R: torch.Tensor) -> torch.Tensor:
@@ -64,12 +64,11 @@ class SkinClassifier(nn.Module):
         if hidden < 1:
             raise ValueError(f"hidden must be >= 1, got {hidden}")
         self.hidden = int(hidden)
-        self.register_buffer("mean", torch.zeros(k) if mean is None else torch.as_tensor(mean, dtype=torch.float32))
-        self.register_buffer("std", torch.ones(k) if std is None else torch.as_tensor(std, dtype=torch.float32))
+        mean_t, std_t, domain_t = config_buffers(self.features, mean, std, domain)
+        self.register_buffer("mean", mean_t)
+        self.register_buffer("std", std_t)
         self.register_buffer("threshold", torch.zeros(()))  # logit above which a pixel is skin (``tune_threshold``)
-        if domain is None:
-            domain = [FEATURE_DOMAIN.get(f, (-1e30, 1e30)) for f in self.features]
-        self.register_buffer("domain", torch.as_tensor(domain, dtype=torch.float32).reshape(k, 2))
+        self.register_buffer("domain", domain_t)
         self.net = nn.Sequential(nn.Linear(3 + k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
                                  nn.Linear(hidden, 1))
 

@@ -188,8 +188,10 @@ class PixelLabels:
 
     skin: np.ndarray  # flat indices of skin pixels
     other: np.ndarray  # flat indices of the other hit pixels (not skin, not a reference panel)
-    confuser: np.ndarray  # (H*W,) object: the earthlib confuser name ("" for none)
-    material: np.ndarray  # (H*W,) object: skin, clothing, ground, confuser, white/dark ("" for no hit)
+    mesh: np.ndarray  # (H*W,) mesh id of each pixel (-1: no hit)
+    material: np.ndarray  # (H*W,) material id of each pixel (-1: no hit)
+    confuser_names: np.ndarray  # by mesh id + 1: the earthlib confuser name ("" for none)
+    material_labels: np.ndarray  # by material id + 1: skin, clothing, ground, confuser, white/dark ("" for no hit)
 
 
 def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
@@ -206,7 +208,7 @@ def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
     skin_px = hit & (gb.material[0].reshape(-1) == gb.material_names.index("skin"))
     other_px = hit & ~is_panel & ~skin_px
     return PixelLabels(skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy(),
-                       conf_names[gb.mesh[0].reshape(-1).numpy() + 1], mat_labels[gb.material[0].reshape(-1).numpy() + 1])
+                       gb.mesh[0].reshape(-1).numpy(), gb.material[0].reshape(-1).numpy(), conf_names, mat_labels)
 
 
 def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | str = "cpu",
@@ -276,7 +278,9 @@ def configuration_rows(group: PoseGroup, skin_index: int, skin: dict, sun_index:
              **{k: group.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
              "panels": group.panels, "surface": group.surface, "clothing": group.clothing}
     rows = {k: np.full(n, v, dtype=object if isinstance(v, str) else None) for k, v in const.items()}
-    rows.update({"confuser": labels.confuser[idx.numpy()], "material": labels.material[idx.numpy()],
+    ix = idx.numpy()
+    rows.update({"confuser": labels.confuser_names[labels.mesh[ix] + 1],
+                 "material": labels.material_labels[labels.material[ix] + 1],
                  "label": np.repeat(np.array([True, False]), n // 2), "theta_i_deg": ti.numpy(),
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
                  "shadow": (~res.lit[config, 0, 0][pos].cpu()).numpy(),  # cast shadow or facing away from the sun
