@@ -36,6 +36,8 @@ def main() -> None:
     ap.add_argument("--sun-azimuth", type=float, default=20.0)
     ap.add_argument("--out", type=Path, default=Path("out/examples/render_custom_mesh"))
     args = ap.parse_args()
+    if args.mesh is not None and not args.mesh.is_file():
+        ap.error(f"--mesh {str(args.mesh)!r} does not exist")
 
     args.out.mkdir(parents=True, exist_ok=True)
     mesh = args.mesh or write_sphere_obj(args.out / "sphere.obj")

@@ -185,6 +185,7 @@ CASES = [
     # the command line itself
     ("nonsense", "nonsense"),
     ("bench --only bogus", "bogus"),
+    ("bench --only ,", "--only"),
 ]
 
 

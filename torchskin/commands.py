@@ -516,15 +516,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from . import bench
 
-    only = [x.strip() for x in args.only.split(",")] if args.only else None
+    if args.only is not None and not [x for x in args.only.split(",") if x.strip()]:
+        raise ValueError("--only needs benchmark names, e.g. --only render,materials")
+    only = [x.strip() for x in args.only.split(",") if x.strip()] if args.only else None
     res = bench.run(only, compile=args.compile)
     if args.json:
         print(json.dumps(res))
-    else:
+    else:  # each benchmark's figures, numbers only (--json has everything)
         for name, r in res.items():
-            rate = r.get("samples_x_bands_per_s")
-            extra = f"{rate / 1e6:.1f} M skin-wavelengths/s" if rate else ""
-            print(f"{name:<14}{extra}  ({r.get('device')}, {r.get('dtype')}, {r.get('seconds', 0):.3f} s)")
+            figures = [f"{k} {v:.4g}" for k, v in r.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+            print(f"{name:<14}" + ", ".join(figures))
     return 0
 
 
