@@ -71,15 +71,33 @@ def bench_km(compile: bool = False) -> dict:
     return out
 
 
+def _compiled_available() -> bool:
+    from .render.kernels import compiler_available
+
+    return compiler_available("cpu")
+
+
+def _first_and_steady(fn: Callable[[], object], device: torch.device, repeat: int) -> tuple[float, float]:
+    """Wall time of the first call (compilation included) and the steady-state median."""
+    t0 = time.perf_counter()
+    fn()
+    sync(device)
+    first = time.perf_counter() - t0
+    return first, _median_seconds(fn, device, repeat, warmup=1)
+
+
 def bench_render(compile: bool = False, width: int = 512, height: int = 512, repeat: int = 5,
                  device: str = "cpu") -> dict:
-    """A 4-band frame of an anny subject with panels, ground, sun and shadows, against open3d's own
-    ``cast_rays`` + ``test_occlusions`` for the same rays; and 16 sun directions shaded from one G-buffer."""
+    """A 4-band frame of an anny subject with panels, ground, sun and shadows, eager and with the compiled
+    kernels (``render.kernels``; the first compiled frame's extra time is ``compile_seconds``), against open3d's
+    own ``cast_rays`` + ``test_occlusions`` for the same rays; the sensor noise draw of one frame on its own; and
+    16 sun directions shaded from one G-buffer."""
     import numpy as np
 
+    from .render.kernels import KERNELS
     from .render.materials import MaterialCache
     from .render.pipeline import render
-    from .render.raycast import Raycaster, rasterize
+    from .render.raycast import Raycaster
     from .render.scene import Camera, Sun, default_scene
     from .render.sensor import Sensor
 
@@ -90,12 +108,15 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     sun_dirs = np.stack([s.direction for s in sc.suns])
     dev = torch.device(device)
     cache = MaterialCache()  # the same materials every frame: compiled once, as a renderer keeps its scene
+    suns16 = [Sun(zenith_deg=20.0 + 4 * k, azimuth_deg=-80.0 + 10 * k, sky_fraction=0.1) for k in range(16)]
+    sc16 = default_scene(camera=sc.cameras[0], sun=suns16[0])
+    sc16.suns = suns16
 
-    def frame():
-        return render(sc, device=dev, sensor=sensor, gbuffer=rasterize(sc, rc), cache=cache)
+    def frame(compiled: bool, scene=sc):
+        return lambda: render(scene, device=dev, sensor=sensor, raycaster=rc, cache=cache, compile=compiled)
 
     rays = rc.camera_rays(sc.cameras[0])[None]
-    gb0 = rasterize(sc, rc)
+    gb0 = rc.gbuffer(sc.cameras, sun_dirs)
     hit = gb0.hit.flatten()
     org = gb0.position.reshape(-1, 3)[hit]
     srays = torch.cat([org, torch.as_tensor(sun_dirs, dtype=torch.float32).expand(len(org), 3)], -1)
@@ -104,19 +125,29 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
         rc.cast(rays)
         rc.occluded(srays)
 
-    r = _median_seconds(raw, torch.device("cpu"), repeat, warmup=2)
-    t = _median_seconds(frame, dev, repeat, warmup=2)
-    res = frame()
-    suns16 = [Sun(zenith_deg=20.0 + 4 * k, azimuth_deg=-80.0 + 10 * k, sky_fraction=0.1) for k in range(16)]
-    sc16 = default_scene(camera=sc.cameras[0], sun=suns16[0])
-    sc16.suns = suns16
-
-    def multi():
-        return render(sc16, device=dev, sensor=sensor, gbuffer=rasterize(sc16, rc), cache=cache)
-
-    tm = _median_seconds(multi, dev, max(2, repeat // 2), warmup=1)
+    gen = torch.Generator().manual_seed(0)
+    shape = (1, 1, height, width, len(sc.bands))
+    out: dict[str, Any] = {"raycast_seconds": _median_seconds(raw, torch.device("cpu"), repeat, warmup=2),
+                           "noise_draw_seconds": _median_seconds(lambda: torch.randn(shape, generator=gen),
+                                                                 torch.device("cpu"), repeat)}
+    paths = [False] + ([True] if _compiled_available() else [])
+    for compiled in paths:
+        tag = "compiled" if compiled else "eager"
+        if compiled:  # compiled afresh in this process (Inductor's disk cache may still serve its code)
+            KERNELS.clear()
+            torch._dynamo.reset()
+            first, t = _first_and_steady(frame(True), dev, repeat)
+            out["compile_seconds"] = max(first - t, 0.0)
+        else:
+            t = _median_seconds(frame(False), dev, repeat, warmup=2)
+        out[f"seconds_{tag}"] = t
+        out[f"ratio_to_raycast_{tag}"] = t / out["raycast_seconds"]
+        out[f"multi_source_frames_per_s_{tag}"] = 16 / _median_seconds(frame(compiled, sc16), dev, max(2, repeat // 2))
+    best = "compiled" if len(paths) == 2 else "eager"
+    res = frame(best == "compiled")()
     return {"render": {
-        "seconds": t, "raycast_seconds": r, "ratio_to_raycast": t / r, "multi_source_frames_per_s": 16 / tm,
+        "seconds": out[f"seconds_{best}"], "ratio_to_raycast": out[f"ratio_to_raycast_{best}"],
+        "multi_source_frames_per_s": out[f"multi_source_frames_per_s_{best}"], "path": best, **out,
         "width": width, "height": height, "bands": len(sc.bands), "device": str(dev),
         "stages_s": {k: v for k, v in res.timing.items() if k != "build_s"},
     }}
@@ -155,10 +186,11 @@ def _band_slice(tables, b: int):
 
 
 def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, suns: int = 16, skins: int = 3,
-                  baseline_images: int = 24) -> dict:
-    """Batched generation of one pose group (rays cast once, every sun batched) against rendering each
-    (configuration, band) image on its own with its own ray cast, the way a per-band renderer must; the
-    baseline is timed on ``baseline_images`` images and scaled to suns x skins x bands."""
+                  baseline_images: int = 24, repeat: int = 3) -> dict:
+    """Batched generation of one pose group (rays cast once, every sun batched), eager and with the compiled
+    kernels, alternated in one run (medians of ``repeat``; ``first_compiled_seconds`` includes compilation);
+    against rendering each (configuration, band) image on its own with its own ray cast, the way a per-band
+    renderer must; the baseline is timed on ``baseline_images`` images and scaled to suns x skins x bands."""
     import dataclasses
 
     from .dataset.config import resolve_config, sample_group
@@ -172,10 +204,22 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     cfg = resolve_config({"camera": {"width": width, "height": height}, "sun": {"per_pose": suns},
                           "skin": {"per_pose": skins}, "confusers": {"count": [0, 0]}})
     g = sample_group(cfg, 0, 0)
-    group_rows(g, 1)  # warm-up: anny mesh cache, tables
-    t0 = time.perf_counter()
-    rows = group_rows(g, cfg["sampling"]["pixels_per_class"])
-    t_batched = time.perf_counter() - t0
+    n_pixels = cfg["sampling"]["pixels_per_class"]
+    paths = [False] + ([True] if _compiled_available() else [])
+    timed: dict[bool, list[float]] = {p: [] for p in paths}
+    compile_s = 0.0
+    for p in paths:  # warm-up: anny mesh cache, tables; the compiled kernels' compilation
+        t0 = time.perf_counter()
+        group_rows(g, n_pixels, compile=p)
+        if p:
+            compile_s = time.perf_counter() - t0
+    for _ in range(repeat):  # alternated, so that both paths see the same machine
+        for p in paths:
+            t0 = time.perf_counter()
+            rows = group_rows(g, n_pixels, compile=p)
+            timed[p].append(time.perf_counter() - t0)
+    t_eager = statistics.median(timed[False])
+    t_batched = statistics.median(timed[paths[-1]])
     sc = group_scene(g)
     rc = Raycaster.from_scene(sc)
     sensor = group_sensor(g)
@@ -200,7 +244,10 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     t_baseline = t_per_image * len(work)
     n_configs = suns * skins
     return {"dataset": {
-        "configs_per_s": n_configs / t_batched, "samples_per_s": sum(len(x) for x in rows["label"]) / t_batched,
+        "configs_per_s": n_configs / t_batched, "configs_per_s_eager": n_configs / t_eager,
+        "compiled_over_eager": t_eager / t_batched, "path": "compiled" if paths[-1] else "eager",
+        "first_compiled_seconds": compile_s,
+        "samples_per_s": sum(len(x) for x in rows["label"]) / t_batched,
         "speedup_vs_per_config_render": t_baseline / t_batched, "batched_seconds": t_batched,
         "per_image_seconds": t_per_image, "images": len(work), "width": width, "height": height,
     }}

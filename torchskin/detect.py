@@ -83,6 +83,13 @@ def has_index_bands(bands: Sequence[Band]) -> bool:
     return True
 
 
+def index_band_positions(bands: Sequence[Band]) -> tuple[int, int, int, int]:
+    """Positions in ``bands`` of the bands nearest (within 30 nm) to 544, 633, 1080 and 1580 nm; ``ValueError``
+    if one has none."""
+    g, r, n, s = (_band_index(bands, c) for c in INDEX_BANDS_NM)
+    return g, r, n, s
+
+
 def indices(reflectance: TensorLike, bands: Sequence[Band] | None = None,
             band_dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
     """``(ndgri, ndsi)`` of a reflectance tensor, from its bands nearest (within 30 nm) to ``INDEX_BANDS_NM``.
@@ -111,8 +118,7 @@ def indices(reflectance: TensorLike, bands: Sequence[Band] | None = None,
         raise ValueError(
             f"reflectance has {reflectance.shape[band_dim]} bands on axis {band_dim}, expected {len(bands)}"
         )
-    pick = [_band_index(bands, c) for c in INDEX_BANDS_NM]
-    g, r, n, s = (reflectance.select(band_dim, i) for i in pick)
+    g, r, n, s = (reflectance.select(band_dim, i) for i in index_band_positions(bands))
     return ndgri(g, r), ndsi(n, s)
 
 

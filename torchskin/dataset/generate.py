@@ -12,6 +12,7 @@ interrupted run resumes by regenerating the shards whose checksum does not match
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -30,7 +31,7 @@ from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import ELM_MIN_SUNLIT, panel_pixels
 from ..render.pipeline import RenderResult, render, render_pixels
-from ..render.raycast import GBuffer, rasterize
+from ..render.raycast import GBuffer, Raycaster
 from ..render.scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
 from ..render.sensor import Sensor
 from .config import PoseGroup, sample_group
@@ -161,7 +162,7 @@ def group_sensor(group: PoseGroup) -> Sensor:
 def pixel_angles_deg(gb: GBuffer, idx: torch.Tensor, sun_dir: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Local (θi, θr, Δφ) in degrees of the flat pixels ``idx`` of camera 0 (``optics.local_angles``, float64)."""
     normal = gb.normal.reshape(-1, 3)[idx].double()
-    view = gb.view.reshape(-1, 3)[idx].double()
+    view = -gb.rays.reshape(-1, 6)[idx][:, 3:].double()
     return tuple(a * (180.0 / math.pi) for a in local_angles(normal, sun_dir.double(), view))
 
 
@@ -172,6 +173,8 @@ def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
     alone and the frame's reflectance is meaningless. ``pixels``: the panels' interior pixels if already found
     (``elm.panel_pixels``)."""
     ok = torch.ones(sun_dirs.shape[0], dtype=torch.bool)
+    if gb.shadow is None:
+        raise ValueError("panels_sunlit needs a G-buffer with shadow masks")
     normal = gb.normal[0].reshape(-1, 3).float()
     shadow = gb.shadow[:, 0].reshape(sun_dirs.shape[0], -1)
     for per_cam in panel_pixels(gb, panel_names) if pixels is None else pixels:
@@ -212,27 +215,28 @@ def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
 
 
 def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | str = "cpu",
-               images: list | None = None) -> dict[str, list]:
+               images: list | None = None, compile: bool = False) -> dict[str, list]:
     """Rows for every sun x skin of a pose group, as column -> list of numpy chunks (one per configuration):
     ``pixels_per_class`` skin and as many non-skin pixels (fewer if fewer are visible; balanced per
     configuration). With a list ``images``, the full reflectance cubes of the group, (skins, suns, bands,
-    H, W) float16, are appended to it."""
+    H, W) float16, are appended to it. Shadow rays are cast only for the sampled pixels and the panels'
+    interior (every pixel with ``images``). ``compile``: the renderer's compiled kernels (``render.kernels``)."""
     scene = group_scene(group)
-    gb = rasterize(scene)
+    rc = Raycaster.from_scene(scene)
+    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
+    gb = rc.gbuffer(scene.cameras, sun_dirs.numpy(), compile, shadows=images is not None)
     labels = pixel_labels(group, scene, gb)
     sensor = group_sensor(group)
     rng = np.random.default_rng(group.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
-    sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
     pix = panel_pixels(gb, list(scene.panels))  # found once for the group's renders
-    elm_valid = panels_sunlit(gb, list(scene.panels), sun_dirs, pixels=pix)
     m = min(pixels_per_class, len(labels.skin), len(labels.other))
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     skins = group.skins
     if skins is None:
         raise ValueError(f"pose group {group.index} has no skins")
     if images is not None:  # full frames of every skin x sun in one batch
-        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins, panel_pixels=pix)
+        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins, panel_pixels=pix, compile=compile)
         cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
@@ -242,50 +246,58 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
              for _ in range(n_skins * n_suns)]
     union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
     res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins,
-                        panel_pixels=pix)
-    for ki in range(n_skins):
-        skin = {"type": group.skin_types[ki], **{k: float(getattr(skins, k)[ki]) for k in tissue.PARAM_NAMES}}
-        for si, sun in enumerate(group.suns):
-            c = ki * n_suns + si  # skin-major configuration index
-            pos = torch.from_numpy(inverse[c * 2 * m:(c + 1) * 2 * m])
-            rows = configuration_rows(group, ki, skin, si, sun, res, c, pos, torch.from_numpy(picks[c]), gb,
-                                      sun_dirs[si], labels, bool(elm_valid[si]))
-            for k, v in rows.items():
-                out[k].append(v)
-    return out
+                        panel_pixels=pix, raycaster=rc, compile=compile)
+    sub = res.gbuffer  # the rendered pixels' G-buffer, shadows cast; rows skin-major, the first n_suns: skin 0
+    elm_valid = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
+                              list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
+    rows = configuration_rows(group, res, np.concatenate(picks), inverse, gb, sun_dirs, labels, elm_valid.numpy())
+    return {k: [v] for k, v in rows.items()}
 
 
-def configuration_rows(group: PoseGroup, skin_index: int, skin: dict, sun_index: int, sun: dict, res: RenderResult, config: int,
-                       pos: torch.Tensor, idx: torch.Tensor, gb: GBuffer, sun_dir: torch.Tensor,
-                       labels: PixelLabels, elm_valid: bool) -> dict[str, np.ndarray]:
-    """The rows of one configuration (skin x sun) of a group: its pixels ``idx`` (flat, camera 0), found at
-    ``pos`` of the pixel render ``res``'s row ``config``; first half skin, second half other pixels."""
-    n = len(idx)
-    refl = res.reflectance[config, 0, 0][pos].cpu().float()
-    ti, tr, dp = pixel_angles_deg(gb, idx, sun_dir)
-    const = {"group": group.index, "sun": sun_index, "skin": skin_index, "sun_zenith_deg": sun["zenith_deg"],
-             "sun_azimuth_deg": sun["azimuth_deg"], "camera_zenith_deg": group.camera["zenith_deg"],
-             "camera_azimuth_deg": group.camera["azimuth_deg"],
-             "relative_azimuth_deg": relative_azimuth_deg(sun["azimuth_deg"], group.camera["azimuth_deg"]),
-             "range_m": group.camera["range_m"], "sky_fraction": sun["sky_fraction"],
+def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
+                       sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray) -> dict[str, np.ndarray]:
+    """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
+    rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
+    found at ``pos`` (same slice) of the pixel render ``res``'s row c; ``elm_valid`` (S,) per sun."""
+    n_suns, n_skins = len(group.suns), len(group.skin_types)
+    n_cfg = n_suns * n_skins
+    per = len(idx) // n_cfg  # 2m
+    cfg = np.repeat(np.arange(n_cfg), per)
+    ki, si = cfg // n_suns, cfg % n_suns
+    skins = cast(tissue.SkinParams, group.skins)
+    const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
+             "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
              "atmosphere_transmittance": group.atmosphere["transmittance"],
-             "path_radiance_scale": group.atmosphere["path_radiance_scale"], "skin_type": skin["type"],
-             **{k: skin[k] for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen",
-                                     "subcutaneous_scale")},
+             "path_radiance_scale": group.atmosphere["path_radiance_scale"],
              "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
              "head_yaw_deg": group.subject.get("head_yaw_deg", math.nan),
              "head_pitch_deg": group.subject.get("head_pitch_deg", math.nan),
              **{k: group.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
              "panels": group.panels, "surface": group.surface, "clothing": group.clothing}
+    n = len(idx)
     rows = {k: np.full(n, v, dtype=object if isinstance(v, str) else None) for k, v in const.items()}
-    ix = idx.numpy()
-    rows.update({"confuser": labels.confuser_names[labels.mesh[ix] + 1],
-                 "material": labels.material_labels[labels.material[ix] + 1],
-                 "label": np.repeat(np.array([True, False]), n // 2), "theta_i_deg": ti.numpy(),
+
+    def per_sun(values: list) -> np.ndarray:
+        return np.array(values)[si]
+
+    rows.update({"sun": si, "skin": ki, "sun_zenith_deg": per_sun([s["zenith_deg"] for s in group.suns]),
+                 "sun_azimuth_deg": per_sun([s["azimuth_deg"] for s in group.suns]),
+                 "relative_azimuth_deg": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
+                                                  for s in group.suns]),
+                 "sky_fraction": per_sun([s["sky_fraction"] for s in group.suns]),
+                 "skin_type": np.array(group.skin_types, dtype=object)[ki],
+                 **{k: np.array([float(x) for x in getattr(skins, k)])[ki]
+                    for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen", "subcutaneous_scale")}})
+    at = (torch.from_numpy(cfg), torch.from_numpy(pos))
+    refl = res.reflectance[:, 0, 0].cpu()[at].float()
+    ti, tr, dp = pixel_angles_deg(gb, torch.from_numpy(idx), sun_dirs[torch.from_numpy(si)])
+    rows.update({"confuser": labels.confuser_names[labels.mesh[idx] + 1],
+                 "material": labels.material_labels[labels.material[idx] + 1],
+                 "label": np.tile(np.repeat(np.array([True, False]), per // 2), n_cfg), "theta_i_deg": ti.numpy(),
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
-                 "shadow": (~res.lit[config, 0, 0][pos].cpu()).numpy(),  # cast shadow or facing away from the sun
-                 "elm_valid": np.full(n, elm_valid), "ndgri": res.ndgri[config, 0, 0][pos].cpu().numpy(),
-                 "ndsi": res.ndsi[config, 0, 0][pos].cpu().numpy()})
+                 "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
+                 "elm_valid": elm_valid[si], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
+                 "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
     return {k: rows[k] for k in COLUMNS}
 

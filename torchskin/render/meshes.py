@@ -45,9 +45,8 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals (unit length; zero-area neighbourhoods get +z)."""
     v = vertices.astype(np.float64)
     fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
+    corner = faces.T.reshape(-1)  # every face's corners, corner 0 of all faces first (np.add.at's order)
+    n = np.stack([np.bincount(corner, weights=np.tile(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1)
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
     return n.astype(np.float32)

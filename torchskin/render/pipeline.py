@@ -20,11 +20,12 @@ import torch
 
 from .. import tissue
 from ..bands import Band
-from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, indices, rules_detector
-from .elm import apply_elm, panel_references, panel_values
+from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, index_band_positions
+from .elm import elm_coefficients, panel_references, panel_values
 from .elm import panel_pixels as find_panel_pixels
+from .kernels import KERNELS, band_tiles, elm_indices, elm_line
 from .materials import SHARED_CACHE, MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
-from .raycast import GBuffer, Raycaster, rasterize
+from .raycast import GBuffer, Raycaster
 from .scene import Scene
 from .sensor import Sensor, sensor_signal
 from .shade import shade
@@ -57,6 +58,11 @@ class RenderResult:
         return getattr(self, what)[s, c].permute(2, 0, 1).contiguous().cpu().float().numpy()
 
 
+#: ``render_pixels`` renders a multiple of this many pixels (the requested ones, the panels', then copies of the
+#: first requested pixel), so that per-band kernels tile the pixels x bands in full vector lanes
+PIXEL_MULTIPLE = 16
+
+
 def sync(device: torch.device) -> None:
     """Wait for queued device work (for stage timings)."""
     if device.type == "cuda":
@@ -65,18 +71,30 @@ def sync(device: torch.device) -> None:
         torch.mps.synchronize()
 
 
-def geometry(scene: Scene, raycaster: Raycaster | None, gbuffer: GBuffer | None, timing: dict) -> GBuffer:
-    """The scene's G-buffer: ``gbuffer`` if given, else a ray cast (with ``raycaster``, or one built now)."""
+def geometry(scene: Scene, raycaster: Raycaster | None, gbuffer: GBuffer | None, timing: dict,
+             compile: bool = False, shadows: bool = True) -> tuple[GBuffer, Raycaster | None]:
+    """The scene's G-buffer: ``gbuffer`` if given, else a ray cast (with ``raycaster``, or one built now); and
+    the ray caster (None when ``gbuffer`` came without one). ``shadows=False`` leaves a fresh G-buffer's shadow
+    masks to be cast later."""
     if gbuffer is not None:
-        return gbuffer
+        return gbuffer, raycaster
     t0 = time.perf_counter()
     if raycaster is None:
         raycaster = Raycaster.from_scene(scene)
         timing["build_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    gb = rasterize(scene, raycaster)
+    gb = raycaster.gbuffer(scene.cameras, np.stack([s.direction for s in scene.suns]), compile, shadows)
     timing["raycast_s"] = time.perf_counter() - t1
-    return gb
+    return gb, raycaster
+
+
+def cast_shadows(scene: Scene, gb: GBuffer, raycaster: Raycaster | None) -> GBuffer:
+    """``gb`` with shadow masks: itself if it has them, else cast with ``raycaster`` for the scene's suns."""
+    if gb.shadow is not None:
+        return gb
+    if raycaster is None:
+        raise ValueError("the G-buffer has no shadow masks: pass the raycaster that made it to cast them")
+    return raycaster.with_shadows(gb.to("cpu", torch.float32), np.stack([s.direction for s in scene.suns]))
 
 
 def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
@@ -86,7 +104,7 @@ def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
     out: dict[str, Any] = {}
     for f in fields(gb):
         v = getattr(gb, f.name)
-        if f.name == "shadow":
+        if f.name == "shadow" and v is not None:
             out[f.name] = v.flatten(1).index_select(1, flat).reshape(v.shape[0], 1, 1, -1)
         elif isinstance(v, torch.Tensor):
             tail = v.shape[3:]
@@ -110,7 +128,8 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
            sensor: Sensor | None = None, box: RulesBox = DEFAULT_BOX, raycaster: Raycaster | None = None,
            gbuffer: GBuffer | None = None, erode_px: int = 1, elm: str = "dhr",
            skins: tissue.SkinParams | Sequence[str | dict] | None = None,
-           cache: MaterialCache | None = None, panel_pixels: list[list[torch.Tensor]] | None = None) -> RenderResult:
+           cache: MaterialCache | None = None, panel_pixels: list[list[torch.Tensor]] | None = None,
+           compile: bool = False) -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM.
 
     Args:
@@ -118,7 +137,8 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
         sensor: the sensor chain; ``None`` is an ideal linear sensor (ELM then recovers Lambertian reflectance
             exactly).
         box: the rules detector's thresholds.
-        raycaster, gbuffer: reuse geometry across calls.
+        raycaster, gbuffer: reuse geometry across calls (a G-buffer without shadow masks gets them from
+            ``raycaster``).
         erode_px: pixels eroded off each reference panel's edge before its median enters ELM.
         elm: "dhr" (the panels' hemispherical reflectance) or "brdf" (BRDF-ELM: their BRDF at the geometry).
         skins: a batch of skins (``tissue.SkinParams``, or presets / parameter dicts) for the material named
@@ -128,6 +148,8 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
             included).
         panel_pixels: the reference panels' interior pixels in ``gbuffer`` (``elm.panel_pixels``), to skip
             finding them again when one G-buffer is rendered many times.
+        compile: run the per-pixel stages (G-buffer assembly, shading, sensor, ELM) as fused compiled kernels
+            (``render.kernels``; the first call compiles, for seconds); False: the same functions eagerly.
 
     Returns:
         ``RenderResult``; images (S, C, H, W, B).
@@ -147,10 +169,12 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     timing: dict = {}
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)  # before any mesh is built
-    gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
+    gb, raycaster = geometry(scene, raycaster, gbuffer, timing, compile)
+    gb = cast_shadows(scene, gb, raycaster).to(device=torch.device(device), dtype=dtype)
     pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
         [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
-    return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
+    return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
+                          compile)
 
 
 def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str = "cpu",
@@ -158,23 +182,27 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
                   raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None, erode_px: int = 1,
                   elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
                   cache: MaterialCache | None = None,
-                  panel_pixels: list[list[torch.Tensor]] | None = None) -> RenderResult:
+                  panel_pixels: list[list[torch.Tensor]] | None = None, compile: bool = False) -> RenderResult:
     """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
     only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
-    brightest of them and the panels (the dataset generator's fast path). Arguments as ``render``."""
+    brightest of them and the panels (the dataset generator's fast path). Shadow rays are cast for these
+    pixels only when the G-buffer comes without shadow masks. Arguments as ``render``."""
     timing: dict = {}
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)
-    gb = geometry(scene, raycaster, gbuffer, timing).to(device=torch.device(device), dtype=dtype)
+    gb, raycaster = geometry(scene, raycaster, gbuffer, timing, compile, shadows=False)
     pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
         [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
     panel_flat = [per_cam[0] for per_cam in pix]
     pixels = pixels.to(gb.hit.device).long()
     sizes = [len(pixels)] + [len(x) for x in panel_flat]
-    gb = gather_pixels(gb, torch.cat([pixels, *panel_flat]))
+    pad = -sum(sizes) % PIXEL_MULTIPLE  # copies of the first pixel, so that kernels run in full vector lanes
+    gb = gather_pixels(gb, torch.cat([pixels, *panel_flat, pixels[:1].expand(pad if len(pixels) else 0)]))
+    gb = cast_shadows(scene, gb, raycaster).to(device=torch.device(device), dtype=dtype)
     offs = np.cumsum(sizes)
     pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
-    res = render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0)
+    res = render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
+                         compile)
     n = len(pixels)
     for name in ("radiance", "signal", "reflectance", "ndgri", "ndsi", "mask", "skin", "lit"):
         setattr(res, name, getattr(res, name)[..., :n, :] if getattr(res, name).dim() == 5 else getattr(res, name)[..., :n])
@@ -184,19 +212,21 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
 def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], device: torch.device,
                    dtype: torch.dtype, sensor: Sensor | None, box: RulesBox, elm: str,
                    skins: tissue.SkinParams | Sequence[str | dict] | None, cache: MaterialCache | None,
-                   timing: dict, t0: float) -> RenderResult:
+                   timing: dict, t0: float, compile: bool = False) -> RenderResult:
     """The stages after the ray cast, on a G-buffer already on ``device``: materials, shading, sensor, ELM with
     the panels' interior pixels ``pix``, the rules. Arguments as ``render``."""
     batch = None if skins is None else skin_batch(skins)
     reps = 1 if batch is None else batch.shape[0]
     t2 = time.perf_counter()
     tables = material_tables(scene, gb, dtype, device, batch, cache)
+    if gb.shadow is None:
+        raise ValueError("the G-buffer has no shadow masks (Raycaster.with_shadows casts them)")
     if reps > 1:
         gb = GBuffer(**{**{f.name: getattr(gb, f.name) for f in fields(gb)},
                         "shadow": gb.shadow.repeat(reps, *([1] * (gb.shadow.dim() - 1)))})
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
     sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
-    sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky")
+    sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky", compile=compile)
     sync(device)
     timing["shade_s"] = time.perf_counter() - t2
     t3 = time.perf_counter()
@@ -204,12 +234,11 @@ def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], dev
     if sensor is not None and sensor.noise:
         gen = torch.Generator(device=device)
         gen.manual_seed(int(sensor.seed))
-    signal = sensor_signal(sh.radiance, sensor, scene.band_list, scene.cameras[0].focal, gen)
+    signal = sensor_signal(sh.radiance, sensor, scene.band_list, scene.cameras[0].focal, gen, compile=compile)
     pv = panel_values(signal, pix)  # (S, C, P, B)
     panel_ids = [gb.material_names.index(scene.mesh(p).material) for p in scene.panels]
     refs = panel_references(panel_ids, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
-    refl = apply_elm(signal, pv, refs)
-    g, s, mask = detect_skin(refl, gb.hit, scene.band_list, box)
+    refl, g, s, mask = calibrate_detect(signal, pv, refs, gb.hit, scene.band_list, box, compile)
     skin = gb.hit & tables.is_skin[gb.material.clamp_min(0)]
     sync(device)
     timing["sensor_elm_s"] = time.perf_counter() - t3
@@ -219,12 +248,21 @@ def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], dev
     return RenderResult(sh.radiance, signal, refl, g, s, mask, skin, sh.lit, panels, gb, timing, scene.band_list, pix)
 
 
-def detect_skin(reflectance: torch.Tensor, hit: torch.Tensor, bands: tuple[Band, ...],
-                box: RulesBox) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """NDGRI, NDSI and the rules detector's mask of a reflectance cube (..., B) on hit pixels; without the four
-    index bands (544, 633, 1080, 1580 nm) NaN indices and an empty mask."""
+def calibrate_detect(signal: torch.Tensor, panel_signal: torch.Tensor, references: torch.Tensor, hit: torch.Tensor,
+                     bands: tuple[Band, ...], box: RulesBox, compile: bool = False
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """ELM reflectance of a signal cube (S, C, H, W, B) from its panels' signals and references (S, C, P, B),
+    then NDGRI, NDSI and the rules detector's mask on hit pixels (``kernels.elm_indices``, compiled with
+    ``compile``); without the four index bands (544, 633, 1080, 1580 nm) NaN indices and an empty mask."""
+    a, b = elm_coefficients(panel_signal[:, :, 0], panel_signal[:, :, 1], references[:, :, 0], references[:, :, 1])
     if has_index_bands(bands):
-        g, s = indices(reflectance, bands)
-        return g, s, rules_detector(g, s, box) & hit
-    g = s = torch.full(reflectance.shape[:-1], math.nan, dtype=reflectance.dtype, device=reflectance.device)
-    return g, s, torch.zeros_like(hit).expand(reflectance.shape[:-1])
+        x, a, k = band_tiles(signal, a)
+        b = b.reshape(a.shape[0], 1, -1).repeat(1, 1, k)
+        refl, g, s, rules = KERNELS.get(elm_indices, compile, signal.device)(
+            x, a, b, len(bands), index_band_positions(bands), box)
+        shape = signal.shape[:-1]
+        return refl.view(signal.shape), g.view(shape), s.view(shape), rules.view(shape) & hit
+    a, b = a[:, :, None, None, :], b[:, :, None, None, :]
+    refl = elm_line(signal, a, b)
+    g = s = torch.full(refl.shape[:-1], math.nan, dtype=refl.dtype, device=refl.device)
+    return refl, g, s, torch.zeros_like(hit).expand(refl.shape[:-1])

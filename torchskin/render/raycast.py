@@ -4,8 +4,10 @@ all; ``Raycaster`` keeps the built scene to cast many times (datasets, benchmark
 
 The G-buffer holds, per camera and pixel: hit mask, hit distance, position, smooth normal (vertex normals
 interpolated with the hit's barycentrics, turned towards the viewer), geometric normal, unit vector to the
-viewer, material id and mesh id; and per sun: a shadow mask from ``test_occlusions``. It is built on the CPU
-and moved to the target device once (``GBuffer.to``); everything after it runs there.
+viewer, material id and mesh id; and per sun: a shadow mask from ``test_occlusions`` (True: in a cast shadow),
+tested only at hit pixels facing that sun (False elsewhere: a pixel turned away from the sun is unlit anyway).
+It is built on the CPU and moved to the target device once (``GBuffer.to``); everything after it runs there.
+The per-pixel assembly after the ray cast is one kernel (``kernels.gbuffer_fields``), eager or compiled.
 """
 
 from __future__ import annotations
@@ -17,27 +19,41 @@ from typing import Any
 import numpy as np
 import torch
 
+from .kernels import KERNELS, gbuffer_fields
 from .meshes import TriMesh, build_meshes
 from .scene import Camera, Scene
 
 SHADOW_OFFSET_M = 1e-3  # shadow-ray origins are pushed this far off the surface along the geometric normal
+#: pixels with n·ω_sun above -FACING_MARGIN cast shadow rays (the margin keeps every pixel that shading may find
+#: facing the sun in another dtype)
+FACING_MARGIN = 1e-6
 
 
 @dataclass
 class GBuffer:
-    """Per-pixel geometry; shapes (C, H, W[, 3]) for C cameras, ``shadow`` (S, C, H, W) for S suns."""
+    """Per-pixel geometry; shapes (C, H, W[, 3]) for C cameras, ``shadow`` (S, C, H, W) for S suns (None: not
+    cast yet, ``Raycaster.with_shadows``)."""
 
     hit: torch.Tensor
     t: torch.Tensor
-    position: torch.Tensor
+    rays: torch.Tensor  # (C, H, W, 6) the camera rays: origin, unit direction
     normal: torch.Tensor
     geometric_normal: torch.Tensor
-    view: torch.Tensor
     material: torch.Tensor
     mesh: torch.Tensor
-    shadow: torch.Tensor
+    shadow: torch.Tensor | None
     material_names: list
     mesh_names: list
+
+    @property
+    def position(self) -> torch.Tensor:
+        """Hit positions (C, H, W, 3), inf or NaN at misses."""
+        return torch.addcmul(self.rays[..., :3], self.t[..., None], self.rays[..., 3:])
+
+    @property
+    def view(self) -> torch.Tensor:
+        """Unit vectors (C, H, W, 3) from the surface to the viewer (minus the ray direction)."""
+        return -self.rays[..., 3:]
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> GBuffer:
         """The G-buffer on ``device`` with floating tensors in ``dtype`` (itself when nothing changes)."""
@@ -97,10 +113,12 @@ class Raycaster:
         for gid, k in gid_to_mesh.items():
             self._gid_mesh[gid + 1] = k
             self._gid_face_off[gid + 1] = face_off[k]
-        self._faces = torch.from_numpy(np.concatenate(faces + [np.zeros((1, 3), dtype=np.int64)]))
-        self._vnormals = torch.from_numpy(np.concatenate(normals).astype(np.float32))
+        tri = np.concatenate(faces + [np.zeros((1, 3), dtype=np.int64)])
+        # the vertex normals of each face's three corners, (F+1, 9): one gather per pixel instead of two
+        self._corner_normals = torch.from_numpy(np.concatenate(normals).astype(np.float32)[tri].reshape(-1, 9))
         self._fmat = torch.from_numpy(np.concatenate(fmat + [np.array([-1])]))
         self.rays: dict = {}  # camera rays by camera parameters: a fixed camera's rays are computed once
+        self._shadow_rays = torch.empty((0, 6), dtype=torch.float32)  # reused between frames
 
     @classmethod
     def from_scene(cls, scene: Scene) -> Raycaster:
@@ -137,51 +155,66 @@ class Raycaster:
             return torch.zeros(rays.shape[:-1], dtype=torch.bool)
         return torch.from_numpy(self.scene.test_occlusions(self._tensor(rays)).numpy().astype(bool))
 
-    def gbuffer(self, cameras: list[Camera], sun_directions: np.ndarray) -> GBuffer:
-        """G-buffer for every camera (same resolution) and shadow masks for every sun direction (S, 3)."""
+    def gbuffer(self, cameras: list[Camera], sun_directions: np.ndarray, compile: bool = False,
+                shadows: bool = True) -> GBuffer:
+        """G-buffer for every camera (same resolution) and shadow masks for every sun direction (S, 3)
+        (arguments as ``gbuffer_from_rays``)."""
         if len({(c.width, c.height) for c in cameras}) != 1:
             raise ValueError("all cameras of one G-buffer must share a resolution")
         rays = self.camera_rays(cameras[0])[None] if len(cameras) == 1 else torch.stack([self.camera_rays(c) for c in cameras])
-        return self.gbuffer_from_rays(rays, sun_directions)
+        return self.gbuffer_from_rays(rays, sun_directions, compile, shadows)
 
-    def gbuffer_from_rays(self, rays: torch.Tensor, sun_directions: np.ndarray) -> GBuffer:
+    def gbuffer_from_rays(self, rays: torch.Tensor, sun_directions: np.ndarray, compile: bool = False,
+                          shadows: bool = True) -> GBuffer:
         """G-buffer of (C, H, W, 6) float32 rays. Values at missed pixels are unspecified except ``hit``
-        (False), ``t`` (inf), ``material`` and ``mesh`` (-1)."""
+        (False), ``t`` (inf), ``material`` and ``mesh`` (-1). ``compile``: the per-pixel assembly as a fused
+        compiled kernel (``kernels.gbuffer_fields``). ``shadows=False`` leaves ``shadow`` None (cast it later for
+        the pixels that need it: ``with_shadows``)."""
         ans = self.cast(rays)
-        t = ans["t_hit"]
-        hit = torch.isfinite(t)
-        gid1 = ans["geometry_ids"].long() + 1
-        face = self._gid_face_off.index_select(0, gid1.reshape(-1)).reshape(gid1.shape) + ans["primitive_ids"].long().clamp_min(0)
-        d = rays[..., 3:]
-        view = -d
-        pos = torch.addcmul(rays[..., :3], t[..., None], d)  # inf at misses
-        uv = ans["primitive_uvs"]
-        shp = t.shape
-        tri = self._faces.index_select(0, face.reshape(-1))  # (N, 3) vertex ids
-        nn = self._vnormals.index_select(0, tri.reshape(-1)).reshape(-1, 3, 3)  # (N, vertex, xyz)
-        uvf = uv.reshape(-1, 2)
-        wts = torch.cat([1 - rowsum(uvf)[:, None], uvf], -1)  # barycentric weights (1-u-v, u, v)
-        n = torch.bmm(wts[:, None, :], nn).reshape(*shp, 3)
-        # two-sided surfaces: turn both normals to the viewer's side of the triangle
-        ng = ans["primitive_normals"]
-        side = torch.copysign(torch.ones_like(t), rowsum(ng * view))[..., None]
-        ng = ng * side
-        n = n * (side / rowsum(n * n).sqrt_()[..., None].clamp_min(1e-12))
-        mesh = self._gid_mesh.index_select(0, gid1.reshape(-1)).reshape(shp)
-        mat = self._fmat.index_select(0, face.reshape(-1)).reshape(shp)
+        shp = ans["t_hit"].shape
         sun = torch.as_tensor(np.asarray(sun_directions, dtype=np.float32)).reshape(-1, 3)
-        flat = hit.flatten().nonzero().flatten()
-        shadow = torch.zeros((len(sun), hit.numel()), dtype=torch.bool)
-        if flat.numel():
-            srays = torch.empty((len(sun), len(flat), 6), dtype=pos.dtype)  # (origin, direction) per sun and hit
-            torch.addcmul(pos.reshape(-1, 3).index_select(0, flat), ng.reshape(-1, 3).index_select(0, flat),
-                          torch.tensor(SHADOW_OFFSET_M), out=srays[0, :, :3])
-            srays[1:, :, :3] = srays[0, :, :3]
-            srays[:, :, 3:] = sun[:, None, :]
-            shadow.index_copy_(1, flat, self.occluded(srays))
-        return GBuffer(hit=hit, t=t, position=pos, normal=n, geometric_normal=ng, view=view, material=mat,
-                       mesh=mesh, shadow=shadow.reshape((len(sun),) + hit.shape),
-                       material_names=self.material_names, mesh_names=self.mesh_names)
+        if not shadows:  # which pixels face which sun is only needed to cast shadow rays now
+            sun = sun[:1]
+        fields = KERNELS.get(gbuffer_fields, compile)(
+            rays.reshape(-1, 6), ans["t_hit"].reshape(-1), ans["geometry_ids"].reshape(-1),
+            ans["primitive_ids"].reshape(-1), ans["primitive_uvs"].reshape(-1, 2),
+            ans["primitive_normals"].reshape(-1, 3), self._gid_face_off, self._corner_normals, self._fmat,
+            self._gid_mesh, sun, FACING_MARGIN, SHADOW_OFFSET_M)
+        hit, n, ng, mat, mesh, facing, origin = fields
+        gb = GBuffer(hit=hit.reshape(shp), t=ans["t_hit"], rays=rays, normal=n.reshape(*shp, 3),
+                     geometric_normal=ng.reshape(*shp, 3), material=mat.reshape(shp),
+                     mesh=mesh.reshape(shp), shadow=None, material_names=self.material_names,
+                     mesh_names=self.mesh_names)
+        return self._cast_shadows(gb, sun, facing, origin) if shadows else gb
+
+    def with_shadows(self, gb: GBuffer, sun_directions: np.ndarray | torch.Tensor) -> GBuffer:
+        """``gb`` with its shadow masks cast for every sun direction (S, 3) (a new G-buffer)."""
+        sun = torch.as_tensor(np.asarray(sun_directions, dtype=np.float32)).reshape(-1, 3)
+        n = gb.normal.reshape(-1, 3).to(torch.float32)
+        facing = ((sun @ n.T) > -FACING_MARGIN) & gb.hit.reshape(1, -1).cpu()
+        origin = torch.addcmul(gb.position.reshape(-1, 3), gb.geometric_normal.reshape(-1, 3),
+                               torch.tensor(SHADOW_OFFSET_M)).to("cpu", torch.float32)
+        return self._cast_shadows(gb, sun, facing, origin)
+
+    def _cast_shadows(self, gb: GBuffer, sun: torch.Tensor, facing: torch.Tensor, origin: torch.Tensor) -> GBuffer:
+        """Shadow rays from the pixels ``facing`` (S, N) each sun (a pixel turned away is unlit whatever lies
+        between it and the sun: it casts no ray): origins pushed ``SHADOW_OFFSET_M`` off the surface along the
+        geometric normal."""
+        rows = facing.reshape(-1).nonzero().flatten()
+        shadow = torch.zeros(facing.numel(), dtype=torch.bool)
+        if rows.numel():
+            if self._shadow_rays.shape[0] < rows.numel():
+                self._shadow_rays = torch.empty((int(rows.numel() * 1.25), 6), dtype=torch.float32)
+            srays = self._shadow_rays[:rows.numel()]
+            if len(sun) == 1:
+                torch.index_select(origin, 0, rows, out=srays[:, :3])
+                srays[:, 3:] = sun
+            else:
+                n_px = facing.shape[1]
+                torch.index_select(origin, 0, rows % n_px, out=srays[:, :3])
+                torch.index_select(sun, 0, torch.div(rows, n_px, rounding_mode="floor"), out=srays[:, 3:])
+            shadow.index_copy_(0, rows, self.occluded(srays))
+        return dataclasses.replace(gb, shadow=shadow.reshape((len(sun),) + gb.hit.shape))
 
 
 def kornia_camera(camera: Camera, dtype: torch.dtype = torch.float64) -> Any:
@@ -220,15 +253,16 @@ def camera_rays(camera: Camera) -> torch.Tensor:
     return torch.cat([o, d], -1)
 
 
-def rasterize(scene: Scene, raycaster: Raycaster | None = None) -> GBuffer:
+def rasterize(scene: Scene, raycaster: Raycaster | None = None, compile: bool = False) -> GBuffer:
     """The G-buffer of every camera of ``scene`` and the shadow masks of every sun (on the CPU).
 
     Args:
         scene: cameras (one resolution), suns and meshes.
         raycaster: a ray caster of the scene's meshes to reuse (default: built from ``scene``).
+        compile: assemble the G-buffer with the compiled kernel (``kernels``).
 
     Shape:
         G-buffer fields (C, H, W[, 3]); ``shadow`` (S, C, H, W).
     """
     raycaster = raycaster or Raycaster.from_scene(scene)
-    return raycaster.gbuffer(scene.cameras, np.stack([s.direction for s in scene.suns]))
+    return raycaster.gbuffer(scene.cameras, np.stack([s.direction for s in scene.suns]), compile)

@@ -18,11 +18,11 @@ Shapes: S suns (or N = K·S skin-major rows for a batch of K skins), C cameras, 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
+from .kernels import KERNELS, lambert_sky
 from .materials import MaterialTables
 from .raycast import GBuffer, rowsum
 
@@ -40,7 +40,7 @@ def local_cosines(gb: GBuffer, idx: torch.Tensor,
                   sun_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """cos θi (S, K, 1, clamped at 0), cos θr (1, K, 1) and cos 2β = ω_i·ω_r (S, K, 1) at flat pixels ``idx``."""
     ns = gb.normal.reshape(-1, 3).index_select(0, idx)
-    vs = gb.view.reshape(-1, 3).index_select(0, idx)
+    vs = -gb.rays.reshape(-1, 6).index_select(0, idx)[:, 3:]
     ci = (sun_dirs @ ns.T).clamp_min(0)[..., None]
     cr = rowsum(ns * vs)[None, :, None]
     c2b = (sun_dirs @ vs.T)[..., None]
@@ -54,7 +54,7 @@ def gather_params(params: dict[str, torch.Tensor], material: torch.Tensor) -> di
 
 
 def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fraction: torch.Tensor,
-          dense: bool | None = None, sky_background: bool = False) -> Shading:
+          dense: bool | None = None, sky_background: bool = False, compile: bool = False) -> Shading:
     """At-surface radiance (S, C, H, W, B), W m^-2 sr^-1 nm^-1, and the sunlit mask (S, C, H, W).
 
     Args:
@@ -70,23 +70,24 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     waits for no data-dependent pixel count (no host round trip). ``sky_background``: rays that hit nothing
     and point above the horizon see the uniform sky itself, radiance sky_fraction · E / π (the dome whose
     irradiance on a horizontal surface is sky_fraction · E); otherwise missed rays carry no radiance.
+    ``compile``: the shading every material shares (``kernels.lambert_sky``) as one fused compiled kernel.
     """
     shp = gb.hit.shape  # (C, H, W)
     S = sun_dirs.shape[0]
+    if gb.shadow is None:
+        raise ValueError("the G-buffer has no shadow masks (Raycaster.with_shadows casts them)")
     n = gb.normal.reshape(-1, 3)
     hit = gb.hit.reshape(-1)
     mat = gb.material.reshape(-1).clamp_min(0)
-    cos_i = sun_dirs @ n.T  # (S, N)
-    lit = (cos_i > 0) & ~gb.shadow.reshape(S, -1) & hit
-    w = torch.where(lit, cos_i, torch.zeros((), dtype=cos_i.dtype, device=cos_i.device))  # (S, N)
     E = tables.irradiance[:, None, :]  # (S, 1, B)
-    sky = (tables.albedo.index_select(-2, mat) * (hit * (0.5 / math.pi) * (1 + n[:, 2]))[:, None])  # ([S,] N, B)
-    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], tables.lambert_f.index_select(-2, mat) * E)
+    L, lit, w = KERNELS.get(lambert_sky, compile, n.device)(
+        n, hit, mat, gb.shadow.reshape(S, -1), sun_dirs, sky_fraction, tables.irradiance, tables.albedo,
+        tables.lambert_f, gb.rays.reshape(-1, 6)[:, 5], sky_background)
     if dense is None:
         dense = n.device.type != "cpu"
     if dense and tables.groups:  # every pixel's geometry, once for every BRDF
         v = gb.view.reshape(-1, 3)
-        ci, cr, c2b = cos_i.clamp_min(0)[..., None], rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
+        ci, cr, c2b = (sun_dirs @ n.T).clamp_min(0)[..., None], rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
         wE = w[..., None] * E
     for group in tables.groups.values():  # BRDF kinds carry no Lambertian part (lambert_f = 0): add f E cos θi
         if dense:
@@ -98,8 +99,5 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
             ci, cr, c2b = local_cosines(gb, idx, sun_dirs)
             f = group.brdf(ci, cr, c2b, gather_params(group.params, mat.index_select(0, idx)))  # (S, K, B)
             L = L.index_copy(1, idx, torch.addcmul(L.index_select(1, idx), w.index_select(1, idx)[..., None] * E, f))
-    if sky_background:
-        up = ~hit & (gb.view.reshape(-1, 3)[:, 2] < 0)  # the ray (-view) climbs
-        L = torch.where(up[:, None], sky_fraction[:, None, None] * E * (1 / math.pi), L)
     B = L.shape[-1]
     return Shading(L.reshape(S, *shp, B), lit.reshape(S, *shp))

@@ -1,0 +1,243 @@
+"""The renderer's per-pixel hot paths, written once and run either eagerly or as fused ``torch.compile`` kernels
+(Inductor: C++/OpenMP on the CPU, Triton on CUDA).
+
+Each kernel is a plain torch function of static structure: gathers by index up front, then arithmetic on
+(N,)-shaped components (x, y, z written out, no matmuls), so that Inductor fuses the whole function into one
+loop over the pixels instead of one pass over memory per operation. ``KERNELS.get(fn, compile=True)`` returns
+the compiled form (pixel axes marked dynamic: one compilation serves every frame size; component and band
+axes stay static so that the loops vectorise); ``compile=False`` returns ``fn``
+itself, the reference and the fallback. Compilation falls back to ``fn`` (with one warning) when no compiler
+is present or Inductor fails.
+
+Random draws never happen inside a kernel: noise is drawn eagerly with the caller's generator and passed in,
+so a seed gives the same noise whichever path runs.
+
+Inductor keeps compiled kernels on disk between runs (``TORCHINDUCTOR_CACHE_DIR``; torchskin sets it to
+``~/.cache/torchskin/inductor`` unless it is set already).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import shutil
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from ..detect import RulesBox, normalized_difference, rules_detector
+
+
+def cache_dir() -> Path:
+    """Where Inductor keeps compiled kernels between runs."""
+    return Path(os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+                or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "torchskin" / "inductor")
+
+
+def compiler_available(device: torch.device | str = "cpu") -> bool:
+    """Whether ``torch.compile`` can generate kernels for ``device``: a C++ compiler on the CPU (``CXX``, else
+    g++, c++ or clang++ on the PATH), Triton on CUDA; MPS has Inductor's Metal backend."""
+    kind = torch.device(device).type
+    if kind == "cpu":
+        names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "c++", "clang++"]
+        return any(shutil.which(n) for n in names)
+    if kind == "cuda":
+        return importlib.util.find_spec("triton") is not None
+    return kind == "mps"
+
+
+class StageKernels:
+    """Compiled forms of kernel functions, one per (function, device type), and the wall time of each call
+    that compiled (``compile_seconds``, by kernel name; a later shape that needs another specialisation adds
+    to it). ``clear()`` drops them all."""
+
+    def __init__(self) -> None:
+        self._compiled: dict[tuple[str, str], Callable] = {}
+        self._signatures: set[tuple] = set()
+        self._failed: set[tuple[str, str]] = set()
+        self.compile_seconds: dict[str, float] = {}
+
+    def clear(self) -> None:
+        self._compiled.clear()
+        self._signatures.clear()
+        self._failed.clear()
+        self.compile_seconds.clear()
+
+    def get(self, fn: Callable, compile: bool, device: torch.device | str = "cpu") -> Callable:
+        """``fn`` compiled for ``device`` when ``compile`` (and a compiler is present), else ``fn``."""
+        kind = torch.device(device).type
+        key = (fn.__qualname__, kind)
+        if not compile or key in self._failed:
+            return fn
+        if not compiler_available(kind):
+            self._fail(key, "no compiler for this device (install g++ on the CPU, triton on CUDA)")
+            return fn
+        if key not in self._compiled:
+            os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
+            self._compiled[key] = torch.compile(fn)
+        compiled = self._compiled[key]
+
+        def run(*args):
+            mark_dynamic(args)
+            sig = (key, *(_signature(a) for a in args))
+            if sig in self._signatures:
+                return compiled(*args)
+            t0 = time.perf_counter()
+            try:
+                out = compiled(*args)
+            except Exception as e:  # noqa: BLE001 - any compiler failure falls back to the eager reference
+                self._fail(key, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
+                return fn(*args)
+            self._signatures.add(sig)
+            self.compile_seconds[fn.__name__] = self.compile_seconds.get(fn.__name__, 0.0) + time.perf_counter() - t0
+            return out
+
+        return run
+
+    def _fail(self, key: tuple[str, str], why: str) -> None:
+        if key not in self._failed:
+            self._failed.add(key)
+            warnings.warn(f"torchskin: running {key[0]} eagerly on {key[1]}: {why}", RuntimeWarning, stacklevel=3)
+
+
+def mark_dynamic(args: tuple) -> None:
+    """Mark every axis longer than 16 of the tensor arguments dynamic (pixels, faces, rows of pixels), so that one
+    compilation serves every frame size; shorter axes (components, bands, band tiles, suns) stay static, so that
+    Inductor vectorises along them with known strides."""
+    for a in args:
+        if isinstance(a, torch.Tensor):
+            for d, size in enumerate(a.shape):
+                if size > 16:
+                    torch._dynamo.maybe_mark_dynamic(a, d)
+
+
+def _signature(a: object) -> tuple:
+    """What decides whether a compiled function specialises anew: dtype, rank and the static (short) axes'
+    sizes (see ``mark_dynamic``)."""
+    if isinstance(a, torch.Tensor):
+        return (a.dtype, a.dim(), tuple(s if s <= 16 else -1 for s in a.shape))
+    return (type(a), a if isinstance(a, (bool, int, float)) else None)
+
+
+#: the process-wide compiled kernels (``clear()`` to compile again)
+KERNELS = StageKernels()
+
+
+def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tensor, primitive_ids: torch.Tensor,
+                   uvs: torch.Tensor, primitive_normals: torch.Tensor, face_offset: torch.Tensor,
+                   corner_normals: torch.Tensor, face_material: torch.Tensor, geometry_mesh: torch.Tensor,
+                   sun_dirs: torch.Tensor, facing_margin: float, shadow_offset: float
+                   ) -> tuple[torch.Tensor, ...]:
+    """Per pixel from open3d's ray-cast answers (N rays): hit, smooth normal, geometric normal (both turned to
+    the viewer), material id, mesh id, (S, N) whether each pixel is hit and faces
+    each sun (n·ω_sun > -``facing_margin``), and the shadow-ray origin (N, 3), ``shadow_offset`` off the surface
+    along the geometric normal.
+
+    ``rays`` (N, 6); ``t`` (N,); ``geometry_ids``, ``primitive_ids`` (N,) int32 (-1: no hit); ``uvs`` (N, 2);
+    ``primitive_normals`` (N, 3); tables indexed by geometry id + 1 (``face_offset``, ``geometry_mesh``) or by
+    face (``corner_normals`` (F+1, 9): the vertex normals of each face's three corners; ``face_material``),
+    the last face a sentinel for misses; ``sun_dirs`` (S, 3).
+    """
+    hit = torch.isfinite(t)
+    gid1 = geometry_ids.long() + 1
+    face = face_offset[gid1] + primitive_ids.long().clamp_min(0)
+    u, v = uvs[:, 0], uvs[:, 1]
+    w0 = 1 - u - v
+    corner = [corner_normals[:, k][face] for k in range(9)]
+    n = [w0 * corner[k] + u * corner[3 + k] + v * corner[6 + k] for k in range(3)]
+    d = [rays[:, 3 + k] for k in range(3)]
+    g = [primitive_normals[:, k] for k in range(3)]
+    # two-sided surfaces: both normals on the viewer's side of the triangle
+    side = torch.where(g[0] * d[0] + g[1] * d[1] + g[2] * d[2] > 0, -1.0, 1.0).to(t.dtype)
+    g = [x * side for x in g]
+    scale = side / (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().clamp_min(1e-12)
+    n = [x * scale for x in n]
+    pos = [rays[:, k] + t * d[k] for k in range(3)]
+    cos_sun = sun_dirs[:, 0:1] * n[0] + sun_dirs[:, 1:2] * n[1] + sun_dirs[:, 2:3] * n[2]  # (S, N)
+    facing = (cos_sun > -facing_margin) & hit
+    origin = torch.stack([pos[k] + g[k] * shadow_offset for k in range(3)], -1)
+    return hit, torch.stack(n, -1), torch.stack(g, -1), face_material[face], geometry_mesh[gid1], facing, origin
+
+
+def lambert_sky(normal: torch.Tensor, hit: torch.Tensor, material: torch.Tensor, shadow: torch.Tensor,
+                sun_dirs: torch.Tensor, sky_fraction: torch.Tensor, irradiance: torch.Tensor, albedo: torch.Tensor,
+                lambert_f: torch.Tensor, ray_dz: torch.Tensor, sky_background: bool
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The shading every material shares, per sun, pixel and band: a uniform sky on every hit pixel,
+    ρ_hemi/π · E_sky · (1 + n_z)/2, plus the Lambertian part f E cos θi on sunlit pixels; and, with
+    ``sky_background``, the sky's own radiance sky_fraction · E / π on missed rays that climb (``ray_dz`` > 0,
+    the camera rays' z direction).
+
+    ``normal`` (N, 3); ``hit``, ``material`` (N,); ``shadow`` (S, N); ``sun_dirs`` (S, 3); ``sky_fraction``
+    (S,); ``irradiance`` (S, B); ``albedo``, ``lambert_f`` ([S,] M, B) by material.
+
+    Returns:
+        radiance (S, N, B), sunlit mask (S, N) and sunlit cos θi (S, N) (0 where not sunlit).
+    """
+    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
+    cos_i = sun_dirs[:, 0:1] * nx + sun_dirs[:, 1:2] * ny + sun_dirs[:, 2:3] * nz  # (S, N)
+    lit = (cos_i > 0) & ~shadow & hit
+    w = torch.where(lit, cos_i, torch.zeros((), dtype=cos_i.dtype, device=cos_i.device))
+    E = irradiance[:, None, :]  # (S, 1, B)
+    sky = albedo.index_select(-2, material) * (hit * (0.5 / math.pi) * (1 + nz))[:, None]  # ([S,] N, B)
+    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], lambert_f.index_select(-2, material) * E)
+    if sky_background:
+        up = ~hit & (ray_dz > 0)  # the ray climbs
+        L = torch.where(up[:, None], sky_fraction[:, None, None] * E * (1 / math.pi), L)
+    return L, lit, w
+
+
+def band_tiles(x: torch.Tensor, per_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """A (S, C, ..., B) frame as (S·C, rows, R) with R = k·B (k pixels of B bands; R at most 16 when B <= 16,
+    k dividing the pixels per image) and per-image, per-band constants ``per_image`` ((S, C, B) or (B,)) tiled
+    to (S·C or 1, 1, R): a fused kernel then runs along R in full vector lanes instead of along 4 bands.
+    Returns (view, tiled constants, k); ``tile(c, k)`` tiles more (B,) constants."""
+    S, C, B = x.shape[0], x.shape[1], x.shape[-1]
+    pixels = x[0, 0].numel() // B
+    k = next(k for k in range(max(1, 16 // B), 0, -1) if pixels % k == 0)
+    rows = S * C if per_image.dim() == 3 else 1
+    return x.reshape(S * C, -1, k * B), per_image.reshape(rows, 1, B).repeat(1, 1, k), k
+
+
+def tile(c: torch.Tensor, k: int) -> torch.Tensor:
+    """(B,) per-band constants repeated k times: (k·B,), the layout of ``band_tiles``."""
+    return c.repeat(k)
+
+
+def sensor_dn(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor, gain: torch.Tensor,
+              noise: torch.Tensor | None, dn_per_e: float, read_noise_dn2: float, levels: int, atmosphere: bool,
+              quantize: bool) -> torch.Tensor:
+    """Digital numbers from at-surface radiance (eq 2.5.2 after the exposure): L_aperture = τ L + L_path (with
+    ``atmosphere``), DN = L_aperture · ``gain``; plus shot and read noise, σ² = DN·g + σ_read² (DN², g =
+    ``dn_per_e``) times the standard-normal draw ``noise`` (None: no noise); then the ADC: rounded and clipped
+    to [0, levels - 1] with ``quantize``, else clipped to [0, levels]."""
+    L = torch.addcmul(path, tau, radiance) if atmosphere else radiance
+    dn = L * gain
+    if noise is not None:
+        dn = dn.addcmul(dn.clamp_min(0).mul(dn_per_e).add(read_noise_dn2).sqrt(), noise)
+    if quantize:
+        return torch.round(dn).clamp(0, levels - 1)
+    return dn.clamp(0, levels * 1.0)
+
+
+def elm_line(signal: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Reflectance from signal on the empirical line L = a ρ + b (eq 2.5.7): (L - b) / a."""
+    inv_a = 1 / a
+    return torch.addcmul(-b * inv_a, signal, inv_a)
+
+
+def elm_indices(signal: torch.Tensor, a: torch.Tensor, b: torch.Tensor, bands: int, pick: tuple[int, int, int, int],
+                box: RulesBox) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """ELM reflectance (``elm_line``) of a signal with ``bands`` bands innermost (any layout, e.g. ``band_tiles``),
+    then per pixel NDGRI and NDSI from the bands at ``pick`` (544, 633, 1080, 1580 nm:
+    ``detect.index_band_positions``) and the rules detector's verdict, in one pass; the per-pixel results are
+    flat (pixels,)."""
+    refl = elm_line(signal, a, b)
+    px = refl.reshape(-1, bands)
+    green, red, nir, swir = (px[:, i] for i in pick)
+    g, s = normalized_difference(green, red), normalized_difference(nir, swir)
+    return refl, g, s, rules_detector(g, s, box)
