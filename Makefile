@@ -23,6 +23,16 @@ $(STAMP): pyproject.toml Makefile
 			|| echo "warning: could not install libusb-1.0-0; open3d will not import (sudo apt-get install -y libusb-1.0-0)"; \
 		fi; \
 	fi
+	@if ! command -v g++ >/dev/null 2>&1 && ! command -v c++ >/dev/null 2>&1 && ! command -v clang++ >/dev/null 2>&1; then \
+		SUDO=""; if [ "$$(id -u)" != 0 ]; then if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO=sudo; else SUDO=none; fi; fi; \
+		if [ "$$SUDO" = none ]; then \
+			echo "warning: no C++ compiler: compiled kernels (--compile) will run eagerly; install one with: sudo apt-get install -y g++"; \
+		else \
+			echo "installing g++ (torch.compile's C++ backend for the compiled kernels)"; \
+			($$SUDO apt-get install -y g++ >/dev/null 2>&1 || ($$SUDO apt-get update >/dev/null && $$SUDO apt-get install -y g++ >/dev/null)) \
+			|| echo "warning: could not install g++; compiled kernels will run eagerly (sudo apt-get install -y g++)"; \
+		fi; \
+	fi
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH)"

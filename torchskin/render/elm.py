@@ -66,11 +66,12 @@ def panel_pixels(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> list
         per_cam = []
         for c in range(gb.mesh.shape[0]):
             m = gb.mesh[c] == k
-            rows, cols = m.any(1).nonzero().flatten(), m.any(0).nonzero().flatten()
-            if rows.numel() == 0:
-                per_cam.append(rows)
+            flat = m.reshape(-1).nonzero().flatten()  # row-major: the first and last are in the extreme rows
+            if flat.numel() == 0:
+                per_cam.append(flat)
                 continue
-            y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+            x = flat % W
+            y0, y1, x0, x1 = int(flat[0]) // W, int(flat[-1]) // W + 1, int(x.min()), int(x.max()) + 1
             inner = erode(m[y0:y1, x0:x1], erode_px).nonzero()  # erode only the panel's bounding box
             per_cam.append((inner[:, 0] + y0) * W + inner[:, 1] + x0)
         empty = [c for c, ix in enumerate(per_cam) if ix.numel() == 0]

@@ -98,6 +98,6 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
         if idx.numel():
             ci, cr, c2b = local_cosines(gb, idx, sun_dirs)
             f = group.brdf(ci, cr, c2b, gather_params(group.params, mat.index_select(0, idx)))  # (S, K, B)
-            L = L.index_copy(1, idx, torch.addcmul(L.index_select(1, idx), w.index_select(1, idx)[..., None] * E, f))
+            L.index_copy_(1, idx, torch.addcmul(L.index_select(1, idx), w.index_select(1, idx)[..., None] * E, f))
     B = L.shape[-1]
     return Shading(L.reshape(S, *shp, B), lit.reshape(S, *shp))
