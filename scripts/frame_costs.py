@@ -1,8 +1,9 @@
 """Where a frame's time goes: open3d's bare ray casts against our wrappers, then every stage of ``render`` (the
-4-band default scene, one sun; medians of repeated runs). A diagnostic for the renderer's speed work; compare
-figures measured in one run, not across runs (this machine drifts by +-25 %).
+4-band default scene, one sun; medians of repeated runs), eager and with the compiled kernels
+(``render.kernels``), side by side. A diagnostic for the renderer's speed work; compare figures measured in one
+run, not across runs (this machine drifts by +-25 %).
 
-    .venv/bin/python scripts/frame_costs.py [--size 512] [--repeat 7]
+    .venv/bin/python scripts/frame_costs.py [--size 512] [--repeat 7] [--paths eager,compiled] [--plot PNG]
 """
 
 from __future__ import annotations
@@ -16,13 +17,23 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from torchskin.render.elm import apply_elm, panel_pixels, panel_references, panel_values
+from torchskin.detect import DEFAULT_BOX
+from torchskin.render.elm import panel_pixels, panel_references, panel_values
+from torchskin.render.kernels import compiler_available
 from torchskin.render.materials import MaterialCache
-from torchskin.render.pipeline import render
-from torchskin.render.raycast import Raycaster, rasterize
-from torchskin.render.scene import Camera, Sun, default_scene
+from torchskin.render.pipeline import calibrate_detect, render
+from torchskin.render.raycast import Raycaster
+from torchskin.render.scene import Camera, Scene, Sun, default_scene
 from torchskin.render.sensor import Sensor, sensor_signal
 from torchskin.render.shade import shade
+
+#: stacked-bar segments of the plot: label -> how it is computed from the measured figures
+SEGMENTS = {"cast_rays (open3d)": lambda o: o["bare_cast_rays"],
+            "test_occlusions (open3d)": lambda o: o["bare_test_occlusions"],
+            "G-buffer assembly": lambda o: o["gbuffer_with_casts"] - o["bare_cast_rays"] - o["bare_test_occlusions"],
+            "shading": lambda o: o["shade"], "sensor (no noise)": lambda o: o["sensor_without_noise"],
+            "noise draw (eager)": lambda o: o["noise_draw"], "panel pixels": lambda o: o["panel_pixels"],
+            "ELM, indices, rules": lambda o: o["elm_rules"]}
 
 
 def median_ms(fn: Callable[[], object], repeat: int, warmup: int = 2) -> float:
@@ -36,18 +47,11 @@ def median_ms(fn: Callable[[], object], repeat: int, warmup: int = 2) -> float:
     return 1e3 * statistics.median(times)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=512, help="frame width and height, pixels (default 512)")
-    ap.add_argument("--repeat", type=int, default=7, help="timed runs per figure (default 7)")
-    args = ap.parse_args()
-    n = args.repeat
-    sc = default_scene(camera=Camera(width=args.size, height=args.size),
-                       sun=Sun(zenith_deg=40.0, azimuth_deg=25.0, sky_fraction=0.1))
-    rc = Raycaster.from_scene(sc)
+def costs(sc: Scene, rc: Raycaster, compiled: bool, n: int) -> dict[str, float]:
+    """Median milliseconds of the bare casts, the wrapped casts, each stage and the whole frame."""
     sun_dirs = np.stack([s.direction for s in sc.suns])
     rays = rc.camera_rays(sc.cameras[0])[None]
-    gb = rasterize(sc, rc)
+    gb = rc.gbuffer(sc.cameras, sun_dirs)
     origins = gb.position.reshape(-1, 3)[gb.hit.flatten()]
     shadow_rays = torch.cat([origins, torch.as_tensor(sun_dirs, dtype=torch.float32).expand(len(origins), 3)], -1)
     o3d_rays, o3d_shadow = (rc.o3d.core.Tensor.from_numpy(np.ascontiguousarray(r.numpy())) for r in (rays, shadow_rays))
@@ -55,26 +59,82 @@ def main() -> None:
            "bare_test_occlusions": median_ms(lambda: rc.scene.test_occlusions(o3d_shadow), n),
            "wrapped_cast": median_ms(lambda: rc.cast(rays), n),
            "wrapped_occluded": median_ms(lambda: rc.occluded(shadow_rays), n),
-           "gbuffer_with_casts": median_ms(lambda: rc.gbuffer(sc.cameras, sun_dirs), n)}
+           "gbuffer_with_casts": median_ms(lambda: rc.gbuffer(sc.cameras, sun_dirs, compiled), n)}
     cache, sensor = MaterialCache(), Sensor()
-    out["frame"] = median_ms(lambda: render(sc, sensor=sensor, gbuffer=rasterize(sc, rc), cache=cache), n)
+    out["frame"] = median_ms(lambda: render(sc, sensor=sensor, raycaster=rc, cache=cache, compile=compiled), n)
     tables = cache.compile(sc.materials, sc.bands, sc.suns, gb.material_names)
     dirs = torch.tensor(sun_dirs, dtype=torch.float32)
     sky = torch.tensor([s.sky_fraction for s in sc.suns])
     out["panel_pixels"] = median_ms(lambda: panel_pixels(gb, list(sc.panels)), n)
-    out["shade"] = median_ms(lambda: shade(gb, tables, dirs, sky), n)
+    out["shade"] = median_ms(lambda: shade(gb, tables, dirs, sky, compile=compiled), n)
     radiance = shade(gb, tables, dirs, sky).radiance
     out["sensor_without_noise"] = median_ms(
-        lambda: sensor_signal(radiance, Sensor(noise=False), sc.band_list, sc.cameras[0].focal), n)
+        lambda: sensor_signal(radiance, Sensor(noise=False), sc.band_list, sc.cameras[0].focal, compile=compiled), n)
     gen = torch.Generator().manual_seed(0)
     out["noise_draw"] = median_ms(lambda: torch.randn(radiance.shape, generator=gen), n)
     signal = sensor_signal(radiance, sensor, sc.band_list, sc.cameras[0].focal, gen)
     pix = panel_pixels(gb, list(sc.panels))
     ids = [gb.material_names.index(sc.mesh(p).material) for p in sc.panels]
-    out["elm"] = median_ms(lambda: apply_elm(signal, panel_values(signal, pix),
-                                             panel_references(ids, gb, tables, dirs, pix)), n)
-    r = out["bare_cast_rays"] + out["bare_test_occlusions"]
-    print(json.dumps({**{f"{k}_ms": round(v, 2) for k, v in out.items()}, "frame_over_bare_casts": round(out["frame"] / r, 2)}))
+
+    def elm_rules():
+        refs = panel_references(ids, gb, tables, dirs, pix)
+        return calibrate_detect(signal, panel_values(signal, pix), refs, gb.hit, sc.band_list, DEFAULT_BOX, compiled)
+
+    out["elm_rules"] = median_ms(elm_rules, n)
+    return out
+
+
+def plot(results: dict[str, dict[str, float]], path: str, size: int) -> None:
+    from torchskin.plots import pyplot
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8.5, 3.6))
+    names = list(results)
+    colours = plt.get_cmap("tab10").colors
+    for i, name in enumerate(names):
+        o, left = results[name], 0.0
+        for k, (label, f) in enumerate(SEGMENTS.items()):
+            w = max(f(o), 0.0)
+            ax.barh(i, w, left=left, color=colours[k], label=label if i == 0 else None, edgecolor="white", lw=0.5)
+            left += w
+        ax.barh(i, max(o["frame"] - left, 0.0), left=left, color="0.85", label="other (Python, glue)" if i == 0 else None)
+        ax.text(o["frame"] + 1, i, f"{o['frame']:.0f} ms = {o['frame'] / (o['bare_cast_rays'] + o['bare_test_occlusions']):.1f} × casts",
+                va="center", fontsize=9)
+    r = min(o["bare_cast_rays"] + o["bare_test_occlusions"] for o in results.values())
+    ax.axvline(1.5 * r, color="k", ls="--", lw=1)
+    ax.text(1.5 * r, len(names) - 0.45, " 1.5 × casts", fontsize=8)
+    ax.set_yticks(range(len(names)), [f"{n}" for n in names])
+    ax.set_xlabel("milliseconds per frame (medians)")
+    ax.set_xlim(0, max(o["frame"] for o in results.values()) * 1.35)
+    ax.set_title(f"A 4-band {size}² frame of the default scene: where the time goes (2-core CPU)", fontsize=10)
+    ax.legend(fontsize=7.5, ncol=3, loc="lower center", bbox_to_anchor=(0.5, -0.62), frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=512, help="frame width and height, pixels (default 512)")
+    ap.add_argument("--repeat", type=int, default=7, help="timed runs per figure (default 7)")
+    ap.add_argument("--paths", default="eager,compiled", help="eager, compiled or both (default both)")
+    ap.add_argument("--plot", metavar="PNG", help="also draw the stage costs of each path as stacked bars")
+    args = ap.parse_args()
+    paths = [p.strip() for p in args.paths.split(",") if p.strip()]
+    if not paths or set(paths) - {"eager", "compiled"}:
+        raise SystemExit(f"--paths takes eager and/or compiled, got {args.paths!r}")
+    if "compiled" in paths and not compiler_available("cpu"):
+        raise SystemExit("no C++ compiler: only --paths eager can run")
+    sc = default_scene(camera=Camera(width=args.size, height=args.size),
+                       sun=Sun(zenith_deg=40.0, azimuth_deg=25.0, sky_fraction=0.1))
+    rc = Raycaster.from_scene(sc)
+    results = {}
+    for p in paths:
+        out = results[p] = costs(sc, rc, p == "compiled", args.repeat)
+        r = out["bare_cast_rays"] + out["bare_test_occlusions"]
+        print(json.dumps({"path": p, **{f"{k}_ms": round(v, 2) for k, v in out.items()},
+                          "frame_over_bare_casts": round(out["frame"] / r, 2)}))
+    if args.plot:
+        plot(results, args.plot, args.size)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from .._checks import TensorLike, as_tensor
 from .kernels import elm_line
 from .materials import MaterialTables
 from .raycast import GBuffer
-from .shade import gather_params, local_cosines
+from .shade import gather_params, pixel_cosines
 
 #: a frame's ELM is physical when at least this share of every reference panel's interior is sunlit (the rule
 #: of the dataset generator's ``elm_valid``)
@@ -128,7 +128,7 @@ def panel_references(panel_materials: list[int], gb: GBuffer, tables: MaterialTa
         if elm == "brdf" and group is not None:
             per_cam = []
             for c, ix in enumerate(pix[k]):
-                ci, cr, c2b = local_cosines(gb, ix + c * HW, sun_dirs)
+                ci, cr, c2b = pixel_cosines(gb, ix + c * HW, sun_dirs)
                 f = group.brdf(ci, cr, c2b, gather_params(group.params, torch.full_like(ix, m)))  # (S, K, B)
                 per_cam.append(math.pi * f.median(dim=1).values)
             ref = torch.stack(per_cam, dim=1)

@@ -109,7 +109,9 @@ def mark_dynamic(args: tuple) -> None:
     compilation serves every frame size; shorter axes (components, bands, band tiles, suns) stay static, so that
     Inductor vectorises along them with known strides."""
     for a in args:
-        if isinstance(a, torch.Tensor):
+        if isinstance(a, dict):
+            mark_dynamic(tuple(a.values()))
+        elif isinstance(a, torch.Tensor):
             for d, size in enumerate(a.shape):
                 if size > 16:
                     torch._dynamo.maybe_mark_dynamic(a, d)
@@ -120,6 +122,10 @@ def _signature(a: object) -> tuple:
     sizes (see ``mark_dynamic``)."""
     if isinstance(a, torch.Tensor):
         return (a.dtype, a.dim(), tuple(s if s <= 16 else -1 for s in a.shape))
+    if isinstance(a, dict):
+        return tuple((k, _signature(v)) for k, v in a.items())
+    if callable(a):
+        return (type(a), id(a))
     return (type(a), a if isinstance(a, (bool, int, float)) else None)
 
 
@@ -206,6 +212,28 @@ def band_tiles(x: torch.Tensor, per_image: torch.Tensor) -> tuple[torch.Tensor, 
 def tile(c: torch.Tensor, k: int) -> torch.Tensor:
     """(B,) per-band constants repeated k times: (k·B,), the layout of ``band_tiles``."""
     return c.repeat(k)
+
+
+def local_cosines(normal: torch.Tensor, ray_dirs: torch.Tensor,
+                  sun_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """cos θi (S, K, 1, clamped at 0), cos θr (1, K, 1) and cos 2β = ω_i·ω_r (S, K, 1) of K pixels with unit
+    normals ``normal`` (K, 3) seen along camera rays ``ray_dirs`` (K, 3) (the view vector is their opposite),
+    under suns ``sun_dirs`` (S, 3)."""
+    n, v = [normal[:, k] for k in range(3)], [-ray_dirs[:, k] for k in range(3)]
+    ci = sun_dirs[:, 0:1] * n[0] + sun_dirs[:, 1:2] * n[1] + sun_dirs[:, 2:3] * n[2]
+    cr = n[0] * v[0] + n[1] * v[1] + n[2] * v[2]
+    c2b = sun_dirs[:, 0:1] * v[0] + sun_dirs[:, 1:2] * v[1] + sun_dirs[:, 2:3] * v[2]
+    return ci.clamp_min(0)[..., None], cr[None, :, None], c2b[..., None]
+
+
+def brdf_radiance(brdf: Callable, params: dict[str, torch.Tensor], normal: torch.Tensor, ray_dirs: torch.Tensor,
+                  sun_dirs: torch.Tensor, radiance: torch.Tensor, sunlit_cos: torch.Tensor,
+                  irradiance: torch.Tensor) -> torch.Tensor:
+    """``radiance`` (S, K, B) of K pixels of one BRDF kind plus its sunlit term f(θi, θr, Δφ) E cos θi, with
+    ``sunlit_cos`` (S, K) the cosine where sunlit (else 0), ``irradiance`` (S, 1, B) and ``brdf(ci, cr, c2b,
+    params)`` the kind's BRDF (``materials.MaterialKind``) with its parameters at the pixels."""
+    ci, cr, c2b = local_cosines(normal, ray_dirs, sun_dirs)
+    return torch.addcmul(radiance, sunlit_cos[..., None] * irradiance, brdf(ci, cr, c2b, params))
 
 
 def sensor_dn(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor, gain: torch.Tensor,

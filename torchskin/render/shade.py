@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .kernels import KERNELS, lambert_sky
+from .kernels import KERNELS, brdf_radiance, lambert_sky, local_cosines
 from .materials import MaterialTables
-from .raycast import GBuffer, rowsum
+from .raycast import GBuffer
 
 
 @dataclass
@@ -36,15 +36,12 @@ class Shading:
     lit: torch.Tensor
 
 
-def local_cosines(gb: GBuffer, idx: torch.Tensor,
+def pixel_cosines(gb: GBuffer, idx: torch.Tensor,
                   sun_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """cos θi (S, K, 1, clamped at 0), cos θr (1, K, 1) and cos 2β = ω_i·ω_r (S, K, 1) at flat pixels ``idx``."""
-    ns = gb.normal.reshape(-1, 3).index_select(0, idx)
-    vs = -gb.rays.reshape(-1, 6).index_select(0, idx)[:, 3:]
-    ci = (sun_dirs @ ns.T).clamp_min(0)[..., None]
-    cr = rowsum(ns * vs)[None, :, None]
-    c2b = (sun_dirs @ vs.T)[..., None]
-    return ci, cr, c2b
+    """cos θi (S, K, 1, clamped at 0), cos θr (1, K, 1) and cos 2β = ω_i·ω_r (S, K, 1) at flat pixels ``idx``
+    (``kernels.local_cosines``)."""
+    return local_cosines(gb.normal.reshape(-1, 3).index_select(0, idx),
+                         gb.rays.reshape(-1, 6).index_select(0, idx)[:, 3:], sun_dirs)
 
 
 def gather_params(params: dict[str, torch.Tensor], material: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -64,13 +61,15 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
             horizontal surface relative to its normal irradiance.
 
     Sunlit: L = f(θi, θr, Δφ) E cos θi, with f the BRDF of each material's kind (the combined skin BRDF of eq
-    3.1.1, the Spectralon-like panel, ...) on its pixels and albedo/π for Lambertian kinds; plus a uniform sky on every hit pixel,
+    3.1.1, the Spectralon-like panel, ...) on its pixels (``kernels.brdf_radiance``) and albedo/π for Lambertian
+    kinds; plus a uniform sky on every hit pixel,
     ρ_hemi/π · E_sky · (1 + n_z)/2. On the CPU the skin (and panel) BRDF is evaluated on its pixels only
     (gathered); with ``dense`` (the default on accelerators) on every pixel and selected, so that shading
     waits for no data-dependent pixel count (no host round trip). ``sky_background``: rays that hit nothing
     and point above the horizon see the uniform sky itself, radiance sky_fraction · E / π (the dome whose
     irradiance on a horizontal surface is sky_fraction · E); otherwise missed rays carry no radiance.
-    ``compile``: the shading every material shares (``kernels.lambert_sky``) as one fused compiled kernel.
+    ``compile``: the shading every material shares (``kernels.lambert_sky``) and each BRDF kind's term
+    (``kernels.brdf_radiance``) as fused compiled kernels.
     """
     shp = gb.hit.shape  # (C, H, W)
     S = sun_dirs.shape[0]
@@ -85,19 +84,17 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
         tables.lambert_f, gb.rays.reshape(-1, 6)[:, 5], sky_background)
     if dense is None:
         dense = n.device.type != "cpu"
-    if dense and tables.groups:  # every pixel's geometry, once for every BRDF
-        v = gb.view.reshape(-1, 3)
-        ci, cr, c2b = (sun_dirs @ n.T).clamp_min(0)[..., None], rowsum(n * v)[None, :, None], (sun_dirs @ v.T)[..., None]
-        wE = w[..., None] * E
+    dirs = gb.rays.reshape(-1, 6)[:, 3:]
     for group in tables.groups.values():  # BRDF kinds carry no Lambertian part (lambert_f = 0): add f E cos θi
-        if dense:
-            f = group.brdf(ci, cr, c2b, gather_params(group.params, mat))  # (S, N, B)
-            L = torch.where((hit & group.member[mat])[:, None], torch.addcmul(L, wE, f), L)
+        kernel = KERNELS.get(brdf_radiance, compile, n.device)
+        if dense:  # every pixel, then selected: no data-dependent pixel count (no host round trip)
+            sel = (hit & group.member[mat])[:, None]
+            L = torch.where(sel, kernel(group.brdf, gather_params(group.params, mat), n, dirs, sun_dirs, L, w, E), L)
             continue
         idx = (hit & group.member[mat]).nonzero().flatten()
         if idx.numel():
-            ci, cr, c2b = local_cosines(gb, idx, sun_dirs)
-            f = group.brdf(ci, cr, c2b, gather_params(group.params, mat.index_select(0, idx)))  # (S, K, B)
-            L.index_copy_(1, idx, torch.addcmul(L.index_select(1, idx), w.index_select(1, idx)[..., None] * E, f))
+            L.index_copy_(1, idx, kernel(group.brdf, gather_params(group.params, mat.index_select(0, idx)),
+                                         n.index_select(0, idx), dirs.index_select(0, idx), sun_dirs,
+                                         L.index_select(1, idx), w.index_select(1, idx), E))
     B = L.shape[-1]
     return Shading(L.reshape(S, *shp, B), lit.reshape(S, *shp))
