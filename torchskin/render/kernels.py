@@ -153,7 +153,8 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
     face = face_offset[gid1] + primitive_ids.long().clamp_min(0)
     u, v = uvs[:, 0], uvs[:, 1]
     w0 = 1 - u - v
-    corner = [corner_normals[:, k][face] for k in range(9)]
+    cn = corner_normals.index_select(0, face)  # one row gather (fast eagerly; fused when compiled)
+    corner = [cn[:, k] for k in range(9)]
     n = [w0 * corner[k] + u * corner[3 + k] + v * corner[6 + k] for k in range(3)]
     d = [rays[:, 3 + k] for k in range(3)]
     g = [primitive_normals[:, k] for k in range(3)]
