@@ -16,6 +16,7 @@ import dataclasses
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -436,6 +437,9 @@ def resolve_compile(compile: bool | str, n_configs: int, device: torch.device | 
         return n_configs >= COMPILE_MIN_CONFIGS and compiler_available(device)
     if not isinstance(compile, bool):
         raise ValueError(f"compile must be True, False or 'auto', got {compile!r}")
+    if compile and not compiler_available(device):
+        warnings.warn(f"no compiler for {device}: generating with the eager kernels", RuntimeWarning, stacklevel=3)
+        return False
     return compile
 
 
