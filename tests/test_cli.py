@@ -87,3 +87,22 @@ def test_console_script_runs_bench_json():
     assert r.returncode == 0, r.stderr
     km = json.loads(r.stdout)["km"]
     assert km["samples_x_bands_per_s"] > 0 and km["device"] == "cpu" and km["dtype"] == "float32"
+
+
+def test_render_compile_without_a_compiler_warns_once_in_one_line(tmp_path):
+    import os
+
+    from torchskin.render.meshes import sphere_mesh, write_obj
+
+    v, f = sphere_mesh(0.3, 2)
+    write_obj(tmp_path / "ball.obj", v + [0.0, 0.0, 1.0], f)
+    env = {**os.environ, "CXX": str(tmp_path / "no-such-compiler")}
+    r = subprocess.run([sys.executable, "-m", "torchskin.cli", "render", "--mesh", str(tmp_path / "ball.obj"),
+                        "--width", "32", "--height", "32", "--compile", "--out", str(tmp_path / "frame")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    lines = [x for x in r.stderr.splitlines() if x.startswith("torchskin render: warning")]
+    assert lines == ["torchskin render: warning: running compiled kernels eagerly on cpu: no compiler for this "
+                     "device (install g++ on the CPU, triton on CUDA)"]
+    assert "Traceback" not in r.stderr and "RuntimeWarning" not in r.stderr
+    assert (tmp_path / "frame" / "reflectance.npy").is_file()

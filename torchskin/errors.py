@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
@@ -77,7 +78,11 @@ def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) ->
     """
     debug = debug or os.environ.get("TORCHSKIN_DEBUG", "") not in ("", "0")
     try:
-        return int(fn() or 0)
+        with warnings.catch_warnings():
+            if not debug:  # warnings as one line each, like errors
+                warnings.showwarning = lambda message, *args, **kw: print(
+                    f"torchskin {name}: warning: {one_line(message)}", file=sys.stderr)
+            return int(fn() or 0)
     except SystemExit as e:  # argparse (--help, usage errors: already printed): its status as the return value
         return e.code if isinstance(e.code, int) else (0 if e.code is None else EXIT_USAGE)
     except KeyboardInterrupt:

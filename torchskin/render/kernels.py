@@ -73,8 +73,9 @@ class StageKernels:
         key = (fn.__qualname__, kind)
         if not compile or key in self._failed:
             return fn
-        if not compiler_available(kind):
-            self._fail(key, "no compiler for this device (install g++ on the CPU, triton on CUDA)")
+        if not compiler_available(kind):  # one warning per device, not per kernel
+            self._fail(("compiled kernels", kind), "no compiler for this device (install g++ on the CPU, triton "
+                                                   "on CUDA)")
             return fn
         if key not in self._compiled:
             os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
@@ -101,7 +102,7 @@ class StageKernels:
     def _fail(self, key: tuple[str, str], why: str) -> None:
         if key not in self._failed:
             self._failed.add(key)
-            warnings.warn(f"torchskin: running {key[0]} eagerly on {key[1]}: {why}", RuntimeWarning, stacklevel=3)
+            warnings.warn(f"running {key[0]} eagerly on {key[1]}: {why}", RuntimeWarning, stacklevel=3)
 
 
 def mark_dynamic(args: tuple) -> None:
