@@ -322,5 +322,10 @@ def test_compiled_generation_matches_eager(tmp_path, subject_obj):
         elif c != "shadow":  # a shadow test exactly at grazing incidence may flip
             assert (a[c].to_numpy() == b[c].to_numpy()).all(), c
     assert (a.shadow != b.shadow).mean() < 0.01
+    assert all(e["compiled"] for e in man["shards"])
     with pytest.raises(ValueError, match="compile"):
         generate(cfg, 12, 4, tmp_path / "bad", quiet=True, compile="yes")
+    (tmp_path / "eager" / "shard-00001.parquet").unlink()  # resumed compiled: the kept shards stay eager
+    mixed = generate(cfg, 12, 4, tmp_path / "eager", quiet=True, resume=True, compile=True)
+    assert mixed["compiled"] is False
+    assert [e["compiled"] for e in mixed["shards"]] == [False, True] + [False] * (len(mixed["shards"]) - 2)

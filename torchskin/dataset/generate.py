@@ -373,7 +373,7 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
         part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device, cubes, compile)
         for c in COLUMNS:
             rows[c].extend(part[c])  # lists of numpy chunks
-    entry = write_shard(out_dir, k, rows)
+    entry = {**write_shard(out_dir, k, rows), "compiled": compile}
     if cubes is not None:
         entry["images"] = write_images(out_dir, k, cubes)
     return entry
@@ -454,8 +454,8 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
     shared filesystem. Both backends give the same bytes. ``images`` also stores every group's full
     reflectance cubes in ``images-NNNNN.npy`` shards (much larger, and slower: full frames are rendered).
     ``compile``: render with the compiled kernels (``render.kernels``; "auto": for runs of at least
-    ``COMPILE_MIN_CONFIGS`` configurations); compiled and eager shards agree to ~1e-5 but not bit for bit, and
-    the manifest records which ran."""
+    ``COMPILE_MIN_CONFIGS`` configurations); compiled and eager shards agree to ~1e-5 but not bit for bit: each
+    shard's manifest entry records which ran, and the manifest's ``compiled`` whether all shards were compiled."""
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be 'local' or 'ray', got {backend!r}")
     out = Path(out_dir)
@@ -504,8 +504,9 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
 
 def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, quiet, device, backend, address,
                    workers, images, compile) -> dict:
-    def manifest() -> dict:
-        return {**_manifest(cfg, seed, n_configs, n_groups, n_shards, done, images), "compiled": compile}
+    def manifest() -> dict:  # "compiled": every shard rendered with the compiled kernels (each shard says so too)
+        every = all(e.get("compiled", False) for e in done.values()) if done else compile
+        return {**_manifest(cfg, seed, n_configs, n_groups, n_shards, done, images), "compiled": every}
 
     write_text(out / MANIFEST, json.dumps(manifest(), indent=1))
     from tqdm import tqdm
