@@ -89,6 +89,7 @@ def test_console_script_runs_bench_json():
     assert km["samples_x_bands_per_s"] > 0 and km["device"] == "cpu" and km["dtype"] == "float32"
 
 
+@pytest.mark.slow
 def test_render_compile_without_a_compiler_warns_once_in_one_line(tmp_path):
     import os
 

@@ -18,6 +18,7 @@ from torchskin.render.scene import Camera, Material, MeshSpec, Scene, Sun
 from torchskin.render.sensor import Sensor, band_max
 
 needs_compiler = pytest.mark.skipif(not compiler_available("cpu"), reason="no C++ compiler for torch.compile")
+slow = pytest.mark.slow  # compiles (seconds to tens of seconds with a cold Inductor cache)
 
 
 def scene(width=48, height=40, suns=2, sky_background=True):
@@ -42,6 +43,7 @@ def close(a: torch.Tensor, b: torch.Tensor, rtol: float = 1e-5) -> float:
     return float(((a - b).abs() / scale).max())
 
 
+@slow
 @needs_compiler
 def test_compiled_frame_equals_eager_without_noise():
     sc = scene()
@@ -66,6 +68,7 @@ def test_compiled_frame_equals_eager_without_noise():
     assert not (differ & ~near).any()
 
 
+@slow
 @needs_compiler
 def test_compiled_noise_draw_is_the_eager_one():
     sc = scene(suns=1)
@@ -83,6 +86,7 @@ def test_compiled_noise_draw_is_the_eager_one():
     assert float((dn_e - dn_c).abs().max()) <= 1.0  # rounding may move a DN by one, never more
 
 
+@slow
 @needs_compiler
 def test_one_compilation_serves_every_frame_size():
     sensor = Sensor(noise=False)
@@ -95,6 +99,7 @@ def test_one_compilation_serves_every_frame_size():
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
 
 
+@slow
 @needs_compiler
 def test_compiled_pixel_render_with_a_skin_batch_equals_eager():
     sc = scene(suns=3)
@@ -147,6 +152,7 @@ def test_compile_failure_falls_back_with_a_warning(monkeypatch):
     assert torch.equal(out, kernels.elm_line(x, torch.full((4,), 2.0), torch.zeros(4)))
 
 
+@slow
 def test_shadow_rays_only_where_a_pixel_faces_the_sun():
     sc = scene(suns=2, sky_background=False)
     rc = Raycaster.from_scene(sc)
