@@ -174,10 +174,8 @@ def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
     alone and the frame's reflectance is meaningless. ``pixels``: the panels' interior pixels if already found
     (``elm.panel_pixels``)."""
     ok = torch.ones(sun_dirs.shape[0], dtype=torch.bool)
-    if gb.shadow is None:
-        raise ValueError("panels_sunlit needs a G-buffer with shadow masks")
     normal = gb.normal[0].reshape(-1, 3).float()
-    shadow = gb.shadow[:, 0].reshape(sun_dirs.shape[0], -1)
+    shadow = gb.shadow_masks()[:, 0].reshape(sun_dirs.shape[0], -1)
     for per_cam in panel_pixels(gb, panel_names) if pixels is None else pixels:
         ix = per_cam[0]
         facing = normal[ix] @ sun_dirs.T.to(normal.dtype) > 0  # (K, S)

@@ -134,6 +134,16 @@ def _signature(a: object) -> tuple:
 KERNELS = StageKernels()
 
 
+def point_along(origin: torch.Tensor, direction: torch.Tensor, distance: torch.Tensor | float) -> torch.Tensor:
+    """origin + distance · direction: a hit position along a ray, a shadow-ray origin off a surface."""
+    return origin + distance * direction
+
+
+def aperture_radiance(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """Radiance at the aperture, τ L + L_path (eq 2.5.1)."""
+    return torch.addcmul(path, tau, radiance)
+
+
 def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tensor, primitive_ids: torch.Tensor,
                    uvs: torch.Tensor, primitive_normals: torch.Tensor, face_offset: torch.Tensor,
                    corner_normals: torch.Tensor, face_material: torch.Tensor, geometry_mesh: torch.Tensor,
@@ -164,10 +174,10 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
     g = [x * side for x in g]
     scale = side / (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().clamp_min(1e-12)
     n = [x * scale for x in n]
-    pos = [rays[:, k] + t * d[k] for k in range(3)]
+    pos = [point_along(rays[:, k], d[k], t) for k in range(3)]
     cos_sun = sun_dirs[:, 0:1] * n[0] + sun_dirs[:, 1:2] * n[1] + sun_dirs[:, 2:3] * n[2]  # (S, N)
     facing = (cos_sun > -facing_margin) & hit
-    origin = torch.stack([pos[k] + g[k] * shadow_offset for k in range(3)], -1)
+    origin = torch.stack([point_along(pos[k], g[k], shadow_offset) for k in range(3)], -1)
     return hit, torch.stack(n, -1), torch.stack(g, -1), face_material[face], geometry_mesh[gid1], facing, origin
 
 
@@ -245,7 +255,7 @@ def sensor_dn(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor, gai
     ``atmosphere``), DN = L_aperture · ``gain``; plus shot and read noise, σ² = DN·g + σ_read² (DN², g =
     ``dn_per_e``) times the standard-normal draw ``noise`` (None: no noise); then the ADC: rounded and clipped
     to [0, levels - 1] with ``quantize``, else clipped to [0, levels]."""
-    L = torch.addcmul(path, tau, radiance) if atmosphere else radiance
+    L = aperture_radiance(radiance, path, tau) if atmosphere else radiance
     dn = L * gain
     if noise is not None:
         dn = dn.addcmul(dn.clamp_min(0).mul(dn_per_e).add(read_noise_dn2).sqrt(), noise)

@@ -21,9 +21,9 @@ import torch
 from .. import tissue
 from ..bands import Band
 from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, index_band_positions
-from .elm import elm_coefficients, panel_references, panel_values
+from .elm import apply_elm, elm_coefficients, panel_references, panel_values
 from .elm import panel_pixels as find_panel_pixels
-from .kernels import KERNELS, band_tiles, elm_indices, elm_line
+from .kernels import KERNELS, band_tiles, elm_indices
 from .materials import SHARED_CACHE, MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
 from .raycast import GBuffer, Raycaster
 from .scene import Scene
@@ -219,11 +219,10 @@ def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], dev
     reps = 1 if batch is None else batch.shape[0]
     t2 = time.perf_counter()
     tables = material_tables(scene, gb, dtype, device, batch, cache)
-    if gb.shadow is None:
-        raise ValueError("the G-buffer has no shadow masks (Raycaster.with_shadows casts them)")
+    shadow = gb.shadow_masks()
     if reps > 1:
         gb = GBuffer(**{**{f.name: getattr(gb, f.name) for f in fields(gb)},
-                        "shadow": gb.shadow.repeat(reps, *([1] * (gb.shadow.dim() - 1)))})
+                        "shadow": shadow.repeat(reps, *([1] * (shadow.dim() - 1)))})
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
     sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
     sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky", compile=compile)
@@ -254,15 +253,15 @@ def calibrate_detect(signal: torch.Tensor, panel_signal: torch.Tensor, reference
     """ELM reflectance of a signal cube (S, C, H, W, B) from its panels' signals and references (S, C, P, B),
     then NDGRI, NDSI and the rules detector's mask on hit pixels (``kernels.elm_indices``, compiled with
     ``compile``); without the four index bands (544, 633, 1080, 1580 nm) NaN indices and an empty mask."""
-    a, b = elm_coefficients(panel_signal[:, :, 0], panel_signal[:, :, 1], references[:, :, 0], references[:, :, 1])
     if has_index_bands(bands):
+        a, b = elm_coefficients(panel_signal[:, :, 0], panel_signal[:, :, 1], references[:, :, 0],
+                                references[:, :, 1])
         x, a, k = band_tiles(signal, a)
         b = b.reshape(a.shape[0], 1, -1).repeat(1, 1, k)
         refl, g, s, rules = KERNELS.get(elm_indices, compile, signal.device)(
             x, a, b, len(bands), index_band_positions(bands), box)
         shape = signal.shape[:-1]
         return refl.view(signal.shape), g.view(shape), s.view(shape), rules.view(shape) & hit
-    a, b = a[:, :, None, None, :], b[:, :, None, None, :]
-    refl = elm_line(signal, a, b)
+    refl = apply_elm(signal, panel_signal, references)
     g = s = torch.full(refl.shape[:-1], math.nan, dtype=refl.dtype, device=refl.device)
     return refl, g, s, torch.zeros_like(hit).expand(refl.shape[:-1])

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..bands import Band, per_band
-from .kernels import KERNELS, band_tiles, sensor_dn, tile
+from .kernels import KERNELS, aperture_radiance, band_tiles, sensor_dn, tile
 from .light import C_LIGHT, H_PLANCK
 
 
@@ -117,7 +117,7 @@ def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands: Sequence
     if sensor.integration_time_s == "auto":
         if reference is None:
             reference = band_max(radiance.reshape(S, C, -1, B))
-        ref = torch.addcmul(tb["path"], tb["tau"], reference) if sensor.atmosphere else reference
+        ref = aperture_radiance(reference, tb["path"], tb["tau"]) if sensor.atmosphere else reference
         t_int = sensor.auto_fill * sensor.full_well_e / (k * ref).clamp_min(1e-30)  # (S, C, B)
         k = (k * t_int).reshape(S, C, *mid, B)
     else:

@@ -73,14 +73,12 @@ def shade(gb: GBuffer, tables: MaterialTables, sun_dirs: torch.Tensor, sky_fract
     """
     shp = gb.hit.shape  # (C, H, W)
     S = sun_dirs.shape[0]
-    if gb.shadow is None:
-        raise ValueError("the G-buffer has no shadow masks (Raycaster.with_shadows casts them)")
     n = gb.normal.reshape(-1, 3)
     hit = gb.hit.reshape(-1)
     mat = gb.material.reshape(-1).clamp_min(0)
     E = tables.irradiance[:, None, :]  # (S, 1, B)
     L, lit, w = KERNELS.get(lambert_sky, compile, n.device)(
-        n, hit, mat, gb.shadow.reshape(S, -1), sun_dirs, sky_fraction, tables.irradiance, tables.albedo,
+        n, hit, mat, gb.shadow_masks().reshape(S, -1), sun_dirs, sky_fraction, tables.irradiance, tables.albedo,
         tables.lambert_f, gb.rays.reshape(-1, 6)[:, 5], sky_background)
     if dense is None:
         dense = n.device.type != "cpu"
