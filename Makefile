@@ -41,25 +41,34 @@ $(STAMP): pyproject.toml Makefile
 
 EXPORTS ?= exports
 
-# the thesis experiment, then the detector pipeline: generate -> train -> evaluate -> export -> verify
+# the thesis experiment, then the detector pipeline: generate -> train -> evaluate -> export -> verify; verify
+# ends by comparing the fresh-test figures with the committed ones (git HEAD's, else the exports found at the
+# start) within the reproducibility tolerances, and fails loudly when they differ
+REFERENCE := $(OUT)/reference_evaluation_test.json
 demo: setup
 	mkdir -p $(OUT)
+	@git show HEAD:$(EXPORTS)/evaluation_test.json > $(REFERENCE) 2>/dev/null \
+		|| cp $(EXPORTS)/evaluation_test.json $(REFERENCE) 2>/dev/null || rm -f $(REFERENCE)
 	$(VENV)/bin/torchskin spectra --all-presets --plot $(OUT)/presets.png
 	$(VENV)/bin/torchskin experiment --out $(OUT)/experiment
 	$(PY) scripts/pipeline_generate.py --work $(OUT)/pipeline
 	$(PY) scripts/pipeline_train.py --work $(OUT)/pipeline
 	$(PY) scripts/pipeline_evaluate.py --work $(OUT)/pipeline
 	$(PY) scripts/pipeline_export.py --work $(OUT)/pipeline --exports $(EXPORTS)
-	$(PY) scripts/pipeline_verify.py --exports $(EXPORTS)
+	$(PY) scripts/pipeline_verify.py --exports $(EXPORTS) --reference $(REFERENCE)
 
 # ruff, then mypy (its settings: [tool.mypy] in pyproject.toml; cache in .mypy_cache)
 lint: setup
 	$(VENV)/bin/ruff check torchskin tests scripts examples
 	$(VENV)/bin/mypy
 
+# the suite, then the reproducibility tests again with torch's AVX2 kernels (ATEN_CPU_CAPABILITY=avx2: on a CPU
+# with AVX-512 the first run used those; pytest's header names the capability of each run)
 test: lint
 	@$(PY) -m pytest -q; rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; exit 1; fi; exit $$rc
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; exit 1; fi; \
+	if [ $$rc -ne 0 ]; then exit $$rc; fi
+	ATEN_CPU_CAPABILITY=avx2 $(PY) -m pytest -q -p no:cacheprovider -m reproducibility -k "not ray_backend" tests/test_reproducibility.py
 
 bench: setup
 	$(VENV)/bin/torchskin bench

@@ -7,13 +7,15 @@ the thesis skin surface model, clothing drawn from each dataset's earthlib parti
 
 Writes WORK/train (seed 1, earthlib train partition), WORK/heldout (seed 2, test partition: used to compare
 the models and choose the detector) and WORK/test (seed 3, test partition: never used for any choice, the
-figures quoted for the exports); an existing complete dataset is kept (--resume)."""
+figures quoted for the exports); an existing complete dataset is kept (--resume), one rendered by another
+renderer revision (``dataset.files.RENDER_REVISION``) is regenerated (--overwrite)."""
 
 import argparse
 import sys
 from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.dataset.files import RENDER_REVISION, manifest
 from torchskin.io import write_text
 
 
@@ -31,8 +33,14 @@ def run(argv=None) -> int:
         print(f"[generate] {name}: {n} configurations, seed {seed}, earthlib {part} partition", flush=True)
         cfg = work / f"{name}.toml"
         write_text(cfg, f'[confusers]\npartition = "{part}"\n\n[clothing]\npartition = "{part}"\n')
+        old = manifest(work / name)
+        keep = "--resume"
+        if old is not None and old.get("render_revision", 1) != RENDER_REVISION:
+            print(f"[generate] {name}: rendered by renderer revision {old.get('render_revision', 1)}, regenerating "
+                  f"with revision {RENDER_REVISION}", flush=True)
+            keep = "--overwrite"
         rc = main(["generate", "--config", str(cfg), "--configs", str(n), "--seed", str(seed), "--out",
-                   f"{a.work}/{name}", "--resume"])
+                   f"{a.work}/{name}", keep])
         if rc:
             return rc
     return 0

@@ -22,3 +22,14 @@ def device(request):
 def dtype_for(device):
     """float64 where the device supports it (MPS does not)."""
     return torch.float32 if device.type == "mps" else torch.float64
+
+
+def pytest_report_header(config):
+    """The CPU capability torch's kernels run with (ATEN_CPU_CAPABILITY chooses a lower one) and the thread count:
+    what a run of the reproducibility tests exercised."""
+    import os
+
+    cap = torch.backends.cpu.get_cpu_capability()
+    forced = os.environ.get("ATEN_CPU_CAPABILITY")
+    return (f"torch {torch.__version__}: CPU capability {cap}" + (f" (ATEN_CPU_CAPABILITY={forced})" if forced else "")
+            + f", {torch.get_num_threads()} intra-op threads")

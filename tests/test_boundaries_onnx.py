@@ -275,13 +275,11 @@ def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
 
 def test_learn_refuses_a_model_that_left_the_data():
     """A run whose boxes no longer hold the training skin (here forced by a prohibitive width cost, which
-    shrinks every box to nothing) is an error, not a silent detector that finds nothing; a normal run reports
-    its training coverage."""
+    shrinks every box to nothing) is an error, not a silent detector that finds nothing. (A normal run's
+    coverage, over seeds and thread counts: tests/test_reproducibility.py.)"""
     X, Y, C = diagonal(3000, seed=2)
     with pytest.raises(ValueError, match="training failed"):
         Bd.learn(X, Y, confusers=C, steps=200, batch=1000, width_cost=50.0)
-    _, info = Bd.learn(X, Y, confusers=C, steps=800, margin=0.02)
-    assert info["train_coverage"] > 0.9
 
 
 def test_coverage_training_is_deterministic():

@@ -13,7 +13,11 @@ it). NDVN carries what boxes on (NDGRI, NDSI) cannot see: a glint adds the same 
 it drives NDSI towards 0 while the visible/NIR balance of skin stays far from that of soils and vegetation.
 The configuration features (sun zenith, camera zenith, relative azimuth) are standardised and concatenated.
 
-Training (``train_classifier``): weighted logistic loss; positives are the sunlit skin pixels of a
+The logit is a linear function of those inputs plus a small MLP of them: logit = a·x + b + MLP(x). Training
+(``train_classifier``) starts from the data, not from the seed: (a, b) is first fitted alone, a convex weighted
+logistic regression on every training row and every earthlib train spectrum under a fixed lattice of
+configurations (one optimum whatever the seed), with the MLP's output layer at zero; Adam then refines all of it on
+the weighted logistic loss; positives are the sunlit skin pixels of a
 generated dataset (every configuration weighing the same), negatives the scene's non-skin pixels (clothing,
 ground, confusers of the training partition) and every earthlib *train* spectrum under random configurations
 over the training domain. The decision threshold is then raised until at most ``pfa_budget`` of the earthlib
@@ -48,7 +52,8 @@ def ratio_features(R: torch.Tensor) -> torch.Tensor:
 
 
 class SkinClassifier(nn.Module):
-    """Configuration features (N, k) and reflectance (N, 4) -> skin logit (N,)."""
+    """Configuration features (N, k) and reflectance (N, 4) -> skin logit (N,): ``linear(x) + net(x)`` of the
+    inputs x = (2 x ratio features, standardised configuration) (``inputs``)."""
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
@@ -71,10 +76,15 @@ class SkinClassifier(nn.Module):
         self.register_buffer("domain", domain_t)
         self.net = nn.Sequential(nn.Linear(3 + k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
                                  nn.Linear(hidden, 1))
+        self.linear = nn.Linear(3 + k, 1)  # the convex part (``fit_linear``): the MLP refines it
+
+    def inputs(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
+        """The per-pixel inputs (N, 3 + k): twice the ratio features, then the standardised configuration."""
+        return torch.cat([ratio_features(R) * 2.0, (config - self.mean) / self.std], -1)
 
     def forward(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([ratio_features(R) * 2.0, (config - self.mean) / self.std], -1)
-        return self.net(x).squeeze(-1)
+        x = self.inputs(R, config)
+        return (self.net(x) + self.linear(x)).squeeze(-1)
 
     @torch.no_grad()
     def decide(self, R: torch.Tensor, config: torch.Tensor, chunk: int = 1 << 18) -> torch.Tensor:
@@ -108,6 +118,46 @@ def _earthlib_reflectance(part: str) -> torch.Tensor:
 
     _, R = band_reflectance(INDEX_BANDS_NM, part)
     return R.float()
+
+
+#: the configuration lattice (per feature) the earthlib spectra are placed under for the linear start
+LINEAR_LATTICE = 5
+
+
+def fit_linear(model: SkinClassifier, Rp: torch.Tensor, Xp: torch.Tensor, wp: torch.Tensor, Rn: torch.Tensor,
+               Xn: torch.Tensor, C: torch.Tensor, confuser_weight: float, l2: float = 1e-4, iters: int = 100) -> float:
+    """Set ``model.linear`` to the weighted logistic regression of the training loss's three parts on all their
+    rows: positives ``Rp`` (configurations ``Xp``, weights ``wp`` summing to 1), negatives ``Rn`` (``Xn``) and the
+    earthlib spectra ``C`` under a ``LINEAR_LATTICE``^k lattice over the model's domain (``confuser_weight``),
+    with a small L2 penalty ``l2`` (finite weights on separable data). A convex problem solved by L-BFGS in
+    float64: the same optimum for any seed, thread count or start. Returns the loss."""
+    axes = [torch.linspace(float(lo), float(hi), LINEAR_LATTICE) for lo, hi in model.domain]
+    lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
+    with torch.no_grad():
+        xp, xn = model.inputs(Rp, Xp).double(), model.inputs(Rn, Xn).double()
+        xc = model.inputs(C.repeat(len(lattice), 1), lattice.repeat_interleave(len(C), 0)).double()
+    wp = wp.double()
+    w = torch.zeros(xp.shape[1], dtype=torch.float64, requires_grad=True)
+    b = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.LBFGS([w, b], lr=1.0, max_iter=iters, tolerance_grad=1e-10, tolerance_change=1e-14,
+                            history_size=20, line_search_fn="strong_wolfe")
+    softplus = nn.functional.softplus
+
+    def loss_fn() -> torch.Tensor:  # bce(z, 1) = softplus(-z), bce(z, 0) = softplus(z)
+        return ((softplus(-(xp @ w + b)) * wp).sum() + softplus(xn @ w + b).mean()
+                + confuser_weight * softplus(xc @ w + b).mean() + l2 * w.square().sum())
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        model.linear.weight.copy_(w[None].float())
+        model.linear.bias.copy_(b.reshape(1).float())
+        return float(loss_fn())
 
 
 def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence[str] = FEATURES, hidden: int = 32,
@@ -146,19 +196,26 @@ def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence
         raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
-    g = torch.Generator().manual_seed(seed)
-    torch.manual_seed(seed)
+    g = torch.Generator().manual_seed(seed)  # the network's own generator: torch's global one is left alone
     Xp, Rp = X[pos], R[pos]
     Xn, Rn = X[neg], R[neg]
     if domain is None:
         domain = torch.stack([X.min(0).values, X.max(0).values], -1)
     domain = torch.as_tensor(domain, dtype=torch.float32)
-    model = SkinClassifier(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
+    with torch.random.fork_rng(devices=[]):  # nn.Linear's default initialisation draws from the global generator
+        model = SkinClassifier(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
+    with torch.no_grad():  # the MLP's weights from the seed, its output layer at zero: it starts as fit_linear's
+        for p in model.net.parameters():
+            fan_in = p.shape[-1] if p.ndim > 1 else p.shape[0]
+            p.copy_((torch.rand(p.shape, generator=g) * 2 - 1) / math.sqrt(fan_in))
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
     _, inv = distinct_configs(Xp)  # every configuration weighs the same among the positives
     cnt = torch.bincount(inv).float()
     wp = (1.0 / cnt[inv])
     wp = wp / wp.sum()
     C = _earthlib_reflectance("train")
+    linear_loss = fit_linear(model, Rp, Xp, wp, Rn, Xn, C, confuser_weight)
     lo, hi = domain[:, 0], domain[:, 1]
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=lr * 0.01)
@@ -193,6 +250,7 @@ def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence
                    "threshold": threshold, "pfa_budget": pfa_budget, "train_coverage": coverage,
                    # the key keeps its old name: checkpoints and model cards carry it
                    "pfa_scene_train": scene, "calibration_configs": int(tuning.shape[0]),
+                   "linear_loss": linear_loss,
                    "options": {"hidden": hidden, "steps": steps, "lr": lr, "seed": seed,
                                "confuser_weight": confuser_weight}}
 
@@ -231,7 +289,10 @@ def load(path: str | os.PathLike) -> SkinClassifier:
     if ck.get("kind") != "classifier":
         raise ValueError(f"{str(path)!r} is not a classifier checkpoint")
     m = SkinClassifier(ck["features"], ck["hidden"])
-    m.load_state_dict(ck["state_dict"])
+    state = dict(ck["state_dict"])
+    state.setdefault("linear.weight", torch.zeros_like(m.linear.weight))  # written before the linear part: none
+    state.setdefault("linear.bias", torch.zeros_like(m.linear.bias))
+    m.load_state_dict(state)
     return m.eval()
 
 

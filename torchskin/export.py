@@ -138,7 +138,8 @@ def _detector_graph(boundaries_model, meta: dict):
 class ClassifierDetector(nn.Module):
     """``detector.onnx`` for a ``classifier.SkinClassifier``: cube (B, 4, H, W) + configuration (B, k) -> mask
     and score (B, H, W), score = logit - threshold (positive: skin). The configuration's part of the first
-    layer is computed once per frame; per pixel the three band ratios go through the MLP."""
+    layer (and of the linear part) is computed once per frame; per pixel the three band ratios go through the MLP
+    and the linear part."""
 
     def __init__(self, classifier: SkinClassifier):
         super().__init__()
@@ -155,11 +156,14 @@ class ClassifierDetector(nn.Module):
         w = first.weight
         cfg = (config - self.c.mean) / self.c.std  # (B, k)
         bias = cfg @ w[:, 3:].T + first.bias  # (B, hidden): the configuration's part, once per frame
-        h = (ratio_features(x) * 2.0) @ w[:, :3].T + bias[:, None, :]
+        feats = ratio_features(x) * 2.0
+        h = feats @ w[:, :3].T + bias[:, None, :]
         for layer in rest:
             h = layer(h)
+        lw, lb = self.c.linear.weight[0], self.c.linear.bias  # the linear part, its configuration term per frame
+        h = h.squeeze(-1) + feats @ lw[:3] + (cfg @ lw[3:] + lb)[:, None]
         valid = (x[..., 0] + x[..., 1] > 0) & (x[..., 2] + x[..., 3] > 0)
-        score = (h.squeeze(-1) - self.c.threshold).reshape(B, H, W)
+        score = (h - self.c.threshold).reshape(B, H, W)
         return (score > 0) & valid.reshape(B, H, W), score
 
 

@@ -185,6 +185,16 @@ def half_angle_cos(cos_2beta: torch.Tensor) -> torch.Tensor:
     return torch.sqrt((0.5 * (1 + cos_2beta)).clamp(1e-24, 1.0))
 
 
+def dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """a·b over the last axis (3 components), written out in a fixed order: the same bits for any thread count
+    or CPU, where ``(a * b).sum(-1)`` leaves the summation order to the reduction kernel.
+
+    >>> float(dot3(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([4.0, 5.0, 6.0])))
+    32.0
+    """
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
 def local_angles(normal: torch.Tensor, to_source: torch.Tensor,
                  to_viewer: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Local angles ``(θi, θr, Δφ)`` in rad of a surface point from unit vectors: θi between the normal and the
@@ -208,10 +218,10 @@ def local_angles(normal: torch.Tensor, to_source: torch.Tensor,
     >>> [round(math.degrees(float(a)), 2) for a in local_angles(n, s, v)]
     [36.87, 36.87, 180.0]
     """
-    ci = (normal * to_source).sum(-1).clamp(-1, 1)
-    cr = (normal * to_viewer).sum(-1).clamp(-1, 1)
+    ci = dot3(normal, to_source).clamp(-1, 1)
+    cr = dot3(normal, to_viewer).clamp(-1, 1)
     st, vt = to_source - ci[..., None] * normal, to_viewer - cr[..., None] * normal
-    cphi = ((st * vt).sum(-1) / (st.norm(dim=-1) * vt.norm(dim=-1)).clamp_min(1e-12)).clamp(-1, 1)
+    cphi = (dot3(st, vt) / (dot3(st, st) * dot3(vt, vt)).sqrt().clamp_min(1e-12)).clamp(-1, 1)
     return torch.acos(ci), torch.acos(cr), torch.acos(cphi)
 
 

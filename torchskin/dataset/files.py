@@ -16,6 +16,10 @@ if TYPE_CHECKING:
     import pyarrow.dataset as ds
 
 MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
+#: the renderer's revision for datasets: raised whenever the same config and seed render other bytes, so that
+#: ``generate --resume`` does not keep shards of another revision (2: anny bodies in float64, camera rays and
+#: facing tests and angles written out in a fixed order; 1 or missing: before)
+RENDER_REVISION = 2
 
 
 def sha256_file(path: StrPath) -> str:
@@ -76,6 +80,8 @@ def open_dataset(data_dir: StrPath, columns: Sequence[str] = ()) -> ds.Dataset:
     import pyarrow.dataset as ds
 
     folder = Path(data_dir)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"dataset {str(folder)!r} is a file; a dataset folder is expected (torchskin generate writes one)")
     if not folder.is_dir():
         raise ValueError(f"dataset folder {str(folder)!r} does not exist (torchskin generate writes one)")
     if not any(folder.glob("*.parquet")):

@@ -31,12 +31,13 @@ from ..boundaries import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import ELM_MIN_SUNLIT, panel_pixels
+from ..render.kernels import cos_to
 from ..render.pipeline import RenderResult, render, render_pixels
 from ..render.raycast import GBuffer, Raycaster
 from ..render.scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
 from ..render.sensor import Sensor
 from .config import PoseGroup, sample_group
-from .files import MANIFEST, sha256_file
+from .files import MANIFEST, RENDER_REVISION, sha256_file
 
 SCHEMA_VERSION = 3  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
 # clothing and material columns, clothing drawn from earthlib
@@ -178,8 +179,7 @@ def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
     shadow = gb.shadow_masks()[:, 0].reshape(sun_dirs.shape[0], -1)
     for per_cam in panel_pixels(gb, panel_names) if pixels is None else pixels:
         ix = per_cam[0]
-        facing = normal[ix] @ sun_dirs.T.to(normal.dtype) > 0  # (K, S)
-        lit = facing.T & ~shadow[:, ix]
+        lit = (cos_to(normal[ix], sun_dirs.to(normal.dtype)) > 0) & ~shadow[:, ix]  # (S, K)
         ok &= lit.float().mean(1) >= min_fraction
     return ok
 
@@ -384,7 +384,8 @@ def _intact(out: Path, entry: dict) -> bool:
 
 def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
     per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
-    return {"schema_version": SCHEMA_VERSION, "package_version": __version__, "config": cfg, "master_seed": seed,
+    return {"schema_version": SCHEMA_VERSION, "render_revision": RENDER_REVISION, "package_version": __version__,
+            "config": cfg, "master_seed": seed,
             "configs": n_groups * per_group, "requested_configs": n_configs, "groups": n_groups,
             "n_shards": n_shards, "images": images,
             "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
@@ -478,6 +479,10 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
         if bool(old.get("images")) != images:
             raise ValueError("--resume needs the same --images setting as the interrupted run")
+        if old.get("render_revision", 1) != RENDER_REVISION:
+            raise ValueError(f"--resume: {str(out)!r} was rendered by renderer revision {old.get('render_revision', 1)}, "
+                             f"this torchskin renders revision {RENDER_REVISION} (other bytes for the same seed): "
+                             "regenerate it with --overwrite")
         for s in old["shards"]:
             if all(_intact(out, e) for e in (s, s.get("images")) if e):
                 done[int(s["name"][6:11])] = s

@@ -139,6 +139,14 @@ def point_along(origin: torch.Tensor, direction: torch.Tensor, distance: torch.T
     return origin + distance * direction
 
 
+def cos_to(normal: list[torch.Tensor] | torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """n·ω (S, N) of N normals (three (N,) components, or (N, 3)) with S unit directions (S, 3), written out
+    component by component: the same bits for any thread count, BLAS or CPU (a matrix product's summation
+    order is the library's choice, and a facing test on its last bit is not reproducible)."""
+    n = normal if isinstance(normal, list) else list(normal.unbind(-1))
+    return dirs[:, 0:1] * n[0] + dirs[:, 1:2] * n[1] + dirs[:, 2:3] * n[2]
+
+
 def aperture_radiance(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
     """Radiance at the aperture, τ L + L_path (eq 2.5.1)."""
     return torch.addcmul(path, tau, radiance)
@@ -175,8 +183,7 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
     scale = side / (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt().clamp_min(1e-12)
     n = [x * scale for x in n]
     pos = [point_along(rays[:, k], d[k], t) for k in range(3)]
-    cos_sun = sun_dirs[:, 0:1] * n[0] + sun_dirs[:, 1:2] * n[1] + sun_dirs[:, 2:3] * n[2]  # (S, N)
-    facing = (cos_sun > -facing_margin) & hit
+    facing = (cos_to(n, sun_dirs) > -facing_margin) & hit  # (S, N)
     origin = torch.stack([point_along(pos[k], g[k], shadow_offset) for k in range(3)], -1)
     return hit, torch.stack(n, -1), torch.stack(g, -1), face_material[face], geometry_mesh[gid1], facing, origin
 

@@ -126,9 +126,9 @@ _SKIN_BONE_PREFIXES = ("wrist", "finger", "metacarpal")
 def _euler_deg_to_matrix(angles) -> torch.Tensor:
     ax, ay, az = (math.radians(float(a)) for a in angles)
     cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
-    rx = torch.tensor([[1, 0, 0], [0, cx, -sx], [0, sx, cx]], dtype=torch.float32)
-    ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=torch.float32)
-    rz = torch.tensor([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]], dtype=torch.float32)
+    rx = torch.tensor([[1, 0, 0], [0, cx, -sx], [0, sx, cx]], dtype=ANNY_DTYPE)
+    ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=ANNY_DTYPE)
+    rz = torch.tensor([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]], dtype=ANNY_DTYPE)
     return rz @ ry @ rx
 
 
@@ -152,7 +152,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None,
         import anny
     except ImportError as e:  # pragma: no cover - dependency missing
         raise ValueError("the anny package is needed for anny subjects: pip install 'torchskin[render]'") from e
-    key = hashlib.sha256(json.dumps([getattr(anny, "__version__", "?"), sorted(phenotype.items()),
+    key = hashlib.sha256(json.dumps([getattr(anny, "__version__", "?"), str(ANNY_DTYPE), sorted(phenotype.items()),
                                      sorted(pose.items())]).encode()).hexdigest()[:16]
     path = cache_dir() / "anny" / f"{key}.npz"
     if cache and path.exists():
@@ -163,7 +163,7 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None,
     if unknown:
         raise ValueError(f"unknown anny phenotype(s) {sorted(unknown)}; known: {list(model.phenotype_labels)}")
     labels = list(model.bone_labels)
-    pose_t = torch.eye(4)[None, None].repeat(1, model.bone_count, 1, 1)
+    pose_t = torch.eye(4, dtype=ANNY_DTYPE)[None, None].repeat(1, model.bone_count, 1, 1)
     for bone, ang in pose.items():
         if bone not in labels:
             raise ValueError(f"unknown anny bone {bone!r} in pose")
@@ -223,12 +223,19 @@ def _init_warp_quietly() -> None:
             setattr(warp.config, k, v)
 
 
+#: anny runs in float64 and its vertices are rounded to float32: the blend-shape products (136 shape coefficients
+#: against 41,154 coordinates) and the skinning then round the same way whatever the BLAS kernel, its thread
+#: count or the CPU (in float32 their last bits moved with the thread count, and a moved triangle edge relabels
+#: the pixels on a silhouette: datasets were not reproducible across machines)
+ANNY_DTYPE = torch.float64
+
+
 @functools.lru_cache(maxsize=1)
 def _anny_model():
     import anny
 
     with contextlib.redirect_stdout(io.StringIO()):
-        return anny.Anny().to(dtype=torch.float32)
+        return anny.Anny().to(dtype=ANNY_DTYPE)
 
 
 #: plausible extent (largest side of the bounding box, m) of a mesh file: outside it a warning names the file

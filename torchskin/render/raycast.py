@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from .kernels import KERNELS, gbuffer_fields, point_along
+from ..optics import dot3
+from .kernels import KERNELS, cos_to, gbuffer_fields, point_along
 from .meshes import TriMesh, build_meshes
 from .scene import Camera, Scene
 
@@ -191,7 +192,7 @@ class Raycaster:
         """``gb`` with its shadow masks cast for every sun direction (S, 3) (a new G-buffer)."""
         sun = torch.as_tensor(np.asarray(sun_directions, dtype=np.float32)).reshape(-1, 3)
         n = gb.normal.reshape(-1, 3).to(torch.float32)
-        facing = ((sun @ n.T) > -FACING_MARGIN) & gb.hit.reshape(1, -1).cpu()
+        facing = (cos_to(n, sun) > -FACING_MARGIN) & gb.hit.reshape(1, -1).cpu()
         origin = point_along(gb.position.reshape(-1, 3), gb.geometric_normal.reshape(-1, 3),
                              SHADOW_OFFSET_M).to("cpu", torch.float32)
         return self._cast_shadows(gb, sun, facing, origin)
@@ -244,11 +245,11 @@ def camera_rays(camera: Camera) -> torch.Tensor:
     cam = kornia_camera(camera)
     Kinv = cam.intrinsics_inverse()[0, :3, :3]
     R = cam.rotation_matrix[0]  # world -> camera
-    M = (R.T @ Kinv).to(torch.float32)  # pixel (u, v, 1) -> world direction
-    v, u = torch.meshgrid(torch.arange(camera.height, dtype=torch.float32) + 0.5,
-                          torch.arange(camera.width, dtype=torch.float32) + 0.5, indexing="ij")
+    M = R.T @ Kinv  # pixel (u, v, 1) -> world direction
+    v, u = torch.meshgrid(torch.arange(camera.height, dtype=M.dtype) + 0.5,
+                          torch.arange(camera.width, dtype=M.dtype) + 0.5, indexing="ij")
     d = u[..., None] * M[:, 0] + v[..., None] * M[:, 1] + M[:, 2]
-    d = d / d.norm(dim=-1, keepdim=True)
+    d = (d / dot3(d, d).sqrt()[..., None]).to(torch.float32)  # float64, written out: the same bits everywhere
     o = torch.as_tensor(camera.position, dtype=torch.float32).expand_as(d)
     return torch.cat([o, d], -1)
 
