@@ -1,6 +1,7 @@
-"""Every `torchskin` command against malformed input: for each case a non-zero exit status, exactly one line on
-stderr of the form `torchskin <command>: error: ...` that names the parameter or file, no traceback, and the
-files around it (inputs and output locations) left exactly as they were. Then a hypothesis fuzz of the numeric
+"""Every `torchskin` command against malformed input, held to the contract for bad input: exit status 2,
+exactly one line on stderr of the form `torchskin <command>: error: ...` that names the parameter or file,
+nothing on stdout, no traceback, and the files around it (inputs and output locations) left exactly as they
+were. Then a hypothesis fuzz of the numeric
 options of `spectra`, `render` and `detect`, and the cases that would exhaust memory under a memory limit."""
 
 import json
@@ -148,6 +149,7 @@ CASES = [
     ("export --model {w}/truncated.pt --out {w}/x", "truncated.pt"),
     ("export --model {w}/wrongschema.pt --out {w}/x", "wrongschema.pt"),
     ("export --model {w}/missing.pt --out {w}/x", "missing.pt"),
+    ("export --model {w}/adir --out {w}/x", "adir' is a folder"),
     ("export --model " + str(EXPORTS / "boundaries.pt") + " --out {w}/x --metrics {w}/list.json", "--metrics"),
     ("export --model " + str(EXPORTS / "boundaries.pt") + " --out {w}/afile", "--out"),
     ("export --model " + str(EXPORTS / "classifier.pt") + " --out {w}/x", "classifier"),
@@ -194,9 +196,10 @@ def test_malformed_input_gets_one_line_and_changes_nothing(world, capsys, line, 
     argv = line.format(w=world).split()
     before = snapshot(world)
     rc = main(argv)
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert rc in (1, 2), (rc, err)
+    assert rc == 2, (rc, err)
+    assert out == "", out  # nothing on stdout: a script reading it must not take half a result for one
     assert len(lines) == 1, err
     assert lines[0].startswith("torchskin") and ": error: " in lines[0], err
     assert token.lower() in lines[0].lower(), (token, err)
@@ -250,10 +253,11 @@ HOSTILE = st.one_of(st.sampled_from(["nan", "inf", "-inf", "1e308", "-1e308", "0
 
 
 def _ok_or_one_line(capsys, rc):
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert "Traceback" not in err
     if rc != 0:
-        assert rc in (1, 2) and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+        assert rc == 2 and len([ln for ln in err.splitlines() if ln.strip()]) == 1, (rc, err)
+        assert out == "", out
 
 
 @pytest.mark.slow

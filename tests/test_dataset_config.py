@@ -50,12 +50,18 @@ def test_groups_are_a_pure_function_of_seed_and_index():
 
 
 def test_field_of_view_frames_the_subject():
-    cfg = C.resolve_config({"camera": {"range_m": [50.0, 50.0], "subject_fraction": 0.5}})
-    g = C.sample_group(cfg, 0, 0)
-    import math
+    """``subject_fraction`` of the frame *height* is the subject: through the renderer's pinhole camera
+    (``fov_deg`` horizontal) a subject of SUBJECT_HEIGHT_M at the range spans f h / R pixels vertically. A wide
+    frame (W 320 x H 200) tells the axes apart: with width and height swapped it would span fraction W² / H."""
+    from torchskin.render.scene import Camera
 
-    fov_v = 2 * math.atan(math.tan(math.radians(g.camera["fov_deg"]) / 2) * 256 / 256)
-    assert abs(2 * 50.0 * math.tan(fov_v / 2) * 0.5 - C.SUBJECT_HEIGHT_M) < 1e-9
+    W, H = 320, 200
+    cfg = C.resolve_config({"camera": {"range_m": [50.0, 50.0], "subject_fraction": 0.5, "width": W, "height": H}})
+    g = C.sample_group(cfg, 0, 0)
+    assert (g.camera["width"], g.camera["height"]) == (W, H)
+    cam = Camera(width=g.camera["width"], height=g.camera["height"], range_m=g.camera["range_m"],
+                 fov_deg=g.camera["fov_deg"])
+    assert cam.focal * C.SUBJECT_HEIGHT_M / 50.0 == pytest.approx(0.5 * H, rel=1e-12)
 
 
 @pytest.mark.parametrize("override,msg", [

@@ -17,7 +17,9 @@ DT = torch.float64
 
 
 def _one_error_line(capsys, command: str) -> str:
-    err = capsys.readouterr().err
+    """The bad-input contract's stderr (one line naming what is wrong) and stdout (nothing) of the last run."""
+    out, err = capsys.readouterr()
+    assert out == "", out
     assert err.startswith(f"torchskin {command}: error: ") and err.count("\n") == 1, err
     assert "Traceback" not in err
     return err

@@ -144,10 +144,12 @@ def test_cli_errors_write_nothing(tmp_path):
                       (["--coefficients", str(tmp_path / "missing.json")], "missing.json' does not exist")]:
         r = run_cli(["--cube", cube, *args, "--out", str(out)])
         assert r.returncode == 2 and msg in r.stderr, r.stderr
+        assert r.stdout == "" and len(r.stderr.strip().splitlines()) == 1, (r.stdout, r.stderr)  # one line, no more
         assert not out.exists()
     r = run_cli(["--cube", str(tmp_path / "none.npy"), "--panel", "4:20:4:20=0.97", "--panel", "4:20:40:56=0.03",
                  "--out", str(out)])
     assert r.returncode == 2 and "--cube" in r.stderr and "does not exist" in r.stderr and not out.exists()
+    assert r.stdout == "" and len(r.stderr.strip().splitlines()) == 1, (r.stdout, r.stderr)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dn.npy"]  # no temporary file left behind
 
 

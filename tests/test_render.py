@@ -378,11 +378,14 @@ def test_several_skins_in_one_batch_match_one_render_per_skin():
         torch.testing.assert_close(both.reflectance[2 * k:2 * k + 2], one.reflectance)
 
 
-@pytest.mark.parametrize("shape", [(2, 1, 4096, 4), (1, 2, 1001, 4), (3, 1, 50, 3)])
+@pytest.mark.parametrize("shape", [(2, 1, 4096, 4), (1, 2, 1001, 4), (3, 1, 50, 3),  # full 64-wide rows + a tail
+                                   (3, 2, 1, 4), (3, 2, 5, 4), (3, 2, 16, 4), (3, 2, 17, 4)])  # none, one, one + 1
 def test_band_max_equals_amax(shape):
+    """``sensor.band_max`` (the auto-exposure's frame maximum, reduced as 64-wide rows) is ``amax`` over the
+    pixels, for negative values too (sensor noise), whole rows or not, contiguous or strided."""
     from torchskin.render.sensor import band_max
 
-    x = torch.rand(shape, generator=torch.Generator().manual_seed(sum(shape)))
+    x = torch.randn(shape, generator=torch.Generator().manual_seed(sum(shape))) - 1.0
     assert torch.equal(band_max(x), x.amax(dim=2))
     assert torch.equal(band_max(x.transpose(0, 1).contiguous().transpose(0, 1)), x.amax(dim=2))  # strided input
 

@@ -1,6 +1,6 @@
 """The renderer's per-pixel kernels (``render.kernels``): compiled and eager paths agree, the noise draw is the
 same, one compilation serves every frame size, the eager fallback without a compiler; shadow rays only where
-they matter; helpers (band tiles, band maxima, vertex normals)."""
+they matter; helpers (band tiles, vertex normals; ``sensor.band_max`` is tested in test_render.py)."""
 
 import math
 import warnings
@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 import torch
 
+from torchskin.detect import DEFAULT_BOX, RulesBox, rules_detector
 from torchskin.render import kernels
 from torchskin.render.kernels import KERNELS, band_tiles, compiler_available, tile
 from torchskin.render.meshes import vertex_normals
 from torchskin.render.pipeline import render, render_pixels
 from torchskin.render.raycast import Raycaster
 from torchskin.render.scene import Camera, Material, MeshSpec, Scene, Sun
-from torchskin.render.sensor import Sensor, band_max
+from torchskin.render.sensor import Sensor
 
 needs_compiler = pytest.mark.skipif(not compiler_available("cpu"), reason="no C++ compiler for torch.compile")
 slow = pytest.mark.slow  # compiles (seconds to tens of seconds with a cold Inductor cache)
@@ -43,13 +44,32 @@ def close(a: torch.Tensor, b: torch.Tensor, rtol: float = 1e-5) -> float:
     return float(((a - b).abs() / scale).max())
 
 
+def mask_differs_off_edges(a: torch.Tensor, b: torch.Tensor, ndgri: torch.Tensor, ndsi: torch.Tensor,
+                           box: RulesBox, eps: float) -> torch.Tensor:
+    """Pixels where rules masks ``a`` and ``b`` differ although neither index lies within ``eps`` of an edge
+    of ``box`` (the box the masks were made with: its edges come from it, not from copies of its numbers)."""
+    near_g = ((ndgri[..., None] - torch.tensor([box.b1, box.b2])).abs() < eps).any(-1)
+    near_s = ((ndsi[..., None] - torch.tensor([box.c1, box.c2])).abs() < eps).any(-1)
+    return (a != b) & ~(near_g | near_s)
+
+
+def test_mask_edge_exemption_uses_the_detectors_box():
+    """The exemption above: a flip at each of the box's edges is excused, one 1e-3 inside it is not."""
+    box = DEFAULT_BOX
+    g = torch.tensor([box.b1, box.b2, -0.3, -0.3, -0.3, -0.3])
+    s = torch.tensor([0.7, 0.7, box.c1, box.c2, box.c2 - 1e-3, 0.7])
+    a = rules_detector(g, s, box)
+    flipped = ~a
+    assert mask_differs_off_edges(flipped, a, g, s, box, 1e-5).tolist() == [False] * 4 + [True, True]
+
+
 @slow
 @needs_compiler
 def test_compiled_frame_equals_eager_without_noise():
     sc = scene()
     sensor = Sensor(noise=False, quantize=False)
-    eager = render(sc, sensor=sensor, elm="brdf", compile=False)
-    comp = render(sc, sensor=sensor, elm="brdf", compile=True)
+    eager = render(sc, sensor=sensor, elm="brdf", box=DEFAULT_BOX, compile=False)
+    comp = render(sc, sensor=sensor, elm="brdf", box=DEFAULT_BOX, compile=True)
     gb_e, gb_c = eager.gbuffer, comp.gbuffer
     for f in ("hit", "material", "mesh", "shadow"):
         assert torch.equal(getattr(gb_e, f), getattr(gb_c, f)), f
@@ -61,11 +81,8 @@ def test_compiled_frame_equals_eager_without_noise():
     assert torch.equal(comp.lit, eager.lit)
     for f in ("ndgri", "ndsi"):
         assert float((getattr(comp, f) - getattr(eager, f)).nan_to_num().abs().max()) < 1e-5, f
-    # the rules mask may differ only where an index sits within 1e-5 of a box edge
-    differ = comp.mask != eager.mask
-    edges = torch.tensor([-0.54079, -0.061525, 0.65703, 0.8])
-    near = ((eager.ndgri[..., None] - edges[:2]).abs() < 1e-5).any(-1) | ((eager.ndsi[..., None] - edges[2:]).abs() < 1e-5).any(-1)
-    assert not (differ & ~near).any()
+    # the rules mask may differ only where an index sits within 1e-5 (the indices' agreement above) of an edge
+    assert not mask_differs_off_edges(comp.mask, eager.mask, eager.ndgri, eager.ndsi, DEFAULT_BOX, 1e-5).any()
 
 
 @slow
@@ -197,12 +214,6 @@ def test_band_tiles_keep_every_value_with_its_band(pixels, bands):
     assert torch.equal((view * tiled).reshape(x.shape), x * per[:, :, None, :])
     c = torch.rand(bands)
     assert torch.equal((view * tile(c, k)).reshape(x.shape), x * c)
-
-
-@pytest.mark.parametrize("n", [1, 5, 16, 17, 1003])
-def test_band_max_equals_amax(n):
-    x = torch.randn(3, 2, n, 4)
-    assert torch.equal(band_max(x), x.amax(dim=2))
 
 
 def test_vertex_normals_are_the_area_weighted_sums():

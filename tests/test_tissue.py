@@ -15,15 +15,34 @@ DT = torch.float64
 BANDS = torch.tensor([b.center_nm for b in DEFAULT_BANDS], dtype=DT)
 
 
+def box_percentiles(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """NDGRI/NDSI 0.5/99.5 % percentiles (b1, b2, c1, c2 order) of ``T.sample(n, seed)`` and, per percentile,
+    the half-width of its distribution-free 2-sigma interval: the order statistics n p -+ 2 sqrt(n p (1 - p))."""
+    skins, _ = T.sample(n, seed, dtype=DT)
+    q, half = [], []
+    for x in indices(T.reflectance(skins, BANDS)):
+        xs = x.sort().values
+        for p in (0.005, 0.995):
+            q.append(torch.quantile(x, p))
+            k, d = p * (n - 1), 2 * math.sqrt(n * p * (1 - p))
+            half.append((xs[min(n - 1, math.ceil(k + d))] - xs[max(0, math.floor(k - d))]) / 2)
+    return torch.stack(q), torch.stack(half)
+
+
 def test_box_calibration_percentiles_match_thesis_box():
-    """Over `torchskin spectra --sample 2000 --seed 0` the 0.5/99.5 % index percentiles sit on the box."""
-    skins, _ = T.sample(2000, 0, dtype=DT)
-    g, s = indices(T.reflectance(skins, BANDS))
-    q = torch.tensor([0.005, 0.995], dtype=DT)
-    qg, qs = torch.quantile(g, q), torch.quantile(s, q)
-    box = DEFAULT_BOX
-    assert abs(qg[0] - box.b1) <= 0.05 and abs(qg[1] - box.b2) <= 0.05, qg
-    assert abs(qs[0] - box.c1) <= 0.05 and abs(qs[1] - box.c2) <= 0.05, qs
+    """The layer constants were fitted (scripts/fit_skin_layers.py) so that over its box sample (seed 12346,
+    8000 skins) the 0.5/99.5 % index percentiles sit on the box; over `torchskin spectra --sample 2000 --seed 0`
+    they then differ from those by sampling alone."""
+    box = torch.tensor([DEFAULT_BOX.b1, DEFAULT_BOX.b2, DEFAULT_BOX.c1, DEFAULT_BOX.c2], dtype=DT)
+    fitted, fitted_half = box_percentiles(8000, 12346)
+    # the fit's box term is flat-ish within BOX_TOL = 0.01 of each edge and steep beyond, where it balances the
+    # ISSA and NIR terms a few 1e-4 past it (0.0003 at the committed constants): 0.001 allowed for that and the
+    # rounding of the constants to the printed digits
+    assert ((fitted - box).abs() <= 0.01 + 0.001).all(), fitted - box
+    # the seed-0 sample: 0.5 % tails of 2000 skins hold 10 of them; its percentiles and the fit sample's each lie
+    # within their 2-sigma order-statistic intervals of the population's, so within the sum of the half-widths
+    q, half = box_percentiles(2000, 0)
+    assert ((q - fitted).abs() <= half + fitted_half).all(), (q - fitted, half + fitted_half)
 
 
 def test_every_preset_inside_the_box():

@@ -437,8 +437,7 @@ def _checkpoint(path, what: str):
 
     from .evaluate import load_model
 
-    if not Path(path).is_file():
-        raise ValueError(f"{what} {str(path)!r} does not exist")
+    check_input_file(path, what)  # missing, a folder or unreadable: says which
     model, ck = load_model(path, what)
     return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
 
