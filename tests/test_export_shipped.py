@@ -242,3 +242,25 @@ def reference_box_figures(data_dir, onnx_path, floor: float) -> dict:
     return {"sunlit": int(sunlit.sum()), "hits": int((hit & sunlit).sum()),
             "at_edge": int((sunlit & (edges < 1e-6)).sum()), "configurations": len(first),
             "area_mean": float((w * h).mean()), "perimeter_mean": float((2 * (w + h)).mean())}
+
+
+def test_selection_ships_only_graphs_that_meet_the_onboard_budget():
+    """A classifier with the highest Pd inside the budgets is reported, not shipped, while a box model is
+    eligible (its per-pixel MLP is ~40x the box graph's onboard time); with no box model, or when its kind is
+    allowed, it is chosen."""
+    from torchskin.evaluate import ONBOARD_KINDS, select_detector
+
+    def model(name, kind, pd, pfa=0.0, scene=0.0, area=0.3):
+        return {"name": name, "kind": kind, "overall": {"pd_sunlit": pd, "pfa": pfa, "pfa_scene": scene},
+                "area": {"mean": area}}
+
+    boxes, clf = model("b.pt", "boxes", 0.962), model("c.pt", "classifier", 0.984, 3e-5, 4e-5, 0.8)
+    static = model("static box (thesis)", "static", 0.465)
+    assert ONBOARD_KINDS == ("boxes",)
+    name, why = select_detector({"models": [boxes, clf, static]})
+    assert name == "b.pt" and "onboard cost" in why and "c.pt" in why.split("onboard cost")[1]
+    assert select_detector({"models": [boxes, clf, static]}, onboard_kinds=("boxes", "classifier"))[0] == "c.pt"
+    assert select_detector({"models": [clf, static]})[0] == "c.pt"  # nothing meets the onboard budget: best Pd
+    # within the Pd tolerance a box model with the smaller region wins, whatever the order
+    other = model("b2.pt", "boxes", 0.960, area=0.25)
+    assert select_detector({"models": [boxes, other, static]})[0] == "b2.pt"

@@ -204,12 +204,13 @@ def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence
     domain = torch.as_tensor(domain, dtype=torch.float32)
     with torch.random.fork_rng(devices=[]):  # nn.Linear's default initialisation draws from the global generator
         model = SkinClassifier(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
-    with torch.no_grad():  # the MLP's weights from the seed, its output layer at zero: it starts as fit_linear's
-        for p in model.net.parameters():
-            fan_in = p.shape[-1] if p.ndim > 1 else p.shape[0]
-            p.copy_((torch.rand(p.shape, generator=g) * 2 - 1) / math.sqrt(fan_in))
-        model.net[-1].weight.zero_()
-        model.net[-1].bias.zero_()
+    with torch.no_grad():  # the MLP's weights from the seed (uniform +-1/sqrt(fan-in), as nn.Linear's default), its
+        layers = [m for m in model.net if isinstance(m, nn.Linear)]  # output layer at zero: it starts as fit_linear's
+        for layer in layers:
+            for p in (layer.weight, layer.bias):
+                p.copy_((torch.rand(p.shape, generator=g) * 2 - 1) / math.sqrt(layer.in_features))
+        layers[-1].weight.zero_()
+        layers[-1].bias.zero_()
     _, inv = distinct_configs(Xp)  # every configuration weighs the same among the positives
     cnt = torch.bincount(inv).float()
     wp = (1.0 / cnt[inv])
