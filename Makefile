@@ -63,7 +63,7 @@ lint: setup
 	$(VENV)/bin/mypy
 
 # the suite, then the reproducibility tests again with torch's AVX2 kernels (ATEN_CPU_CAPABILITY=avx2: on a CPU
-# with AVX-512 the first run used those; pytest's header names the capability of each run)
+# with AVX-512 the first run used those; each run ends with a line naming the capability it used)
 test: lint
 	@$(PY) -m pytest -q; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; exit 1; fi; \

@@ -24,7 +24,7 @@ def dtype_for(device):
     return torch.float32 if device.type == "mps" else torch.float64
 
 
-def pytest_report_header(config):
+def capability_line() -> str:
     """The CPU capability torch's kernels run with (ATEN_CPU_CAPABILITY chooses a lower one) and the thread count:
     what a run of the reproducibility tests exercised."""
     import os
@@ -33,3 +33,11 @@ def pytest_report_header(config):
     forced = os.environ.get("ATEN_CPU_CAPABILITY")
     return (f"torch {torch.__version__}: CPU capability {cap}" + (f" (ATEN_CPU_CAPABILITY={forced})" if forced else "")
             + f", {torch.get_num_threads()} intra-op threads")
+
+
+def pytest_report_header(config):
+    return capability_line()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    terminalreporter.write_line(capability_line())  # also under -q, which leaves the header out

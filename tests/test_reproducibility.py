@@ -3,8 +3,8 @@ bytes depend on the configuration and the seed alone (not on the thread count, t
 which a library sums).
 
 `make test` runs this module twice: with the CPU's own kernels and again under ``ATEN_CPU_CAPABILITY=avx2``
-(pytest's header names the capability of each run). No assertion here follows an optimisation trajectory: the
-learners are judged by what they learned, against bounds derived in the comments.
+(each run ends with a line naming the capability it used). No assertion here follows an optimisation
+trajectory: the learners are judged by what they learned, against bounds derived in the comments.
 """
 
 import contextlib
