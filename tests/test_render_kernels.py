@@ -239,3 +239,18 @@ def test_kernel_functions_keep_their_device_and_dtype(device):
     assert torch.allclose(refl.reshape(sig.shape), (sig - 12.0) / 900.0, rtol=1e-6)
     assert math.isclose(float(g[0]), float((refl.reshape(-1, 4)[0, 0] - refl.reshape(-1, 4)[0, 1])
                                             / (refl.reshape(-1, 4)[0, 0] + refl.reshape(-1, 4)[0, 1])), rel_tol=1e-6)
+
+
+def test_inductor_cache_is_one_folder_per_cpu_capability(monkeypatch, tmp_path):
+    """Kernels compiled for one vector ISA are never loaded under another (torch's own cache does not key CPU
+    kernels on it): the default folder names the torch version and the CPU capability; a user's
+    TORCHINDUCTOR_CACHE_DIR is kept as given."""
+    from torchskin.devices import inductor_cache_dir
+
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    got = inductor_cache_dir()
+    assert got == str(tmp_path / "torchskin" / "inductor" /
+                      f"{torch.__version__}-{torch.backends.cpu.get_cpu_capability()}")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    assert inductor_cache_dir() == str(tmp_path / "mine") and str(kernels.cache_dir()) == str(tmp_path / "mine")

@@ -52,3 +52,26 @@ def check_device(name: str | torch.device, option: str = "--device") -> torch.de
 
 
 __all__ = ["available_devices", "check_device"]
+
+
+def inductor_cache_dir() -> str:
+    """Where torch.compile (Inductor) keeps compiled kernels between runs: ``TORCHINDUCTOR_CACHE_DIR`` when set,
+    else ``~/.cache/torchskin/inductor/<torch version>-<CPU capability>`` (``XDG_CACHE_HOME`` honoured). One folder
+    per CPU capability: torch 2.13's cache does not key its CPU kernels on the vector ISA, and kernels built for
+    AVX-512 and loaded under ``ATEN_CPU_CAPABILITY=avx2`` computed garbage (NaN, 1e31) in this project's tests."""
+    import os
+    from pathlib import Path
+
+    if os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
+        return os.environ["TORCHINDUCTOR_CACHE_DIR"]
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "torchskin" / "inductor"
+    return str(base / f"{torch.__version__}-{torch.backends.cpu.get_cpu_capability()}")
+
+
+def use_inductor_cache() -> None:
+    """Point Inductor at ``inductor_cache_dir()`` before a first ``torch.compile`` (it reads the variable when it
+    first compiles)."""
+    import os
+
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", inductor_cache_dir())
+

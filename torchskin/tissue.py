@@ -669,6 +669,9 @@ class CompiledKernels:
         """The compiled ``fn`` cached under ``name`` (compiled on first use, ``dynamic=False``)."""
         kernel = self._kernels.get(name)
         if kernel is None:
+            from .devices import use_inductor_cache
+
+            use_inductor_cache()  # one cache folder per CPU capability
             kernel = self._kernels[name] = torch.compile(fn, dynamic=False)
         return kernel
 

@@ -13,7 +13,8 @@ Random draws never happen inside a kernel: noise is drawn eagerly with the calle
 so a seed gives the same noise whichever path runs.
 
 Inductor keeps compiled kernels on disk between runs (``TORCHINDUCTOR_CACHE_DIR``; torchskin sets it to
-``~/.cache/torchskin/inductor`` unless it is set already).
+``~/.cache/torchskin/inductor/<torch version>-<CPU capability>`` unless it is set already:
+``devices.inductor_cache_dir``).
 """
 
 from __future__ import annotations
@@ -30,12 +31,12 @@ from pathlib import Path
 import torch
 
 from ..detect import RulesBox, normalized_difference, rules_detector
+from ..devices import inductor_cache_dir, use_inductor_cache
 
 
 def cache_dir() -> Path:
-    """Where Inductor keeps compiled kernels between runs."""
-    return Path(os.environ.get("TORCHINDUCTOR_CACHE_DIR")
-                or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "torchskin" / "inductor")
+    """Where Inductor keeps compiled kernels between runs (``devices.inductor_cache_dir``)."""
+    return Path(inductor_cache_dir())
 
 
 def compiler_available(device: torch.device | str = "cpu") -> bool:
@@ -78,7 +79,7 @@ class StageKernels:
                                                    "on CUDA)")
             return fn
         if key not in self._compiled:
-            os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir()))
+            use_inductor_cache()
             self._compiled[key] = torch.compile(fn)
         compiled = self._compiled[key]
 
