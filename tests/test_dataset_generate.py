@@ -330,7 +330,7 @@ def test_clothing_is_a_measured_spectrum_of_the_partition():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not compiler_available("cpu"), reason="no C++ compiler for torch.compile")
+@pytest.mark.skipif(not compiler_available("cpu"), reason="no compiled CPU kernels here (devices.compiler_problem)")
 def test_compiled_generation_matches_eager(tmp_path, subject_obj):
     import pandas as pd
 

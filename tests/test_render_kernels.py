@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from torchskin.detect import DEFAULT_BOX, RulesBox, rules_detector
+from torchskin.devices import compiler_problem
 from torchskin.render import kernels
 from torchskin.render.kernels import KERNELS, band_tiles, compiler_available, tile
 from torchskin.render.meshes import vertex_normals
@@ -18,7 +19,8 @@ from torchskin.render.raycast import Raycaster
 from torchskin.render.scene import Camera, Material, MeshSpec, Scene, Sun
 from torchskin.render.sensor import Sensor
 
-needs_compiler = pytest.mark.skipif(not compiler_available("cpu"), reason="no C++ compiler for torch.compile")
+needs_compiler = pytest.mark.skipif(not compiler_available("cpu"), reason=f"no compiled CPU kernels here: "
+                                                                         f"{compiler_problem('cpu')}")
 slow = pytest.mark.slow  # compiles (seconds to tens of seconds with a cold Inductor cache)
 
 

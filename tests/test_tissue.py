@@ -2,6 +2,7 @@
 autograd and input validation."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -10,6 +11,7 @@ from conftest import dtype_for
 from torchskin import tissue as T
 from torchskin.bands import DEFAULT_BANDS
 from torchskin.detect import DEFAULT_BOX, indices, rules_detector
+from torchskin.devices import compiler_problem
 
 DT = torch.float64
 BANDS = torch.tensor([b.center_nm for b in DEFAULT_BANDS], dtype=DT)
@@ -214,13 +216,32 @@ def test_sampling_is_reproducible_and_within_type_ranges():
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(compiler_problem("cpu") is not None, reason=str(compiler_problem("cpu")))
 def test_compiled_path_equals_eager():
-    """``compile=True`` (torch.compile of the hot loop) gives the eager result."""
+    """``compile=True`` (torch.compile of the hot loop) gives the eager result, compiled (no eager fallback)."""
     skins, _ = T.sample(64, 9, dtype=torch.float32)
     wl = T.wavelength_grid(400, 1700, 20, dtype=torch.float32)
     eager = T.total_reflectance(skins, wl)
-    comp = T.total_reflectance(skins, wl, compile=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a fallback to the eager loop would warn
+        comp = T.total_reflectance(skins, wl, compile=True, kernels=T.CompiledKernels())
     assert float((comp - eager).abs().max()) < 1e-5
+
+
+def test_compile_where_unvalidated_runs_the_eager_loop_with_one_warning(monkeypatch):
+    """On a CPU capability whose Inductor kernels are not validated (AVX2 here: wrong values, see
+    ``devices.COMPILED_CPU_CAPABILITIES``) ``compile=True`` warns once and gives the eager result, bit for bit."""
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")
+    assert "AVX2" in str(compiler_problem("cpu"))
+    skins, _ = T.sample(8, 1, dtype=torch.float64)
+    wl = T.wavelength_grid(450, 1600, 50, dtype=torch.float64)
+    kernels = T.CompiledKernels()
+    with pytest.warns(RuntimeWarning, match="eagerly: compiled CPU kernels are validated only for AVX512"):
+        comp = T.total_reflectance(skins, wl, compile=True, kernels=kernels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per kernel and device
+        again = T.total_reflectance(skins, wl, compile=True, kernels=kernels)
+    assert torch.equal(comp, T.total_reflectance(skins, wl)) and torch.equal(again, comp)
 
 
 def test_compiled_kernel_cache_is_an_explicit_object():

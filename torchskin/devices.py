@@ -75,3 +75,40 @@ def use_inductor_cache() -> None:
 
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", inductor_cache_dir())
 
+
+#: torch CPU capabilities whose Inductor kernels this project has validated (compiled = eager in every test). Under
+#: AVX2 (``ATEN_CPU_CAPABILITY=avx2`` on an AVX-512 machine, torch 2.13) Inductor's kernels for the skin model and
+#: the renderer returned garbage (1e31, NaN) in every other 8-float block after unrelated float64 work in the same
+#: process (an L-BFGS fit), with a cold or warm cache, one thread or two: a wrong answer without an error. Until a
+#: torch release is shown free of it, other capabilities run the eager kernels.
+COMPILED_CPU_CAPABILITIES = ("AVX512",)
+
+
+def compiler_problem(device: torch.device | str = "cpu") -> str | None:
+    """Why ``torch.compile`` cannot be used for ``device`` here (None: it can): on the CPU a C++ compiler
+    (``CXX``, else g++, c++ or clang++ on the PATH) and a validated CPU capability (``COMPILED_CPU_CAPABILITIES``);
+    Triton on CUDA; MPS has Inductor's Metal backend.
+
+    >>> compiler_problem("meta")
+    "no torch.compile backend for 'meta' here"
+    """
+    import importlib.util
+    import os
+    import shutil
+
+    kind = torch.device(device).type
+    if kind == "cpu":
+        names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "c++", "clang++"]
+        if not any(shutil.which(n) for n in names):
+            return "no C++ compiler (install g++)"
+        cap = torch.backends.cpu.get_cpu_capability()
+        if not cap.upper().startswith(COMPILED_CPU_CAPABILITIES):
+            return (f"compiled CPU kernels are validated only for {', '.join(COMPILED_CPU_CAPABILITIES)}, torch runs "
+                    f"{cap} here (torch 2.13's AVX2 kernels computed wrong values in this project's tests)")
+        return None
+    if kind == "cuda":
+        return None if importlib.util.find_spec("triton") is not None else "no triton for CUDA"
+    if kind == "mps":
+        return None
+    return f"no torch.compile backend for {kind!r} here"
+

@@ -665,14 +665,24 @@ class CompiledKernels:
     def __init__(self) -> None:
         self._kernels: dict[str, Callable[..., torch.Tensor]] = {}
 
-    def get(self, name: str, fn: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
-        """The compiled ``fn`` cached under ``name`` (compiled on first use, ``dynamic=False``)."""
-        kernel = self._kernels.get(name)
+    def get(self, name: str, fn: Callable[..., torch.Tensor],
+            device: torch.device | str = "cpu") -> Callable[..., torch.Tensor]:
+        """The compiled ``fn`` cached under ``name`` for ``device``'s type (compiled on first use,
+        ``dynamic=False``); ``fn`` itself, with one warning, where ``devices.compiler_problem`` names a reason."""
+        key = f"{name}:{torch.device(device).type}"
+        kernel = self._kernels.get(key)
         if kernel is None:
-            from .devices import use_inductor_cache
+            from .devices import compiler_problem, use_inductor_cache
 
+            why = compiler_problem(device)
+            if why is not None:
+                import warnings
+
+                warnings.warn(f"running the skin model's {name} kernel eagerly: {why}", RuntimeWarning, stacklevel=3)
+                kernel = self._kernels[key] = fn
+                return kernel
             use_inductor_cache()  # one cache folder per CPU capability
-            kernel = self._kernels[name] = torch.compile(fn, dynamic=False)
+            kernel = self._kernels[key] = torch.compile(fn, dynamic=False)
         return kernel
 
     def clear(self) -> None:
@@ -720,7 +730,7 @@ def _evaluate(params: SkinParams, wavelengths: TensorLike, r0: TensorLike | None
         if r0.dim() > 1 or (r0.dim() == 1 and r0.shape[0] not in (1, wl.numel())):
             late_r0, r0 = r0, None  # batch-dependent surface: applied after the blocked stack
     fn: Callable[..., torch.Tensor] = (
-        (COMPILED_KERNELS if kernels is None else kernels).get("stack", _stack) if compile else _stack)
+        (COMPILED_KERNELS if kernels is None else kernels).get("stack", _stack, wl.device) if compile else _stack)
     cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
     n = cols[0].shape[0]
     block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // max(wl.numel(), 1))

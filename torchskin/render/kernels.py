@@ -19,10 +19,7 @@ Inductor keeps compiled kernels on disk between runs (``TORCHINDUCTOR_CACHE_DIR`
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import os
-import shutil
 import time
 import warnings
 from collections.abc import Callable
@@ -31,7 +28,7 @@ from pathlib import Path
 import torch
 
 from ..detect import RulesBox, normalized_difference, rules_detector
-from ..devices import inductor_cache_dir, use_inductor_cache
+from ..devices import compiler_problem, inductor_cache_dir, use_inductor_cache
 
 
 def cache_dir() -> Path:
@@ -40,15 +37,9 @@ def cache_dir() -> Path:
 
 
 def compiler_available(device: torch.device | str = "cpu") -> bool:
-    """Whether ``torch.compile`` can generate kernels for ``device``: a C++ compiler on the CPU (``CXX``, else
-    g++, c++ or clang++ on the PATH), Triton on CUDA; MPS has Inductor's Metal backend."""
-    kind = torch.device(device).type
-    if kind == "cpu":
-        names = [os.environ["CXX"]] if os.environ.get("CXX") else ["g++", "c++", "clang++"]
-        return any(shutil.which(n) for n in names)
-    if kind == "cuda":
-        return importlib.util.find_spec("triton") is not None
-    return kind == "mps"
+    """Whether ``torch.compile`` kernels are used for ``device`` (``devices.compiler_problem`` is None: a C++
+    compiler and a validated CPU capability on the CPU, Triton on CUDA, Metal on MPS)."""
+    return compiler_problem(device) is None
 
 
 class StageKernels:
@@ -75,8 +66,7 @@ class StageKernels:
         if not compile or key in self._failed:
             return fn
         if not compiler_available(kind):  # one warning per device, not per kernel
-            self._fail(("compiled kernels", kind), "no compiler for this device (install g++ on the CPU, triton "
-                                                   "on CUDA)")
+            self._fail(("compiled kernels", kind), compiler_problem(kind) or "no compiler for this device")
             return fn
         if key not in self._compiled:
             use_inductor_cache()
