@@ -21,7 +21,7 @@ from torchskin.detect import DEFAULT_BOX
 from torchskin.render.elm import panel_pixels, panel_references, panel_values
 from torchskin.render.kernels import compiler_available
 from torchskin.render.materials import MaterialCache
-from torchskin.render.pipeline import calibrate_detect, render
+from torchskin.render.pipeline import calibrate_detect, render, scene_light
 from torchskin.render.raycast import Raycaster
 from torchskin.render.scene import Camera, Scene, Sun, default_scene
 from torchskin.render.sensor import Sensor, sensor_signal
@@ -62,12 +62,15 @@ def costs(sc: Scene, rc: Raycaster, compiled: bool, n: int) -> dict[str, float]:
            "gbuffer_with_casts": median_ms(lambda: rc.gbuffer(sc.cameras, sun_dirs, compiled), n)}
     cache, sensor = MaterialCache(), Sensor()
     out["frame"] = median_ms(lambda: render(sc, sensor=sensor, raycaster=rc, cache=cache, compile=compiled), n)
-    tables = cache.compile(sc.materials, sc.bands, sc.suns, gb.material_names)
+    tables = cache.compile(sc.materials, sc.bands, sc.suns, gb.material_names, illumination=sc.illumination)
     dirs = torch.tensor(sun_dirs, dtype=torch.float32)
-    sky = torch.tensor([s.sky_fraction for s in sc.suns])
+    light = scene_light(sc)
+    if light.needs_sky_view:
+        out["sky_view"] = median_ms(lambda: rc.with_sky_view(gb), n)
+        gb = rc.with_sky_view(gb)
     out["panel_pixels"] = median_ms(lambda: panel_pixels(gb, list(sc.panels)), n)
-    out["shade"] = median_ms(lambda: shade(gb, tables, dirs, sky, compile=compiled), n)
-    radiance = shade(gb, tables, dirs, sky).radiance
+    out["shade"] = median_ms(lambda: shade(gb, tables, light, dirs, compile=compiled), n)
+    radiance = shade(gb, tables, light, dirs).radiance
     out["sensor_without_noise"] = median_ms(
         lambda: sensor_signal(radiance, Sensor(noise=False), sc.band_list, sc.cameras[0].focal, compile=compiled), n)
     gen = torch.Generator().manual_seed(0)

@@ -3,10 +3,11 @@
 
     python scripts/pipeline_train.py [--work out/pipeline] [--steps 1000]
 
-Writes WORK/boundaries.pt (configuration-dependent coverage boxes with the visible/NIR rule, earthlib train
-spectra kept 0.03 outside, Pfa budget 1e-3: `torchskin train` defaults), WORK/baseline_box.pt (the same
-training with one box for every configuration: --hidden 0) and WORK/classifier.pt (a configuration-conditioned
-MLP on band ratios, thresholded at the same budget)."""
+Writes WORK/boundaries.trained.pt (configuration-dependent coverage boxes of sunlit and shadowed skin with a
+learned visible/NIR rule, earthlib train spectra kept 0.03 outside at Pfa <= 1e-3 and the dataset's own non-skin
+pixels at <= 1e-4: `torchskin train` defaults), WORK/baseline_box.trained.pt (the same training with one box for
+every configuration: --hidden 0) and WORK/classifier.trained.pt (a configuration-conditioned MLP on band
+ratios, thresholded at the same budgets); step 3 calibrates them on the held-out set."""
 
 import argparse
 import sys
@@ -26,7 +27,7 @@ def run(argv=None) -> int:
     for name, extra in (("boundaries", BOX_OPTIONS), ("baseline_box", [*BOX_OPTIONS, "--hidden", "0"]),
                         ("classifier", ["--method", "classifier"])):
         print(f"[train] {name}", flush=True)
-        rc = main(["train", *common, "--out", f"{a.work}/{name}.pt", *extra])
+        rc = main(["train", *common, "--out", f"{a.work}/{name}.trained.pt", *extra])
         if rc:
             return rc
     return 0

@@ -66,6 +66,7 @@ def run(argv=None) -> int:
 
     from torchskin import boundaries as Bd
     from torchskin import classifier as Cl
+    from torchskin import tissue
     from torchskin.export import BoxDetector, ClassifierDetector
     from torchskin.onboard import Boundaries, OnboardDetector
 
@@ -107,7 +108,9 @@ def run(argv=None) -> int:
     ck = torch.load(src, map_location="cpu", weights_only=True)
     reference = ClassifierDetector(Cl.load(src)) if ck.get("kind") == "classifier" else BoxDetector(Bd.load(src))
     rng = np.random.default_rng(0)
-    skin = np.array([0.30, 0.55, 0.55, 0.07], dtype=np.float32)[:, None, None]
+    # the Type I/II preset's diffuse-model reflectance in the index bands (normal incidence): a skin spectrum
+    bands = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64)
+    skin = tissue.reflectance(tissue.preset("I-II"), bands).reshape(4).float().numpy()[:, None, None]
     cube = (rng.random((2, 4, 256, 256)) * 0.6).astype(np.float32)
     cube[:, :, 64:192, 64:192] = skin * (0.8 + 0.4 * rng.random((2, 1, 128, 128))).astype(np.float32)
     c2 = cfg[:2].numpy()
@@ -136,11 +139,18 @@ def run(argv=None) -> int:
     test = json.loads((out / "evaluation_test.json").read_text())
     for m in test["models"]:
         o, h = m["overall"], m["sun_zenith_ge_60"]
-        print(f"[verify] fresh test set: {m['name']:<20} Pd sunlit {o['pd_sunlit']:.3f}, sun >= 60° mean over "
-              f"configurations {h['pd_sunlit_mean_over_configs']:.3f}, Pfa earthlib {o['pfa']:.2e}, scene "
-              f"{o['pfa_scene']:.2e}, area {m['area']['mean']:.3f}")
-    if a.reference and Path(a.reference).is_file() and Path(a.reference).stat().st_size:
-        for ok, line in compare_figures(json.loads(Path(a.reference).read_text()), test):
+        print(f"[verify] fresh test set: {m['name']:<20} Pd sunlit {o['pd_sunlit']:.3f}, shadow "
+              f"{o['pd_shadow']:.3f}, backlit {o['pd_backlit']:.3f}, sun >= 60° mean over configurations "
+              f"{h['pd_sunlit_mean_over_configs']:.3f}, Pfa earthlib {o['pfa']:.2e}, scene {o['pfa_scene']:.2e}, "
+              f"area {m['area']['mean']:.3f}")
+    ref = json.loads(Path(a.reference).read_text()) if a.reference and Path(a.reference).is_file() \
+        and Path(a.reference).stat().st_size else None
+    if ref is not None and ref.get("render_revision") != test.get("render_revision"):
+        print(f"[verify] the reference was rendered by render revision {ref.get('render_revision')}, this run by "
+              f"{test.get('render_revision')}: the renderer changed, so the figures are not compared (commit the "
+              "new exports to compare against them)")
+    elif ref is not None:
+        for ok, line in compare_figures(ref, test):
             check(ok, f"reproduced within tolerance: {line}")
     else:
         print(f"[verify] no reference evaluation ({a.reference or 'none given'}): figures not compared")

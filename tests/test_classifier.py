@@ -33,8 +33,24 @@ def synthetic(n=3000, seed=0, shadowed=600):
 @pytest.fixture(scope="module")
 def trained():
     X, R, label, sunlit = synthetic()
-    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, max_tuning_configs=50)
+    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, max_tuning_configs=50,
+                                      sunlit_only=True, scene_budget=None)
     return X, R, label & sunlit, model, info  # the sunlit skin: what the classifier is trained and scored on
+
+
+def test_classifier_holds_the_scene_budget_on_its_training_non_skin():
+    """With scene_budget, the threshold also keeps the training non-skin pixels called skin within the budget (and
+    never lowers the earthlib threshold)."""
+    X, R, label, sunlit = synthetic()
+    free, fi = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=150, batch=2048, max_tuning_configs=50,
+                                   sunlit_only=True, scene_budget=None)
+    held, hi = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=150, batch=2048, max_tuning_configs=50,
+                                   sunlit_only=True, scene_budget=0.0)
+    assert hi["threshold"] >= fi["threshold"] and hi["scene_budget"] == 0.0
+    with torch.no_grad():
+        assert float(held.decide(R[~label], X[~label]).float().mean()) == 0.0
+    with pytest.raises(ValueError, match="scene_budget"):
+        Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=1, scene_budget=1.5)
 
 
 def test_ratio_features_are_scale_invariant_and_safe():

@@ -1,6 +1,7 @@
 """The `torchskin` command line: JSON contract, plots, errors."""
 
 import json
+import math
 import subprocess
 import sys
 
@@ -106,3 +107,51 @@ def test_render_compile_without_a_compiler_warns_once_in_one_line(tmp_path):
     assert lines == ["torchskin render: warning: running compiled kernels eagerly on cpu: no C++ compiler (install g++)"]
     assert "Traceback" not in r.stderr and "RuntimeWarning" not in r.stderr
     assert (tmp_path / "frame" / "reflectance.npy").is_file()
+
+
+def test_light_command_tabulates_the_light_model(capsys):
+    """`torchskin light --json` is the light model's own tables (render.light.light_tables): diffuse over direct
+    horizontal irradiance per band and zenith; one-line errors for a sun on the horizon or an unknown model."""
+    import torch
+
+    from torchskin.cli import main
+    from torchskin.render.light import light_tables
+    from torchskin.render.scene import Sun
+
+    assert main(["light", "--zenith", "10,75", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    t = light_tables("spectrl2", [Sun(zenith_deg=10.0), Sun(zenith_deg=75.0)], [[544, 0], [633, 0], [1080, 0], [1580, 0]])
+    torch.testing.assert_close(torch.tensor(doc["diffuse_over_direct"], dtype=torch.float64),
+                               t.diffuse_horizontal / t.direct_horizontal)
+    assert doc["model"] == "spectrl2" and doc["unit"] == "W m^-2 nm^-1" and doc["zenith_deg"] == [10.0, 75.0]
+    for argv, what in ((["light", "--zenith", "90"], "--zenith"), (["light", "--illumination", "lamp"], "--illumination"),
+                       (["light", "--water", "-1"], "--water")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and what in err[0]
+
+
+@pytest.mark.slow
+def test_render_json_reports_the_illumination(tmp_path):
+    """`torchskin render --json` names the light model and its per-band direct and diffuse horizontal irradiance;
+    `--illumination thesis` renders under the thesis's lamp."""
+    from torchskin.render.meshes import sphere_mesh, write_obj
+
+    v, f = sphere_mesh(0.3, 2)
+    write_obj(tmp_path / "ball.obj", v + [0.0, 0.0, 1.0], f)
+    out = {}
+    for model in ("spectrl2", "thesis"):
+        r = subprocess.run([sys.executable, "-m", "torchskin.cli", "render", "--mesh", str(tmp_path / "ball.obj"),
+                            "--width", "32", "--height", "32", "--illumination", model, "--json",
+                            "--out", str(tmp_path / model)], capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        out[model] = json.loads(r.stdout)["illumination"]
+    s, t = out["spectrl2"], out["thesis"]
+    assert s["model"] == "spectrl2" and t["model"] == "thesis" and s["bands_nm"] == [544.0, 633.0, 1080.0, 1580.0]
+    assert len(s["direct_horizontal"][0]) == 4 and len(s["diffuse_horizontal"][0]) == 4
+    # the clear sky is blue: its diffuse share falls from 544 to 1580 nm; the thesis's grey sky is 0.1 everywhere
+    share = [d / b for d, b in zip(s["diffuse_horizontal"][0], s["direct_horizontal"][0])]
+    assert share == sorted(share, reverse=True) and share[0] > 3 * share[-1]
+    cz = math.cos(math.radians(45.0))
+    for d, b in zip(t["diffuse_horizontal"][0], t["direct_horizontal"][0]):
+        assert d / (b / cz) == pytest.approx(0.1, rel=1e-5)

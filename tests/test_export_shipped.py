@@ -50,7 +50,10 @@ def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported)
             assert np.abs(old["boxes"] - Bd.load(EXPORTS / f"{name}.pt")(torch.from_numpy(cfg)).numpy()).max() < 1e-5
     rng = np.random.default_rng(2)
     cube = (rng.random((2, 4, 40, 50)) * 0.6).astype(np.float32)
-    cube[:, :, 10:30, 10:30] = np.array([0.3, 0.55, 0.55, 0.07], dtype=np.float32)[:, None, None]
+    from torchskin import tissue  # the Type I/II preset's diffuse reflectance in the index bands: a skin spectrum
+
+    skin = tissue.reflectance(tissue.preset("I-II"), torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64))
+    cube[:, :, 10:30, 10:30] = skin.reshape(4).float().numpy()[:, None, None]
     a = OnboardDetector(EXPORTS / "detector.onnx")(cube, cfg[:2])
     b = OnboardDetector(reexported / "detector.onnx")(cube, cfg[:2])
     assert np.array_equal(a["score"], b["score"]) and a["mask"][:, 10:30, 10:30].all()
@@ -82,8 +85,9 @@ def test_committed_metadata_and_cards(committed):
 
 
 def test_shipped_models_meet_their_claims(committed):
-    """Held-out (used to choose) and fresh test set (seed 3, used for nothing else): the committed figures
-    claim the shipped detector within the false-alarm budgets with sunlit Pd >= 0.95, far above the static box
+    """Held-out (used to calibrate and choose) and fresh test set (seed 3, used for nothing else): the committed
+    figures claim the shipped detector within the false-alarm budgets, its sunlit Pd well above the static box's
+    and above the single refitted box's at the same budgets (README: 0.745, 0.454, 0.644)
     (measured again on a regenerated slice of the test set in
     ``test_shipped_detector_claims_hold_on_a_regenerated_test_slice``); every committed box model keeps the
     earthlib test spectra out over its whole training domain."""
@@ -96,8 +100,12 @@ def test_shipped_models_meet_their_claims(committed):
     assert names == ["boundaries.onnx", "baseline_box.onnx", "detector.onnx", "static box (thesis)"]
     det, static = test["models"][2]["overall"], test["models"][3]["overall"]
     assert test["configurations"] >= 900
-    assert det["pd_sunlit"] >= 0.95 and det["pfa"] <= 1e-3 and det["pfa_scene"] <= 1e-4  # what the card claims
-    assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.3
+    assert det["pfa"] <= 1e-3 and det["pfa_scene"] <= 1e-4  # the budgets the card claims
+    assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.25 and det["pd_shadow"] - static["pd_shadow"] >= 0.15
+    assert det["pd_sunlit"] > test["models"][1]["overall"]["pd_sunlit"]  # the single box, calibrated alike
+    for m in ev["models"]:  # every model was calibrated to the budgets on the held-out set before the choice
+        if m["kind"] != "static":
+            assert m["overall"]["pfa_scene"] <= 1e-4 and m["overall"]["pfa"] <= 1e-3, m["name"]
     for name in ("boundaries.pt", "baseline_box.pt"):
         model = Bd.load(EXPORTS / name)
         grid = Bd.tuning_configs(model, torch.zeros(0, 3), grid=8)
@@ -144,9 +152,15 @@ def test_shipped_detector_claims_hold_on_a_regenerated_test_slice(tmp_path):
         p = claimed[name]["pd_sunlit"]
         se = math.sqrt(p * (1 - p) * (1 / n_cfg + 1 / claim["configurations"]))
         assert abs(got["pd_sunlit"] - p) <= 4 * se, (name, got["pd_sunlit"], p, se)
-    assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.3  # far above the static box
-    # the false-alarm budgets of the selection (earthlib test spectra per configuration; the scene's non-skin)
-    assert det["pfa"] <= 1e-3 and det["pfa_scene"] <= 1e-4
+    assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.2  # far above the static box
+    # the false-alarm budgets of the selection: earthlib test spectra per configuration; the scene's non-skin
+    # pixels as a count, no more than a Poisson draw at the budget's rate would give (99.9 %: a slice of ~25 k
+    # pixels expects 2.5 at 1e-4)
+    n = det["nonskin_pixels"]
+    lam, k, cdf, term = 1e-4 * n, 0, 0.0, math.exp(-1e-4 * n)
+    while cdf + term < 0.999:
+        cdf, k, term = cdf + term, k + 1, term * lam / (k + 1)
+    assert det["pfa"] <= 1e-3 and round(det["pfa_scene"] * n) <= k, (det["pfa_scene"] * n, k)
 
 
 @pytest.mark.slow

@@ -192,7 +192,7 @@ def test_brdf_parameters_are_validated_in_the_public_functions():
 # ------------------------------------------------------------------------------------------ 5. config NaN
 @pytest.mark.parametrize("section,key,value", [
     ("sun", "zenith_deg", [0.0, float("nan")]),
-    ("sun", "sky_fraction", [float("nan"), 0.1]),
+    ("light", "aerosol_500nm", [float("nan"), 0.1]),
     ("camera", "subject_fraction", float("nan")),
     ("camera", "range_m", [5.0, float("inf")]),
     ("atmosphere", "transmittance", [float("-inf"), 1.0]),
@@ -279,3 +279,11 @@ def test_cli_fit_skin_one_wavelength_and_dark_spectra(tmp_path, capsys):
     assert main(["fit-skin", str(dark), "--out", str(out)]) == 2
     assert "dark.csv: row 0: every reflectance is 0 or 1" in _one_error_line(capsys, "fit-skin")
     assert not out.exists()
+
+
+def test_config_names_where_the_sky_fraction_went():
+    """sun.sky_fraction left the config with the light stage: an old config gets one line saying where it went."""
+    from torchskin.dataset.config import resolve_config
+
+    with pytest.raises(ValueError, match=r"sun\.sky_fraction has moved.*light\.sky_fraction"):
+        resolve_config({"sun": {"sky_fraction": [0.0, 0.2]}})

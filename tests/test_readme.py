@@ -17,8 +17,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 #: command prefixes run here (every README example starting with one of them, in README order)
-RUN = ("torchskin spectra", "torchskin render --out out/frame --json", "torchskin generate --configs 96 ",
-       "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin detect",
+RUN = ("torchskin spectra", "torchskin light", "torchskin render --out out/frame --json",
+       "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin detect",
        "torchskin calibrate")
 #: a printed number: not part of a word or file name (r544, shard-00001), with decimals and exponent as shown
 NUMBER = r"(?<![\w.\-])[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?(?!\w)"

@@ -22,7 +22,7 @@ def wall_scene(material: Material, name: str = "wall") -> Scene:
               MeshSpec("panel_white", "plane", "white", {"width": 0.4, "height": 0.4}, position=[0.0, 0.5, 0.8]),
               MeshSpec("panel_dark", "plane", "dark", {"width": 0.4, "height": 0.4}, position=[0.0, -0.5, 0.8])]
     return Scene(mats, meshes, [Camera(width=48, height=48, target=[0.0, 0.0, 1.0], fov_deg=20.0)],
-                 [Sun(zenith_deg=50.0, azimuth_deg=20.0, sky_fraction=0.1)])
+                 [Sun(zenith_deg=50.0, azimuth_deg=20.0)], illumination="thesis")  # the sun alone: ELM is exact
 
 
 def test_a_new_material_kind_is_one_registry_entry():
@@ -159,7 +159,7 @@ def test_review_edge_cases_fail_early_with_one_line():
         M.check_material(Material("spectralon-brdf", panel="white"))
     M.register("grey-ramp", M.MaterialKind(compile=lambda m, sp, sk: M.Compiled(albedo=torch.ones(1, 4))))
     try:
-        with pytest.raises(ValueError, match="grey-ramp, lambertian, skin, spectralon, got 'plaster'"):
+        with pytest.raises(ValueError, match="grey-ramp, lambertian, rtlsr, skin, spectralon, got 'plaster'"):
             M.check_material(Material("plaster"))
     finally:
         M.unregister("grey-ramp")

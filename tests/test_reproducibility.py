@@ -99,7 +99,7 @@ def classifiers():
             state = torch.get_rng_state()
             with torch_threads(n):
                 out[seed, n] = Cl.train_classifier(X, R, label, sunlit, hidden=8, steps=300, batch=2048, seed=seed,
-                                                   max_tuning_configs=50)
+                                                   max_tuning_configs=50, sunlit_only=True, scene_budget=None)
             out[seed, n] += (torch.equal(state, torch.get_rng_state()),)
     return X, R, label, out
 

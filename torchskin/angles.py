@@ -11,6 +11,9 @@ from typing import TypeVar
 
 A = TypeVar("A")
 
+#: a configuration is back-lit, the camera looking towards the sun, from this relative azimuth on (degrees)
+BACKLIT_MIN_DEG = 120.0
+
 
 def relative_azimuth_deg(azimuth_a_deg: A, azimuth_b_deg: A | float) -> A:
     """The relative azimuth |φa − φb| folded to [0, 180] degrees: |(φa − φb + 180) mod 360 − 180|.
@@ -31,4 +34,4 @@ def relative_azimuth_deg(azimuth_a_deg: A, azimuth_b_deg: A | float) -> A:
     return abs((azimuth_a_deg - azimuth_b_deg + 180.0) % 360.0 - 180.0)  # type: ignore[operator]
 
 
-__all__ = ["relative_azimuth_deg"]
+__all__ = ["BACKLIT_MIN_DEG", "relative_azimuth_deg"]

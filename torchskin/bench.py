@@ -181,8 +181,7 @@ def _band_slice(tables, b: int):
 
     groups = {k: dataclasses.replace(g, params={p: one(v) for p, v in g.params.items()}) for k, g in tables.groups.items()}
     return dataclasses.replace(tables, lambert_f=one(tables.lambert_f), albedo=one(tables.albedo),
-                               reference=one(tables.reference), irradiance=one(tables.irradiance),
-                               wavelengths=one(tables.wavelengths), groups=groups)
+                               reference=one(tables.reference), wavelengths=one(tables.wavelengths), groups=groups)
 
 
 def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, suns: int = 16, skins: int = 3,
@@ -195,6 +194,7 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
 
     from .dataset.config import resolve_config, sample_group
     from .dataset.generate import group_rows, group_scene, group_sensor
+    from .render.light import light_tables
     from .render.materials import compile_materials
     from .render.raycast import Raycaster
     from .render.scene import Material
@@ -231,11 +231,13 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     for s, k, b in sample:
         sc.materials["skin"] = Material("skin", skin={name: float(getattr(g.skins, name)[k]) for name in tissue.PARAM_NAMES})
         gb = rc.gbuffer(sc.cameras, sc.suns[s].direction[None])
-        tables = _band_slice(compile_materials(sc.materials, sc.bands, sc.suns, gb.material_names), b)
-        tables = dataclasses.replace(tables, irradiance=tables.irradiance[s:s + 1])
+        band = [sc.bands[b]]
+        light = light_tables(sc.illumination, [sc.suns[s]], band, torch.float32)
+        gb = rc.with_sky_view(gb) if light.needs_sky_view else gb  # a per-band renderer casts its sky rays too
+        tables = _band_slice(compile_materials(sc.materials, sc.bands, sc.suns, gb.material_names,
+                                               illumination=sc.illumination), b)
         sun = torch.tensor(sc.suns[s].direction[None], dtype=torch.float32)
-        sky = torch.tensor([sc.suns[s].sky_fraction], dtype=torch.float32)
-        L = shade(gb, tables, sun, sky).radiance
+        L = shade(gb, tables, light, sun).radiance
         one_band: dict[str, Any] = {f: [getattr(sensor, f)[b]] for f in (
             "quantum_efficiency", "atmosphere_transmittance", "path_radiance") if isinstance(getattr(sensor, f), list)}
         band_sensor = dataclasses.replace(sensor, **one_band)

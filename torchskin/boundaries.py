@@ -54,8 +54,12 @@ FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0
 #: the columns of a box: NDGRI min, NDGRI max, NDSI min, NDSI max, NDVN min
 BOX_ORDER = ("b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max", "d1_ndvn_min")
 #: ``ndvn_rule``: d1 = this quantile of the training skin's NDVN minus ``NDVN_MARGIN``
-NDVN_QUANTILE = 0.001
+NDVN_QUANTILE = 0.01
 NDVN_MARGIN = 0.05
+#: brightness floor of the evaluation protocol and of the onboard detector: a pixel whose mean reflectance over the
+#: bands is not above it is not skin (at the noise floor its indices are ratios of sensor noise; the onboard runtime
+#: applies the same floor, ``min_reflectance``, recorded in the exported detector's metadata)
+MIN_REFLECTANCE = 0.005
 #: the dataset columns of the ELM reflectance in the four index bands (``INDEX_BANDS_NM``: g, r, n, s), in order
 BAND_COLUMNS = ("r544", "r633", "r1080", "r1580")
 
@@ -119,8 +123,10 @@ def config_buffers(features: Sequence[str], mean: Any = None, std: Any = None,
 
 
 class BoundaryModel(nn.Module):
-    """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``); d1, the NDVN rule,
-    is the buffer ``ndvn_min``, the same for every configuration (-1: inactive)."""
+    """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``). d1, the NDVN rule:
+    with ``ndvn_head``, a fifth output of the network, learned per configuration (``train_boxes``: the conditional
+    ``ndvn_quantile`` of the skin's NDVN less ``NDVN_MARGIN``); else the buffer ``ndvn_min``, the same for every
+    configuration (-1: inactive)."""
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
@@ -130,8 +136,10 @@ class BoundaryModel(nn.Module):
     domain: torch.Tensor
 
     def __init__(self, features: Sequence[str] = FEATURES, hidden: int = 32, mean: Any = None, std: Any = None,
-                 domain: Any = None):
+                 domain: Any = None, ndvn_head: bool = False):
         super().__init__()
+        self.ndvn_head = bool(ndvn_head)
+        outputs = 5 if self.ndvn_head else 4
         self.features = tuple(features)
         k = len(self.features)
         if hidden < 0:
@@ -146,13 +154,13 @@ class BoundaryModel(nn.Module):
         # the training domain of each feature (k, 2): configurations outside it are flagged onboard
         self.register_buffer("domain", domain_t)
         if hidden == 0:  # a constant box: the input weights stay zero
-            first = nn.Linear(k, 4)
+            first = nn.Linear(k, outputs)
             nn.init.zeros_(first.weight)
             first.weight.requires_grad_(False)
             self.net = nn.Sequential(first)
         else:
             self.net = nn.Sequential(nn.Linear(k, hidden), nn.Tanh(), nn.Linear(hidden, hidden), nn.Tanh(),
-                                     nn.Linear(hidden, 4))
+                                     nn.Linear(hidden, outputs))
 
     def forward(self, config: torch.Tensor) -> torch.Tensor:
         # z = (lo_g, w_g, lo_s, w_s); centre m = lo + softplus(w) / 2, half-width h = scale * softplus(w) / 2:
@@ -181,6 +189,9 @@ def folded(model: BoundaryModel) -> BoundaryModel:
         first.bias.sub_(w @ m.mean)
         first.weight.copy_(w)
         last = cast(nn.Linear, m.net[-1])
+        if last.out_features == 5:  # d1 is already the fifth output (``ndvn_head``)
+            m.standardize = False
+            return m
         packed = nn.Linear(last.in_features, 5)
         packed.weight.zero_()
         packed.weight[:4] = last.weight
@@ -199,13 +210,33 @@ class TrainResult:
 
 
 def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
-                   sunlit_only: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+                   sunlit_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
-    from frames whose ELM is valid (``elm_valid``, when the dataset has the column)."""
+    sunlit and shadowed (``sunlit_only``: sunlit only), from frames whose ELM is valid (``elm_valid``, when the
+    dataset has the column)."""
+    X, Y = _index_rows(data_dir, features, skin=True, sunlit_only=sunlit_only)
+    if len(X) == 0:
+        raise ValueError(f"no usable {'sunlit ' if sunlit_only else ''}skin pixels in {str(data_dir)!r}")
+    return X, Y
+
+
+def load_scene_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
+                    min_reflectance: float = MIN_REFLECTANCE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the non-skin pixels of a generated dataset (clothing,
+    ground and confuser patches, in sun and in shadow, as the camera saw them; valid-ELM frames, float32): the
+    scene false alarms ``learn`` holds to its scene budget. Pixels whose mean reflectance is not above
+    ``min_reflectance`` (the detector's brightness floor: never skin) keep their row with NaN indices, which no
+    box holds: they count in the budget's denominator, as in the evaluation, and constrain nothing."""
+    return _index_rows(data_dir, features, skin=False, sunlit_only=False, floor=min_reflectance)
+
+
+def _index_rows(data_dir: str | os.PathLike, features: Sequence[str], skin: bool,
+                sunlit_only: bool, floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     from .dataset.files import read_valid
 
     t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS])
-    keep = t.column("label").to_numpy(zero_copy_only=False).copy()
+    label = t.column("label").to_numpy(zero_copy_only=False)
+    keep = label.copy() if skin else ~label
     if sunlit_only:
         keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
     X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
@@ -214,8 +245,9 @@ def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATUR
     Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False)[keep],
                   t.column("ndsi").to_numpy(zero_copy_only=False)[keep], v], -1)
     ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
-    if not ok.any():
-        raise ValueError(f"no usable sunlit skin pixels in {str(data_dir)!r}")
+    if floor is not None:  # below the brightness floor: never a detection (NaN indices), still a row
+        Y[~(R.mean(1) > floor)] = np.nan
+        ok = np.isfinite(X).all(1)
     return torch.from_numpy(X[ok].astype(np.float32)), torch.from_numpy(Y[ok].astype(np.float32))
 
 
@@ -252,13 +284,15 @@ def _check_xy(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str]) -> None
 
 
 def _initial_model(X: torch.Tensor, Y: torch.Tensor, features, hidden: int, q: float, seed: int,
-                   domain=None) -> BoundaryModel:
-    """A model that starts at the pooled (q, 1 - q) quantile box, with small deterministic weights (``seed``)
+                   domain=None, ndvn_quantile: float | None = None) -> BoundaryModel:
+    """A model that starts at the pooled (q, 1 - q) quantile box (and, with ``ndvn_quantile``, a learned d1 at
+    the pooled NDVN quantile of ``Y[:, 2]`` less ``NDVN_MARGIN``), with small deterministic weights (``seed``)
     and the training ``domain`` ((k, 2); default: the extremes of ``X``)."""
     g = torch.Generator().manual_seed(seed)
     if domain is None:
         domain = torch.stack([X.min(0).values, X.max(0).values], -1)
-    model = BoundaryModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain)
+    head = ndvn_quantile is not None
+    model = BoundaryModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain, ndvn_head=head)
     with torch.no_grad():
         for p in model.net.parameters():
             if p.requires_grad:
@@ -269,22 +303,32 @@ def _initial_model(X: torch.Tensor, Y: torch.Tensor, features, hidden: int, q: f
         qg = torch.quantile(Y[:, 0], torch.tensor([q, 1 - q]))
         qs = torch.quantile(Y[:, 1], torch.tensor([q, 1 - q]))
         inv_sp = lambda w: torch.log(torch.expm1(w.clamp_min(1e-3)))  # noqa: E731
-        last.bias.copy_(torch.stack([qg[0], inv_sp(qg[1] - qg[0]), qs[0], inv_sp(qs[1] - qs[0])]))
+        start = [qg[0], inv_sp(qg[1] - qg[0]), qs[0], inv_sp(qs[1] - qs[0])]
+        if head:
+            start.append(torch.quantile(Y[:, 2], float(cast(float, ndvn_quantile))) - NDVN_MARGIN)
+        last.bias.copy_(torch.stack(start))
     return model
 
 
-def quantile_loss(box: torch.Tensor, Y: torch.Tensor, q: float, w: torch.Tensor | None = None) -> torch.Tensor:
+def quantile_loss(box: torch.Tensor, Y: torch.Tensor, q: float, w: torch.Tensor | None = None,
+                  ndvn_quantile: float | None = None) -> torch.Tensor:
     """The pinball loss of the box edges as conditional quantiles of (NDGRI, NDSI) ``Y`` (n, 2+): b1, c1 at
-    ``q``, b2, c2 at ``1 - q``, each pixel weighted by ``w`` (n,) (None: 1)."""
-    e = torch.stack([Y[:, 0] - box[:, 0], Y[:, 0] - box[:, 1], Y[:, 1] - box[:, 2], Y[:, 1] - box[:, 3]], -1)
-    lv = box.new_tensor([q, 1 - q, q, 1 - q])
+    ``q``, b2, c2 at ``1 - q``, each pixel weighted by ``w`` (n,) (None: 1); with ``ndvn_quantile`` (and a fifth
+    box column, a third of ``Y``), d1 at that quantile of NDVN less ``NDVN_MARGIN``."""
+    cols = [Y[:, 0] - box[:, 0], Y[:, 0] - box[:, 1], Y[:, 1] - box[:, 2], Y[:, 1] - box[:, 3]]
+    levels = [q, 1 - q, q, 1 - q]
+    if ndvn_quantile is not None and box.shape[1] > 4 and Y.shape[1] > 2:
+        cols.append(Y[:, 2] - NDVN_MARGIN - box[:, 4])
+        levels.append(ndvn_quantile)
+    e = torch.stack(cols, -1)
+    lv = box.new_tensor(levels)
     loss = torch.maximum(lv * e, (lv - 1) * e).sum(-1)
     return (loss if w is None else loss * w).mean()
 
 
 def fit_quantiles(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor, q: float, steps: int, lr: float,
                   w: torch.Tensor | None = None, batch: int | None = None, g: torch.Generator | None = None,
-                  decay: bool = False) -> float:
+                  decay: bool = False, ndvn_quantile: float | None = None) -> float:
     """Adam on ``quantile_loss`` (in place): ``model``'s boxes become the conditional ``q`` / ``1 - q`` quantiles
     of ``Y`` given ``X``, pixels weighted by ``w``, on random batches of ``batch`` pixels drawn with ``g`` (None:
     all of them), the learning rate decaying from ``lr`` to ``lr``/100 when ``decay`` (cosine). Pixels that share
@@ -300,7 +344,7 @@ def fit_quantiles(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor, q: flo
         else:
             yb, ib, wb = Y, inv, w
         opt.zero_grad()
-        loss = quantile_loss(model(cfg).index_select(0, ib), yb, q, wb)
+        loss = quantile_loss(model(cfg).index_select(0, ib), yb, q, wb, ndvn_quantile)
         loss.backward()
         opt.step()
         if sched is not None:
@@ -337,9 +381,27 @@ def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, a
     b = boxes[:, :, None]
     depth = torch.minimum(torch.minimum(g - b[:, 0], b[:, 1] - g), torch.minimum(s - b[:, 2], b[:, 3] - s))
     v = torch.relu(depth + margin)
+    if boxes.shape[1] > 4 and points.shape[1] > 2:  # points the box's own NDVN rule rejects need no margin
+        v = v * (points[:, 2][None] >= b[:, 4].detach())
     total = v.sum(-1)
     if allow > 0:
         total = total - v.topk(min(int(allow), v.shape[-1]), dim=-1).values.sum(-1)
+    return total
+
+
+def scene_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, allow: int = 0) -> torch.Tensor:
+    """The summed violation of scene non-skin ``points`` (n, 2) each against its own configuration's box (n, 4+):
+    sum_j relu(min(edge distances_j) + margin), less the ``allow`` largest (the pixels the scene budget lets the
+    boxes hold)."""
+    g, s = points[:, 0], points[:, 1]
+    depth = torch.minimum(torch.minimum(g - boxes[:, 0], boxes[:, 1] - g),
+                          torch.minimum(s - boxes[:, 2], boxes[:, 3] - s))
+    v = torch.relu(depth + margin)
+    if boxes.shape[1] > 4 and points.shape[1] > 2:  # pixels the box's own NDVN rule rejects need no margin
+        v = v * (points[:, 2] >= boxes[:, 4].detach())
+    total = v.sum()
+    if allow > 0:
+        total = total - v.topk(min(int(allow), v.numel())).values.sum()
     return total
 
 
@@ -349,7 +411,9 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
                 width_cost: float = 0.05, fa_weight: float = 10.0, domain_configs: int = 128,
                 batch: int | None = 32768, seed: int = 0, domain: Any = None, per_config: bool = True,
                 spread_cost: float = 0.1, allow: int = 0, ndvn_min: float = -1.0, init_quantile: float = 0.02,
-                init_steps: int | None = None) -> TrainResult:
+                init_steps: int | None = None, scene: tuple[torch.Tensor, torch.Tensor] | None = None,
+                scene_budget: float = 1e-4, scene_weight: float = 3000.0,
+                ndvn_quantile: float | None = None) -> TrainResult:
     """Learn the box that, per configuration, covers the most sunlit skin pixels ``Y`` (n, 2) given their
     configuration features ``X`` (n, k), while every ``confusers`` point (m, 2) (the earthlib *train* spectra)
     stays ``margin`` outside it, for ``domain_configs`` training configurations and as many random
@@ -369,6 +433,20 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     false-alarm budget, floor(pfa_budget x number of confusers), so that training and the hard tuning
     afterwards (``tune_false_alarms``) enforce the same budget. ``ndvn_min``: d1 of the visible/NIR rule (fixed during training; -1
     inactive): with (m, 3) ``confusers`` (NDGRI, NDSI, NDVN), those it rejects need no margin from the box.
+    ``scene``: the training dataset's own non-skin pixels, (features (q, k), (NDGRI, NDSI, NDVN) (q, 3))
+    (``load_scene_rows``): each must stay ``margin`` outside its own configuration's box, all but the fraction
+    ``scene_budget`` of them (``scene_violation`` on a batch, weight ``scene_weight`` per pixel of the batch: a
+    pixel at the margin's depth, 0.03, costs as much as ~100 skin pixels' coverage at the default 3000; at 10 the
+    training ignored them and the hard tuning afterwards had to shrink every box, to 0.41 of the skin):
+    the confusers as the camera saw them, shadowed and back-lit, per configuration. (Each pixel holding also the
+    boxes of configurations within 10° of its own cut the held-out scene Pfa from 6.6e-4 to 2.8e-4 and Pd sunlit
+    from 0.80 to 0.78: not kept; ``evaluate.calibrate_to_budget`` closes the gap on the held-out set.)
+    ``ndvn_quantile`` (with (n, 3)
+    ``Y``): d1 becomes a fifth output of the network, learned per configuration as the conditional
+    ``ndvn_quantile`` of the skin's NDVN less ``NDVN_MARGIN`` (pinball loss, in the start and alongside the
+    coverage loss; ``ndvn_min`` is then ignored), and the confusers and scene pixels each box's own d1 rejects
+    need no margin. A pooled d1 fails at low sun: level ELM panels lit by a blue sky against skin facing a red
+    sun pull the skin's NDVN down in those configurations only, and the pooled quantile with them.
 
     The start comes from the data, not from the seed: first the boxes are fitted as the conditional
     ``init_quantile`` / ``1 - init_quantile`` quantiles of the skin's NDGRI and NDSI given the configuration
@@ -403,24 +481,42 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
     if confusers.ndim != 2 or confusers.shape[1] not in (2, 3) or confusers.shape[0] == 0:
         raise ValueError(f"confusers must be (m, 2) or (m, 3) (NDGRI, NDSI[, NDVN]) points, got "
                          f"{tuple(confusers.shape)}")
-    if confusers.shape[1] == 3 and ndvn_min > -1.0:
-        confusers = confusers[confusers[:, 2] >= ndvn_min]  # the others fail the visible/NIR rule anyway
-    confusers = confusers[:, :2]
+    head = ndvn_quantile is not None and Y.shape[1] > 2
+    if head and not (0.0 < float(cast(float, ndvn_quantile)) < 0.5):
+        raise ValueError(f"ndvn_quantile must lie in (0, 0.5), got {ndvn_quantile}")
+    if head and confusers.shape[1] < 3:
+        raise ValueError("a learned NDVN rule (ndvn_quantile) needs (m, 3) confusers (NDGRI, NDSI, NDVN)")
+    if not head:
+        if confusers.shape[1] == 3 and ndvn_min > -1.0:
+            confusers = confusers[confusers[:, 2] >= ndvn_min]  # the others fail the visible/NIR rule anyway
+        confusers = confusers[:, :2]
+        Y = Y[:, :2]
     if confusers.shape[0] == 0:
-        confusers = torch.full((1, 2), 10.0)  # nothing left to keep out
-    model = _initial_model(X, Y[:, :2], features, hidden, init_quantile, seed, domain)
-    model.ndvn_min.fill_(float(ndvn_min))
-    Y = Y[:, :2]
+        confusers = torch.full((1, confusers.shape[1]), 10.0)  # nothing left to keep out
+    model = _initial_model(X, Y, features, hidden, init_quantile, seed, domain,
+                           ndvn_quantile if head else None)
+    model.ndvn_min.fill_(-1.0 if head else float(ndvn_min))
+    vq = ndvn_quantile if head else None
     g = torch.Generator().manual_seed(seed + 1)
     train_cfg, inv = distinct_configs(X)  # pixels share their configuration: one box per distinct one
     counts = torch.bincount(inv, minlength=len(train_cfg)).to(Y.dtype)
     w = (len(Y) / len(train_cfg)) / counts.index_select(0, inv) if per_config else torch.ones(len(Y), dtype=Y.dtype)
-    fit_quantiles(model, X, Y, init_quantile, init_steps, lr, w, batch, g, decay=True)  # the start: from the data
+    fit_quantiles(model, X, Y, init_quantile, init_steps, lr, w, batch, g, decay=True,
+                  ndvn_quantile=vq)  # the start: from the data
     lo, hi = model.domain[:, 0], model.domain[:, 1]
     # only the spectra near the skin pixels can meet a box (the hard tuning afterwards checks them all)
-    qy = torch.quantile(Y, torch.tensor([0.01, 0.99]), dim=0)  # (2, 2)
-    near = ((confusers >= qy[0] - 0.25) & (confusers <= qy[1] + 0.25)).all(-1)
+    qy = torch.quantile(Y[:, :2], torch.tensor([0.01, 0.99]), dim=0)  # (2, 2)
+    near = ((confusers[:, :2] >= qy[0] - 0.25) & (confusers[:, :2] <= qy[1] + 0.25)).all(-1)
     C = confusers[near].float()
+    if scene is not None:
+        sX, sP = scene
+        if not head and ndvn_min > -1.0 and sP.shape[1] > 2:
+            keep = sP[:, 2] >= ndvn_min  # the visible/NIR rule rejects the others
+            sX, sP = sX[keep], sP[keep]
+        near_s = ((sP[:, :2] >= qy[0] - 0.25) & (sP[:, :2] <= qy[1] + 0.25)).all(-1)
+        sX, sP = sX[near_s], sP[near_s, :(3 if head else 2)].float()
+        scene_cfg, scene_inv = distinct_configs(sX) if len(sX) else (sX, torch.zeros(0, dtype=torch.long))
+        n_scene = len(scene[0])  # the budget is a fraction of all of them
     opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(1, steps), eta_min=lr * 0.01)
     loss = torch.tensor(0.0)
@@ -439,8 +535,18 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, featu
         width = ((box[:, 1] - box[:, 0] + box[:, 3] - box[:, 2]) * wb).mean()
         bc = model(cfg)
         fa = margin_violation(bc, C, margin, allow).mean()
-        spread = (bc - bc.mean(0)).square().sum(-1).mean()
+        spread = (bc[:, :4] - bc[:, :4].mean(0)).square().sum(-1).mean()
         loss = -cover + width_cost * width + fa_weight * fa + spread_cost * spread
+        if vq is not None:  # d1 follows the skin's NDVN quantile per configuration
+            e = yb[:, 2] - NDVN_MARGIN - box[:, 4]
+            loss = loss + (torch.maximum(vq * e, (vq - 1) * e) * wb).mean()
+        if scene is not None and len(sP):
+            nb = min(len(sP), batch or len(sP))
+            j = torch.randint(len(sP), (nb,), generator=g) if nb < len(sP) else torch.arange(len(sP))
+            # the budget's share of this batch: the near pixels stand for all n_scene of them
+            allow_b = int(math.floor(scene_budget * n_scene * nb / len(sP)))
+            sb = model(scene_cfg).index_select(0, scene_inv[j])
+            loss = loss + scene_weight * scene_violation(sb, sP[j], margin, allow_b) / nb
         loss.backward()
         opt.step()
         sched.step()
@@ -461,6 +567,7 @@ METHODS = ("boxes", "quantiles")
 
 def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: float = 1e-3,
           confusers: torch.Tensor | None = None, ndvn_quantile: float | None = NDVN_QUANTILE,
+          scene: tuple[torch.Tensor, torch.Tensor] | None = None, scene_budget: float = 1e-4,
           **options: Any) -> tuple[BoundaryModel, dict]:
     """Learn the configuration-dependent boxes: train (``train_boxes`` or ``train_quantiles``), then enforce the
     false-alarm budget on the earthlib train partition (``tune_false_alarms`` over ``tuning_configs``). With
@@ -474,6 +581,9 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         pfa_budget: the largest fraction of ``confusers`` any box may hold, in [0, 1).
         confusers: (NDGRI, NDSI[, NDVN]) points to keep out (default: ``confuser_indices("train")``).
         ndvn_quantile: the skin NDVN quantile d1 is set from (None: the rule is off, d1 = -1).
+        scene: the training dataset's non-skin pixels (``load_scene_rows``): held to ``scene_budget`` in training
+            (``train_boxes``) and in the tuning (``tune_false_alarms``); None: earthlib spectra only.
+        scene_budget: the largest share of ``scene`` pixels the boxes may call skin, in [0, 1).
         **options: passed to the trainer (``steps``, ``hidden``, ``margin``, ``seed``, ...).
 
     Shape:
@@ -490,25 +600,40 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not (0.0 <= pfa_budget < 1.0):
         raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
+    if not (0.0 <= scene_budget < 1.0):
+        raise ValueError(f"scene_budget must lie in [0, 1), got {scene_budget}")
+    if scene is not None and (scene[0].ndim != 2 or scene[0].shape[1] != X.shape[1] or scene[1].ndim != 2
+                              or scene[1].shape[0] != scene[0].shape[0] or scene[1].shape[1] not in (2, 3)):
+        raise ValueError(f"scene must be (features (q, {X.shape[1]}), points (q, 2 or 3)), got "
+                         f"{tuple(scene[0].shape)} and {tuple(scene[1].shape)}")
     C = confuser_indices("train") if confusers is None else confusers
+    learned_d1 = method == "boxes" and ndvn_quantile is not None and Y.ndim == 2 and Y.shape[1] > 2 \
+        and C.shape[1] > 2
     d1 = ndvn_rule(Y[:, 2], ndvn_quantile) if Y.ndim == 2 and Y.shape[1] > 2 and C.shape[1] > 2 else -1.0
     if method == "boxes":
         options.setdefault("allow", int(math.floor(pfa_budget * C.shape[0])))
-        res = train_boxes(X, Y, C, ndvn_min=d1, **options)
+        res = train_boxes(X, Y, C, ndvn_min=d1, scene=scene, scene_budget=scene_budget,
+                          ndvn_quantile=ndvn_quantile if learned_d1 else None, **options)
     else:
         res = train_quantiles(X, Y[:, :2], **options)
         res.model.ndvn_min.fill_(d1)
     cfg = tuning_configs(res.model, X)
-    scale = tune_false_alarms(res.model, cfg, C, pfa_budget)
+    scale = tune_false_alarms(res.model, cfg, C, pfa_budget, scene=scene, scene_budget=scene_budget)
     with torch.no_grad():
-        pfa_train = float(false_alarm_rate(res.model(cfg), C).max())
+        boxes = res.model(cfg)
+        pfa_train = float(false_alarm_rate(boxes, C).max())
+        d1_range = [float(boxes[:, 4].min()), float(boxes[:, 4].max())]
+        pfa_scene = scene_rate(res.model, *scene) if scene is not None else float("nan")
         coverage = train_coverage(res.model, X, Y)
     if coverage < MIN_TRAIN_COVERAGE:
         raise ValueError(f"training failed: the learned boxes hold only {coverage:.3f} of the training skin pixels "
                          f"(< {MIN_TRAIN_COVERAGE}); the optimisation left the data. Try another seed (--seed) or "
                          "fewer hidden units (--hidden), or check the dataset and the false-alarm budget")
-    return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale, "ndvn_min": d1,
+    return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale,
+                       "ndvn_min": d1_range[0], "ndvn_range": d1_range, "ndvn_learned": learned_d1,
                        "pfa_budget": pfa_budget, "pfa_train_worst": pfa_train, "train_coverage": coverage,
+                       "scene_budget": scene_budget if scene is not None else None, "pfa_scene_train": pfa_scene,
+                       "scene_pixels": int(scene[0].shape[0]) if scene is not None else 0,
                        # the key keeps its old name: checkpoints and model cards carry it
                        "calibration_configs": int(cfg.shape[0]), "options": options}
 
@@ -536,14 +661,14 @@ def save(model: BoundaryModel, path: str | os.PathLike, meta: dict | None = None
     from .io import save_torch
 
     save_torch(path, {"state_dict": model.state_dict(), "features": list(model.features), "hidden": model.hidden,
-                      "meta": meta or {}})
+                      "ndvn_head": model.ndvn_head, "meta": meta or {}})
 
 
 def load(path: str | os.PathLike) -> BoundaryModel:
     """A ``BoundaryModel`` from a checkpoint written by ``save`` (older checkpoints without a stored domain or
     NDVN rule get the defaults), in eval mode."""
     ck = torch.load(path, map_location="cpu", weights_only=True)
-    m = BoundaryModel(ck["features"], ck["hidden"])
+    m = BoundaryModel(ck["features"], ck["hidden"], ndvn_head=bool(ck.get("ndvn_head", False)))
     state = dict(ck["state_dict"])
     state.setdefault("domain", m.domain)  # checkpoints written before the domain was stored
     state.setdefault("ndvn_min", m.ndvn_min)  # and before the visible/NIR rule
@@ -598,20 +723,35 @@ def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 
 
 def tune_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,
-                      budget: float = 1e-3, iters: int = 30) -> float:
+                      budget: float = 1e-3, iters: int = 30,
+                      scene: tuple[torch.Tensor, torch.Tensor] | None = None, scene_budget: float = 1e-4) -> float:
     """Shrink every box about its centre (one global scale, found by bisection) until the false-alarm rate on
-    ``points`` (the earthlib *train* partition) is within ``budget`` for every configuration in ``configs``.
-    Sets and returns ``model.scale``."""
-    def worst(scale):
+    ``points`` (the earthlib *train* partition) is within ``budget`` for every configuration in ``configs`` and,
+    with ``scene`` (features (q, k), points (q, 2 or 3): ``load_scene_rows``), the share of those non-skin pixels
+    inside their own configuration's box is within ``scene_budget``. Sets and returns ``model.scale``."""
+    def ok(scale):
         model.scale.fill_(scale)
         with torch.no_grad():
-            return float(false_alarm_rate(model(configs), points).max())
+            if float(false_alarm_rate(model(configs), points).max()) > budget:
+                return False
+            return scene is None or scene_rate(model, *scene) <= scene_budget
 
-    if worst(1.0) <= budget:
+    if ok(1.0):
         return 1.0
     lo, hi = 0.0, 1.0
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if worst(mid) <= budget else (lo, mid)
-    worst(lo)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    ok(lo)
     return lo
+
+
+def scene_rate(model: BoundaryModel, X: torch.Tensor, P: torch.Tensor) -> float:
+    """The share of non-skin pixels (features ``X`` (q, k), (NDGRI, NDSI[, NDVN]) ``P``) that their own
+    configuration's box calls skin (0 for none)."""
+    if len(X) == 0:
+        return 0.0
+    uniq, inv = distinct_configs(X)
+    with torch.no_grad():
+        box = model(uniq).index_select(0, inv)
+    return float(inside_box(box, P[:, 0], P[:, 1], P[:, 2] if P.shape[1] > 2 else None).float().mean())

@@ -163,9 +163,12 @@ def fit_linear(model: SkinClassifier, Rp: torch.Tensor, Xp: torch.Tensor, wp: to
 def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence[str] = FEATURES, hidden: int = 32,
                      steps: int = 1500, lr: float = 3e-3, batch: int = 16384, seed: int = 0, domain: Any = None,
                      pfa_budget: float = 1e-3,
-                     confuser_weight: float = 4.0, max_tuning_configs: int = 2000) -> tuple[SkinClassifier, dict]:
-    """Fit a ``SkinClassifier`` (see the module docstring), then tune its threshold to ``pfa_budget`` on the
-    earthlib train partition (``tune_threshold``). Deterministic in ``seed``.
+                     confuser_weight: float = 4.0, max_tuning_configs: int = 2000, scene_budget: float | None = 1e-4,
+                     sunlit_only: bool = False) -> tuple[SkinClassifier, dict]:
+    """Fit a ``SkinClassifier`` (see the module docstring) on skin pixels (sunlit and shadowed; ``sunlit_only``:
+    sunlit) against the dataset's non-skin pixels and the earthlib train partition, then tune its threshold to
+    ``pfa_budget`` on the earthlib train partition (``tune_threshold``) and, with ``scene_budget``, so that at
+    most that share of the training non-skin pixels is called skin. Deterministic in ``seed``.
 
     Args:
         X, R, label, sunlit: configuration features, ELM reflectance (``BAND_COLUMNS`` order), skin label and
@@ -187,11 +190,13 @@ def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence
     """
     X, R = torch.as_tensor(X), torch.as_tensor(R)
     label, sunlit = torch.as_tensor(label), torch.as_tensor(sunlit)
-    pos = label & sunlit
+    pos = label & sunlit if sunlit_only else label.clone()
     neg = ~label
     if int(pos.sum()) < 10 or int(neg.sum()) < 10:
-        raise ValueError(f"need at least 10 sunlit skin and 10 non-skin pixels, got {int(pos.sum())} and "
-                         f"{int(neg.sum())}")
+        raise ValueError(f"need at least 10 {'sunlit ' if sunlit_only else ''}skin and 10 non-skin pixels, got "
+                         f"{int(pos.sum())} and {int(neg.sum())}")
+    if scene_budget is not None and not (0.0 <= scene_budget < 1.0):
+        raise ValueError(f"scene_budget must lie in [0, 1), got {scene_budget}")
     if not (0.0 <= pfa_budget < 1.0):
         raise ValueError(f"pfa_budget must lie in [0, 1), got {pfa_budget}")
     if steps < 1:
@@ -243,12 +248,19 @@ def train_classifier(X: Any, R: Any, label: Any, sunlit: Any, features: Sequence
         pick = torch.randperm(tuning.shape[0] - lattice.shape[0], generator=g)[:max_tuning_configs]
         tuning = torch.cat([tuning[pick], lattice])
     threshold = tune_threshold(model, tuning, C, pfa_budget)
+    if scene_budget is not None:  # the training scene's non-skin pixels: the (k+1)-th highest logit must not pass
+        with torch.no_grad():
+            k = int(math.floor(scene_budget * len(Rn)))
+            kth = float(model(Rn, Xn).sort(descending=True).values[min(k, len(Rn) - 1)])
+        threshold = max(threshold, kth)
+        model.threshold.fill_(threshold)
     with torch.no_grad():
         keep = model.decide(Rp, Xp)
         coverage = float(keep.float().mean())
         scene = float(model.decide(Rn, Xn).float().mean())
     return model, {"method": "classifier", "rows": int(pos.sum()), "loss": float(loss.detach()),
                    "threshold": threshold, "pfa_budget": pfa_budget, "train_coverage": coverage,
+                   "scene_budget": scene_budget, "light_classes": ["sunlit"] if sunlit_only else ["sunlit", "shadow"],
                    # the key keeps its old name: checkpoints and model cards carry it
                    "pfa_scene_train": scene, "calibration_configs": int(tuning.shape[0]),
                    "linear_loss": linear_loss,

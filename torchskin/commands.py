@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
+from typing import Any
 
 import torch
 
@@ -143,15 +145,17 @@ def cmd_spectra(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------------- render
 def _scene_from_args(args):
-    from .render.scene import Camera, Sun, default_scene
+    from .render.scene import Atmosphere, Camera, Sun, default_scene
 
     cam = Camera(width=args.width, height=args.height, zenith_deg=args.camera_zenith,
                  azimuth_deg=args.camera_azimuth, range_m=args.range, fov_deg=args.fov)
-    sun = Sun(zenith_deg=args.source_zenith, azimuth_deg=args.source_azimuth, sky_fraction=args.sky)
+    atm = Atmosphere(aerosol_500nm=args.aerosol, precipitable_water_cm=args.water, ozone_atm_cm=args.ozone,
+                     pressure_pa=args.pressure, day_of_year=args.day_of_year)
+    sun = Sun(zenith_deg=args.source_zenith, azimuth_deg=args.source_azimuth, sky_fraction=args.sky, atmosphere=atm)
     subject = "file" if args.mesh else "anny"
     sc = default_scene(subject=subject, mesh_path=args.mesh, skin=args.skin, camera=cam, sun=sun,
                        panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground,
-                       surface=args.surface)
+                       surface=args.surface, illumination=args.illumination)
     if args.bands:
         sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
     if args.sky_background:
@@ -167,6 +171,26 @@ def _check_angle(name, v, lo, hi):
 def _check_number(name, v, lo=-math.inf, hi=math.inf, what="a number"):
     if not (math.isfinite(v) and lo <= v <= hi):
         raise ValueError(f"{name} must be {what} in [{lo:g}, {hi:g}], got {v:g}")
+
+
+#: the atmosphere options of ``render`` -> ``scene.Atmosphere`` fields
+ATMOSPHERE_OPTIONS = {"--aerosol": "aerosol_500nm", "--water": "precipitable_water_cm", "--ozone": "ozone_atm_cm",
+                      "--pressure": "pressure_pa", "--day-of-year": "day_of_year"}
+
+
+def _check_atmosphere(args) -> None:
+    """The atmosphere options within ``scene.ATMOSPHERE_RANGES``; a sun above the horizon for "spectrl2"."""
+    from .render.light import MODELS
+    from .render.scene import ATMOSPHERE_RANGES
+
+    for opt, key in ATMOSPHERE_OPTIONS.items():
+        lo, hi = ATMOSPHERE_RANGES[key]
+        _check_number(opt, getattr(args, opt[2:].replace("-", "_")), lo, hi)
+    if args.illumination not in MODELS:
+        raise ValueError(f"--illumination must be one of {', '.join(sorted(MODELS))}, got {args.illumination!r}")
+    if args.illumination == "spectrl2" and not args.source_zenith < 90:
+        raise ValueError(f"--source-zenith must be below 90 degrees for --illumination spectrl2 (a sun above the "
+                         f"horizon), got {args.source_zenith:g}")
 
 
 #: the largest frame `render` and `experiment` make unless --max-megapixels raises it, and the largest --sample
@@ -210,6 +234,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_number("--source-azimuth", args.source_azimuth, -360, 360)
     _check_number("--camera-azimuth", args.camera_azimuth, -360, 360)
     _check_number("--sky", args.sky, 0, 1)
+    _check_atmosphere(args)
     _check_number("--range", args.range, 0.1, 1e5, "a distance in m")
     _check_number("--fov", args.fov, 0.01, 179, "an angle in degrees")
     if args.mesh:
@@ -217,7 +242,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_frame(args, len(parse_bands(args.bands)) if args.bands else len(DEFAULT_BANDS))
     device = check_device(args.device)
     sc = _scene_from_args(args)
-    sensor = Sensor(noise=not args.no_noise, seed=args.seed)
+    path: dict[str, Any] = {}
+    if args.illumination == "spectrl2":  # the sensor's path through the light model's atmosphere
+        from .render.light import path_terms
+        from .render.pipeline import scene_light
+
+        path = path_terms(sc.suns[0].atmosphere, scene_light(sc, torch.float64).sky[0].tolist(), sc.bands, args.range)
+    sensor = Sensor(noise=not args.no_noise, seed=args.seed, **path)
     res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile)
     info = write_outputs(res, sc.to_dict(), args.out)
     if not info["elm_valid"]:
@@ -230,7 +261,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                           "detected_fraction": info["detected_fraction"], "panels": res.panels,
                           "sunlit_skin_pixels": info["sunlit_skin_pixels"],
                           "detected_fraction_sunlit": info["detected_fraction_sunlit"],
-                          "elm_valid": info["elm_valid"], "panel_sunlit_fraction": info["panel_sunlit_fraction"]}))
+                          "elm_valid": info["elm_valid"], "panel_sunlit_fraction": info["panel_sunlit_fraction"],
+                          "illumination": res.light.summary(res.bands)}))
     elif not info["rules_detector"]:
         print(f"skin pixels {info['skin_pixels']} (sunlit {info['sunlit_skin_pixels']}); no rules detector (the "
               f"bands lack 544, 633, 1080 or 1580 nm); {res.timing['total_s']:.2f} s; wrote {args.out}")
@@ -387,9 +419,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise ValueError(f"--steps must be >= 1 (0 would write an untrained model), got {args.steps}")
     _check_number("--pfa-budget", args.pfa_budget, 0, 0.999, "a false-alarm probability")
+    _check_number("--scene-budget", args.scene_budget, 0, 0.999, "a false-alarm probability")
     if args.method == "classifier":
         return _train_classifier(args)
-    X, Y = Bd.load_skin_rows(args.data)
+    X, Y = Bd.load_skin_rows(args.data, sunlit_only=args.sunlit_only)
+    scene = None if args.no_scene else Bd.load_scene_rows(args.data)
     opts = {"hidden": args.hidden, "steps": args.steps, "seed": args.seed}
     domain = Bd.domain_from_manifest(args.data)
     if args.method == "quantiles":
@@ -397,12 +431,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     else:
         opts.update(margin=args.margin, width_cost=args.width_cost, spread_cost=args.spread_cost)
     model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain,
-                           ndvn_quantile=None if args.no_ndvn_rule else Bd.NDVN_QUANTILE, **opts)
+                           ndvn_quantile=None if args.no_ndvn_rule else Bd.NDVN_QUANTILE, scene=scene,
+                           scene_budget=args.scene_budget, **opts)
     info["options"].pop("domain", None)
+    info["light_classes"] = ["sunlit"] if args.sunlit_only else ["sunlit", "shadow"]
+    scene_text = "" if scene is None else (f"; scene non-skin {info['pfa_scene_train']:.2e} <= {args.scene_budget:g} "
+                                           f"of {info['scene_pixels']} training pixels")
     return _save_trained(args, Bd.save, model, info, (
-        f"trained ({args.method}) on {info['rows']} sunlit skin pixels, loss {info['loss']:.5f}; NDVN rule d1 "
-        f"{info['ndvn_min']:.3f}; false-alarm scale {info['scale']:.3f}: worst Pfa {info['pfa_train_worst']:.2e} <= "
-        f"{args.pfa_budget:g} on the earthlib train partition over {info['calibration_configs']} configurations"))
+        f"trained ({args.method}) on {info['rows']} {'sunlit ' if args.sunlit_only else ''}skin pixels, loss "
+        f"{info['loss']:.5f}; NDVN rule d1 {info['ndvn_min']:.3f}; false-alarm scale {info['scale']:.3f}: worst Pfa "
+        f"{info['pfa_train_worst']:.2e} <= {args.pfa_budget:g} on the earthlib train partition over "
+        f"{info['calibration_configs']} configurations{scene_text}"))
 
 
 def _save_trained(args, save, model, info: dict, text: str) -> int:
@@ -423,12 +462,14 @@ def _train_classifier(args) -> int:
     X, R, label, sunlit = Cl.load_rows(args.data)
     model, info = Cl.train_classifier(X, R, label, sunlit, hidden=max(args.hidden, 1), steps=args.steps,
                                       seed=args.seed, domain=Bd.domain_from_manifest(args.data),
-                                      pfa_budget=args.pfa_budget)
+                                      pfa_budget=args.pfa_budget,
+                                      scene_budget=None if args.no_scene else args.scene_budget,
+                                      sunlit_only=args.sunlit_only)
     return _save_trained(args, Cl.save, model, info, (
-        f"trained (classifier) on {info['rows']} sunlit skin pixels; threshold {info['threshold']:.3f} (logit) for "
-        f"Pfa <= {args.pfa_budget:g} on the earthlib train partition over {info['calibration_configs']} "
-        f"configurations; training skin kept {info['train_coverage']:.3f}, scene non-skin "
-        f"{info['pfa_scene_train']:.2e}"))
+        f"trained (classifier) on {info['rows']} {'sunlit ' if args.sunlit_only else ''}skin pixels; threshold "
+        f"{info['threshold']:.3f} (logit) for Pfa <= {args.pfa_budget:g} on the earthlib train partition over "
+        f"{info['calibration_configs']} configurations; training skin kept {info['train_coverage']:.3f}, scene "
+        f"non-skin {info['pfa_scene_train']:.2e}"))
 
 
 def _checkpoint(path, what: str):
@@ -530,6 +571,64 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_light(args: argparse.Namespace) -> int:
+    """Per sun zenith: the light model's diffuse / direct horizontal irradiance per band, and the direct beam's
+    first-band / last-band ratio (how red the low sun is)."""
+    from .render.light import light_tables
+    from .render.scene import Atmosphere, Sun
+
+    _check_atmosphere(argparse.Namespace(**{**vars(args), "source_zenith": 0.0}))
+    try:
+        zeniths = [float(z) for z in args.zenith.split(",")]
+    except ValueError:
+        raise ValueError(f"--zenith must be comma-separated degrees, got {args.zenith!r}") from None
+    for z in zeniths:
+        _check_angle("--zenith", z, 0, 90)
+        if args.illumination == "spectrl2" and not z < 90:
+            raise ValueError(f"--zenith must be below 90 degrees for spectrl2 (a sun above the horizon), got {z:g}")
+    bands = parse_bands(args.bands) if args.bands else DEFAULT_BANDS
+    atm = Atmosphere(aerosol_500nm=args.aerosol, precipitable_water_cm=args.water, ozone_atm_cm=args.ozone,
+                     pressure_pa=args.pressure, day_of_year=args.day_of_year)
+    t = light_tables(args.illumination, [Sun(zenith_deg=z, atmosphere=atm, sky_fraction=args.sky) for z in zeniths],
+                     bands)
+    ratio = (t.diffuse_horizontal / t.direct_horizontal).tolist()
+    red = (t.direct_horizontal[:, 0] / t.direct_horizontal[:, -1]).tolist()
+    if args.json:
+        print(json.dumps({**t.summary(bands), "zenith_deg": zeniths, "diffuse_over_direct": ratio,
+                          "direct_first_over_last": red, "atmosphere": dataclasses.asdict(atm)}))
+        return 0
+    names = [f"{b.center_nm:g} nm" for b in bands]
+    print(f"{'sun zenith':>10}" + "".join(f"{n:>10}" for n in names) + f"{'direct ' + names[0] + '/' + names[-1]:>22}")
+    for z, row, r in zip(zeniths, ratio, red):
+        print(f"{z:>9g}°" + "".join(f"{x:>10.3f}" if abs(x) < 1 else f"{x:>10.3g}" for x in row) + f"{r:>22.2f}")
+    print(f"diffuse / direct horizontal irradiance ({args.illumination}: aerosol {atm.aerosol_500nm:g} at 500 nm, "
+          f"water {atm.precipitable_water_cm:g} cm, ozone {atm.ozone_atm_cm:g} atm-cm, {atm.pressure_pa:g} Pa, "
+          f"day {atm.day_of_year})")
+    return 0
+
+
+def add_light_command(sub: argparse._SubParsersAction) -> None:
+    """The ``torchskin light`` command."""
+    lp = sub.add_parser("light", help="the light model's direct and diffuse irradiance per band and sun zenith",
+                        description="Tabulate a light model (render.light): diffuse over direct horizontal "
+                                    "irradiance per band, and the direct beam's colour, per sun zenith.")
+    lp.add_argument("--zenith", default="10,45,60,75,85", help="sun zeniths, degrees (default 10,45,60,75,85)")
+    lp.add_argument("--bands", metavar="C[/FWHM],...", help="bands in nm (default 544,633,1080,1580)")
+    lp.add_argument("--illumination", default="spectrl2", metavar="MODEL", help="light model (default spectrl2)")
+    _atmosphere_options(lp)
+    lp.add_argument("--sky", type=float, default=0.1, help="thesis: sky irradiance / sun irradiance (default 0.1)")
+    lp.add_argument("--json", action="store_true", help="print one JSON object")
+    lp.set_defaults(func=cmd_light)
+
+
+def _atmosphere_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--aerosol", type=float, default=0.1, help="spectrl2: aerosol optical depth at 500 nm (0.1)")
+    p.add_argument("--water", type=float, default=1.42, help="spectrl2: precipitable water, cm (default 1.42)")
+    p.add_argument("--ozone", type=float, default=0.344, help="spectrl2: ozone column, atm-cm (default 0.344)")
+    p.add_argument("--pressure", type=float, default=101325.0, help="spectrl2: surface pressure, Pa (101325)")
+    p.add_argument("--day-of-year", type=int, default=172, help="spectrl2: day of year, 1-366 (default 172)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = Parser(prog="torchskin", description="Physics-based multispectral skin toolkit. Errors "
                                  "print one line (status 2: bad input; 1: a failure); --debug (anywhere on the "
@@ -538,6 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_spectra_command(sub)
     add_render_command(sub)
+    add_light_command(sub)
     add_experiment_command(sub)
     add_fit_skin_command(sub)
     add_fit_brdf_command(sub)
@@ -583,10 +683,16 @@ def add_render_command(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--skin", default="I-II", help=f"skin preset ({', '.join(tissue.PRESETS)})")
     rp.add_argument("--source-zenith", type=float, default=45.0, help="sun zenith, degrees (default 45)")
     rp.add_argument("--source-azimuth", type=float, default=20.0, help="sun azimuth from +x, degrees (default 20)")
-    rp.add_argument("--sky", type=float, default=0.1, help="sky irradiance / sun irradiance (default 0.1)")
+    rp.add_argument("--illumination", default="spectrl2", metavar="MODEL",
+                    help="light model (render.light): spectrl2 (default: clear-sky sun, sky and ground-reflected "
+                         "light from the atmosphere below, via pvlib) or thesis (a 5950 K blackbody sun and a grey "
+                         "sky of --sky)")
+    _atmosphere_options(rp)
+    rp.add_argument("--sky", type=float, default=0.1,
+                    help="thesis: sky irradiance / sun irradiance (default 0.1; spectrl2 computes its sky)")
     rp.add_argument("--sky-background", action="store_true",
-                    help="rays that hit nothing above the horizon see the sky (radiance sky * E / pi) instead of "
-                         "a black void")
+                    help="rays that hit nothing above the horizon see the isotropic sky (radiance E_sky / pi) "
+                         "instead of a black void")
     rp.add_argument("--camera-zenith", type=float, default=90.0, help="camera zenith, degrees (default 90)")
     rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
     rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")
@@ -731,6 +837,14 @@ def add_train_command(sub: argparse._SubParsersAction) -> None:
     tp.add_argument("--seed", type=int, default=0, help="seed of the initial weights and batches (default 0)")
     tp.add_argument("--pfa-budget", type=float, default=1e-3,
                     help="false-alarm budget on the earthlib train partition (default 1e-3)")
+    tp.add_argument("--scene-budget", type=float, default=1e-4,
+                    help="the largest share of the training dataset's own non-skin pixels "
+                         "(clothing, ground and confusers, sunlit and shadowed) the boxes may call skin, held in "
+                         "training and tuning (default 1e-4)")
+    tp.add_argument("--no-scene", action="store_true",
+                    help="hold only the earthlib spectra to a budget, not the dataset's non-skin pixels")
+    tp.add_argument("--sunlit-only", action="store_true",
+                    help="learn from sunlit skin only (default: sunlit and shadowed skin)")
     tp.add_argument("--json", action="store_true", help="print one JSON object (no progress output)")
     tp.set_defaults(func=cmd_train)
 

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from numpy.typing import ArrayLike
 
+from .angles import BACKLIT_MIN_DEG
 from .bands import INDEX_BANDS_NM
 from .boundaries import (
     BAND_COLUMNS,
@@ -28,8 +29,9 @@ from .boundaries import (
     inside_box,
     ratio_indices,
 )
+from .boundaries import MIN_REFLECTANCE as Bd_MIN_REFLECTANCE
 from .classifier import SkinClassifier
-from .dataset.files import open_dataset, read_valid
+from .dataset.files import manifest, open_dataset, read_valid
 from .detect import DEFAULT_BOX
 
 #: one model path or several (``load_candidate``)
@@ -41,10 +43,8 @@ CAMERA_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 GLINT_REFLECTANCE = 0.01
 #: index-plane grid (per axis, over [-1, 1]) on which the decision region of a non-box model is measured
 AREA_GRID = 64
-#: brightness floor of the evaluation protocol, applied to every model alike: a pixel whose mean reflectance over
-#: the bands is not above it is not skin (at the noise floor its indices are ratios of sensor noise; the onboard
-#: runtime applies the same floor, ``min_reflectance``, recorded in the exported detector's metadata)
-MIN_REFLECTANCE = 0.005
+#: brightness floor of the evaluation protocol, applied to every model alike (``boundaries.MIN_REFLECTANCE``)
+MIN_REFLECTANCE = Bd_MIN_REFLECTANCE
 
 
 @dataclass
@@ -194,9 +194,9 @@ class _Rows:
     """The held-out rows a model is judged on, with their configurations and categories."""
 
     def __init__(self, data_dir, features):
-        cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "label", "shadow", "ndgri",
-                                   "ndsi", "group", "sun", "skin", *BAND_COLUMNS, "theta_i_deg", "theta_r_deg",
-                                   "delta_phi_deg"]))
+        cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg",
+                                   "label", "shadow", "ndgri", "ndsi", "group", "sun", "skin", *BAND_COLUMNS,
+                                   "theta_i_deg", "theta_r_deg", "delta_phi_deg"]))
         names = set(open_dataset(data_dir, cols).schema.names)  # validates the folder and the columns
         extra = [c for c in ("material", "confuser", "clothing") if c in names]
         t, self.excluded = read_valid(data_dir, cols + extra)
@@ -213,6 +213,8 @@ class _Rows:
         self.glint = glint_affected(col["theta_i_deg"], col["theta_r_deg"], col["delta_phi_deg"]) & ~self.shadow
         self.sz = torch.from_numpy(col["sun_zenith_deg"]).float()
         self.cz = torch.from_numpy(col["camera_zenith_deg"]).float()
+        self.ra = torch.from_numpy(col["relative_azimuth_deg"]).float()
+        self.backlit = self.ra >= BACKLIT_MIN_DEG  # the camera looks towards the sun (the generator's rule)
         keys = torch.from_numpy(np.stack([col["group"], col["sun"], col["skin"]], -1).astype(np.int64))
         _, self.cfg = torch.unique(keys, dim=0, return_inverse=True)  # configuration id per row
         self.n_cfg = int(self.cfg.max()) + 1
@@ -266,19 +268,33 @@ class _Judged:
                 "pd_sunlit_mean_over_configs": _cfg_mean(self.hit[lit].float(), rows.cfg[lit], rows.n_cfg),
                 "pd_sunlit_no_glint": _rate(self.hit, lit & ~rows.glint), "pd_glint": _rate(self.hit, lit & rows.glint),
                 "pd_shadow": _rate(self.hit, sk & rows.shadow),
+                "pd_backlit": _rate(self.hit, sk & rows.backlit),
+                "pd_backlit_sunlit": _rate(self.hit, lit & rows.backlit),
                 "pfa": float(self.pfa_cfg[cfgs].mean()) if cfgs.numel() else float("nan"),
                 "pfa_scene": _rate(self.hit, nonskin),
+                "pfa_scene_sunlit": _rate(self.hit, nonskin & ~rows.shadow),
+                "pfa_scene_shadow": _rate(self.hit, nonskin & rows.shadow),
                 "area_mean": float(self.area_cfg[cfgs].mean()) if cfgs.numel() else float("nan"),
                 "skin_pixels": int(sk.sum()), "sunlit_skin_pixels": int(lit.sum()),
+                "shadow_skin_pixels": int((sk & rows.shadow).sum()), "backlit_skin_pixels": int((sk & rows.backlit).sum()),
+                "nonskin_pixels": int(nonskin.sum()),
                 "glint_pixels": int((lit & rows.glint).sum())}
 
     def scene_by_family(self, rows: _Rows) -> dict:
+        """Per material family of the non-skin pixels: Pfa (and pixels) overall, in sun, in shadow, and in
+        back-lit configurations."""
         out = {}
         nonskin = (~rows.label).numpy()
+        shadow = rows.shadow.numpy()
+        backlit = rows.backlit.numpy()
         hit = self.hit.numpy()
         for fam in np.unique(rows.family[nonskin]):
             sel = nonskin & (rows.family == fam)
-            out[str(fam)] = {"pfa": float(hit[sel].mean()), "pixels": int(sel.sum())}
+            e = {"pfa": float(hit[sel].mean()), "pixels": int(sel.sum())}
+            for name, m in (("sunlit", sel & ~shadow), ("shadow", sel & shadow), ("backlit", sel & backlit)):
+                e[f"pfa_{name}"] = float(hit[m].mean()) if m.any() else float("nan")
+                e[f"pixels_{name}"] = int(m.sum())
+            out[str(fam)] = e
         return out
 
 
@@ -363,10 +379,80 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
                     for a, b in zip(first["bins"], static["bins"])],
            "features": features, "rows": rows.n, "rows_excluded_no_sunlit_panels": rows.excluded,
            "configurations": rows.n_cfg, "glint_reflectance": GLINT_REFLECTANCE,
+           "render_revision": (manifest(data_dir) or {}).get("render_revision"),
+           "backlit_min_relative_azimuth_deg": BACKLIT_MIN_DEG,
            "min_reflectance": float(min_reflectance)}
     if cands[0].boxes is not None:
         out["roc"] = _roc(cands[0], cands[-1], rows, test_pts, scales, float(min_reflectance))
     return out
+
+
+def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLike, out_path: str | os.PathLike,
+                        scene_budget: float = 1e-4, pfa_budget: float = 1e-3,
+                        min_reflectance: float = MIN_REFLECTANCE, iters: int = 30) -> dict:
+    """Calibrate a checkpoint to the false-alarm budgets on a validation dataset (the held-out set): one scalar,
+    the largest box scale (box models: ``BoundaryModel.scale``, every box shrunk about its centre) or the lowest
+    logit threshold (classifiers), at which the share of the dataset's non-skin pixels called skin (under the
+    brightness floor, as ``evaluate`` judges it) is within ``scene_budget`` and the earthlib test spectra within
+    ``pfa_budget`` in every configuration of the dataset; never looser than the checkpoint's own tuning. Writes
+    the calibrated checkpoint to ``out_path`` (its metadata records the calibration) and returns the record.
+
+    Training holds the scene budget on the training dataset's own pixels; this holds it on pixels of other
+    confusers and clothing (the test partition), where configuration-dependent boxes, shaped around what
+    training showed them, let more through. The comparison and the choice then happen at the same budgets,
+    and the fresh test set stays untouched."""
+    import torch as _t
+
+    from .boundaries import save as save_boxes
+    from .classifier import save as save_classifier
+
+    if not (0.0 <= scene_budget < 1.0) or not (0.0 <= pfa_budget < 1.0):
+        raise ValueError(f"budgets must lie in [0, 1), got scene {scene_budget}, earthlib {pfa_budget}")
+    model, ck = load_model(model_path)
+    rows = _Rows(data_dir, list(model.features))
+    nonskin = ~rows.label
+    bright = rows.R.mean(-1) > min_reflectance
+    test_R, test_pts = _earthlib_test()
+    if isinstance(model, SkinClassifier):
+        with _t.no_grad():
+            logit = model(rows.R[nonskin & bright], rows.X[nonskin & bright])
+        k = int(math.floor(scene_budget * int(nonskin.sum())))
+        before = float(model.threshold)
+        need = float(logit.sort(descending=True).values[k]) if k < logit.numel() else before
+        model.threshold.fill_(max(before, need))
+        knob, value, start = "threshold", float(model.threshold), before
+        with _t.no_grad():
+            rate = float((model.decide(rows.R[nonskin], rows.X[nonskin]) & bright[nonskin]).float().mean())
+        save: Callable = save_classifier
+    else:
+        start = float(model.scale)
+        tb = test_R.mean(-1) > min_reflectance
+        pts = _t.where(tb[:, None], test_pts, _t.full_like(test_pts, math.nan))
+
+        def ok(scale: float) -> bool:
+            model.scale.fill_(scale)
+            with _t.no_grad():
+                box = model(rows.X)
+                hit = inside_box(box, rows.g, rows.s, rows.v) & bright
+                earth = float(false_alarm_rate(model(rows.cfg_X), pts).max())
+            return float(hit[nonskin].float().mean()) <= scene_budget and earth <= pfa_budget
+
+        lo, hi = 0.0, start
+        if ok(start):
+            lo = start
+        else:
+            for _ in range(iters):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+        ok(lo)
+        with _t.no_grad():
+            rate = float((inside_box(model(rows.X), rows.g, rows.s, rows.v) & bright)[nonskin].float().mean())
+        knob, value = "scale", lo
+        save = save_boxes
+    record = {"data": str(data_dir), "scene_budget": scene_budget, "pfa_budget": pfa_budget, "knob": knob,
+              "before": start, "after": value, "pfa_scene": rate, "rows": rows.n}
+    save(model, out_path, {**ck.get("meta", {}), "calibration": record})
+    return record
 
 
 def load_candidates(model_paths: ModelPaths) -> list[Candidate]:
@@ -406,12 +492,27 @@ def _bins(judged: _Judged, rows: _Rows) -> list[dict]:
     return bins
 
 
+#: relative-azimuth bins of ``evaluate`` (0: the sun behind the camera; >= ``BACKLIT_MIN_DEG``: back-lit)
+AZIMUTH_BINS = (0.0, 60.0, 120.0, 180.01)
+
+
+def _azimuth_bins(judged: _Judged, rows: _Rows) -> list[dict]:
+    """``_Judged.summary`` per relative-azimuth bin (``AZIMUTH_BINS``)."""
+    out = []
+    for lo, hi in zip(AZIMUTH_BINS[:-1], AZIMUTH_BINS[1:]):
+        m = (rows.ra >= lo) & (rows.ra < hi)
+        if bool((m & rows.label).any()):
+            out.append({"relative_azimuth_deg": [lo, min(hi, 180.0)], **judged.summary(rows, m)})
+    return out
+
+
 def _model_entry(cand: Candidate, judged: _Judged, rows: _Rows) -> dict:
-    """One model's entry of ``evaluate``'s ``models``: overall, sun zenith >= 60°, per bin, areas, scene Pfa by
-    family."""
+    """One model's entry of ``evaluate``'s ``models``: overall, sun zenith >= 60°, per bin (sun x camera zenith,
+    and relative azimuth), areas, scene Pfa by family."""
     area = judged.area_cfg
     return {"name": cand.name, "path": cand.path, "kind": cand.kind, "overall": judged.summary(rows),
             "sun_zenith_ge_60": judged.summary(rows, rows.sz >= 60), "bins": _bins(judged, rows),
+            "azimuth_bins": _azimuth_bins(judged, rows),
             "area": {"mean": float(area.mean()), "median": float(area.median()),
                      "p10": float(area.quantile(0.1)), "p90": float(area.quantile(0.9))},
             "scene_pfa_by_family": judged.scene_by_family(rows)}
@@ -489,24 +590,36 @@ def thesis_frame(detector_path: str | os.PathLike, size: int = 160, sun_zenith_d
 
 
 def boxes_plot(data_dir: str | os.PathLike, model_path: str | os.PathLike, path: str | os.PathLike,
-               configs: Sequence[tuple[float, ...]] = ((15.0, 20.0, 150.0), (50.0, 40.0, 90.0), (80.0, 60.0, 10.0)),
+               configs: Sequence[tuple[float, ...]] = ((15.0, 60.0, 30.0), (60.0, 60.0, 30.0), (80.0, 60.0, 30.0),
+                                                       (80.0, 60.0, 160.0)),
                max_points: int = 20000) -> None:
-    """The picture behind the numbers: held-out sunlit skin pixels (colour: sun zenith), the earthlib test
-    spectra, the static box and the learned box at a few configurations, on (NDGRI, NDSI)."""
+    """How the boxes move with the configuration. Left: held-out skin pixels on (NDGRI, NDSI) (sunlit, colour:
+    sun zenith; shadowed, grey), the earthlib test spectra, the static box and the learned box at a few
+    configurations. Right: the learned edges (b1, b2, c1, c2 and the NDVN rule d1) against the sun zenith, camera
+    zenith 60°, sun behind the camera (relative azimuth 0°), across (90°) and ahead of it (180°, back-lit)."""
     from matplotlib.patches import Rectangle
 
     from .plots import pyplot, save_figure
 
     features, boxes_of = box_function(model_path)
     t, _ = read_valid(data_dir, ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"])
-    keep = t.column("label").to_numpy(zero_copy_only=False) & ~t.column("shadow").to_numpy(zero_copy_only=False)
-    g, s, sz = (t.column(c).to_numpy(zero_copy_only=False)[keep] for c in ("ndgri", "ndsi", "sun_zenith_deg"))
-    if len(g) > max_points:
-        pick = np.random.default_rng(0).choice(len(g), max_points, replace=False)
-        g, s, sz = g[pick], s[pick], sz[pick]
+    label = t.column("label").to_numpy(zero_copy_only=False)
+    shadow = t.column("shadow").to_numpy(zero_copy_only=False)
+    rng = np.random.default_rng(0)
+
+    def pick(m):
+        cols = [t.column(c).to_numpy(zero_copy_only=False)[m] for c in ("ndgri", "ndsi", "sun_zenith_deg")]
+        if len(cols[0]) > max_points:
+            k = rng.choice(len(cols[0]), max_points, replace=False)
+            cols = [c[k] for c in cols]
+        return cols
+
+    g, s, sz = pick(label & ~shadow)
+    gs, ss, _ = pick(label & shadow)
     conf = confuser_indices("test").numpy()
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7.4, 5.2), layout="constrained")
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(13.0, 5.4), layout="constrained", width_ratios=[1.15, 1.0])
+    ax.scatter(gs, ss, s=2, alpha=0.25, c="0.6", rasterized=True, label="shadowed skin")
     sc = ax.scatter(g, s, c=sz, s=2, alpha=0.35, cmap="viridis", vmin=0, vmax=90, rasterized=True)
     ax.scatter(conf[:, 0], conf[:, 1], s=5, c="k", marker="x", lw=0.6, label="earthlib test spectra")
     b = DEFAULT_BOX
@@ -514,17 +627,31 @@ def boxes_plot(data_dir: str | os.PathLike, model_path: str | os.PathLike, path:
     if len(features) == 3:
         boxes = boxes_of(np.array(configs, dtype=np.float32)).numpy()
         for k, (c, bx) in enumerate(zip(configs, boxes)):
+            d1 = f", NDVN ≥ {bx[4]:.2f}" if len(bx) > 4 and bx[4] > -1 else ""
             ax.add_patch(Rectangle((bx[0], bx[2]), bx[1] - bx[0], bx[3] - bx[2], fill=False, ec=f"C{k + 1}", lw=1.4,
-                                   ls=("-", "--", ":")[k % 3],
-                                   label=f"learned: sun {c[0]:g}°, camera {c[1]:g}°, rel. az. {c[2]:g}°"))
+                                   ls=("-", "--", ":", "-.")[k % 4],
+                                   label=f"learned: sun {c[0]:g}°, camera {c[1]:g}°, rel. az. {c[2]:g}°{d1}"))
+        sun = np.linspace(0.0, 89.0, 90, dtype=np.float32)
+        for ra, ls in ((0.0, "-"), (90.0, "--"), (180.0, ":")):
+            bx = boxes_of(np.stack([sun, np.full_like(sun, 60.0), np.full_like(sun, ra)], -1)).numpy()
+            for j, name in enumerate(("b1 NDGRI min", "b2 NDGRI max", "c1 NDSI min", "c2 NDSI max", "d1 NDVN min")):
+                if j < bx.shape[1]:
+                    ax2.plot(sun, bx[:, j], color=f"C{j}", ls=ls, lw=1.4, label=name if ra == 0.0 else None)
+        for ra, ls in ((0.0, "-"), (90.0, "--"), (180.0, ":")):
+            ax2.plot([], [], color="k", ls=ls, label=f"relative azimuth {ra:g}°")
+        ax2.set_xlabel("sun zenith (deg), camera zenith 60°")
+        ax2.set_ylabel("box edge (index units)")
+        ax2.set_title("learned edges against the configuration")
+        ax2.legend(fontsize=7, ncol=2, loc="best")
+        ax2.grid(alpha=0.3)
     ax.set_xlim(-1.0, 0.6)
     ax.set_ylim(-0.2, 1.1)
     ax.set_xlabel("NDGRI (544, 633 nm)")
     ax.set_ylabel("NDSI (1080, 1580 nm)")
-    ax.set_title("held-out sunlit skin (colour: sun zenith, deg) and confusers")
+    ax.set_title("held-out skin (sunlit: colour = sun zenith; shadowed: grey) and confusers")
     cb = fig.colorbar(sc, ax=ax, fraction=0.04, label="sun zenith (deg)")
     cb.solids.set_alpha(1.0)  # the key at full colour, not at the points' transparency
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=6.5, loc="lower left")
     save_figure(fig, path)
 
 
@@ -579,7 +706,7 @@ __all__ = ["FEATURES", "evaluate", "plots"]
 
 
 _TABLE = (("Pd sunlit", "pd_sunlit"), ("no glint", "pd_sunlit_no_glint"), ("glint", "pd_glint"),
-          ("shadow", "pd_shadow"), ("mean/config", "pd_sunlit_mean_over_configs"))
+          ("shadow", "pd_shadow"), ("backlit", "pd_backlit"), ("mean/config", "pd_sunlit_mean_over_configs"))
 
 
 def table(result: dict) -> str:
@@ -593,14 +720,16 @@ def table(result: dict) -> str:
                      + f"{hi['pd_sunlit_mean_over_configs']:>12.3f}{o['pfa']:>13.2e}{o['pfa_scene']:>11.2e}"
                      + f"{m['area']['mean']:>7.3f}")
     lines.append(f"({result['rows']} rows, {result['configurations']} configurations; Pd sunlit split into glint-"
-                 f"affected (specular >= {result['glint_reflectance']:g} at 1580 nm) and not; area: mean decision-"
-                 "region area per configuration in the (NDGRI, NDSI) plane)")
+                 f"affected (specular >= {result['glint_reflectance']:g} at 1580 nm) and not; shadow: skin without "
+                 f"direct sun; backlit: all skin of configurations with relative azimuth >= {BACKLIT_MIN_DEG:g}° (the "
+                 "camera looks towards the sun); area: mean decision-region area per configuration in the (NDGRI, "
+                 "NDSI) plane)")
     return "\n".join(lines)
 
 
 def compare_plot(result: dict, path: str | os.PathLike) -> None:
-    """Bars per model: Pd (sunlit without glint, glint-affected, shadowed, sun >= 60° mean over configurations),
-    false alarms (earthlib test and scene non-skin, log scale) and the decision-region area."""
+    """Bars per model: Pd (sunlit without glint, glint-affected, shadowed, back-lit, sun >= 60° mean over
+    configurations), false alarms (earthlib test and scene non-skin, log scale) and the decision-region area."""
     from .plots import pyplot, save_figure
 
     plt = pyplot()
@@ -610,6 +739,7 @@ def compare_plot(result: dict, path: str | os.PathLike) -> None:
     cats = [("sunlit, no glint", lambda m: m["overall"]["pd_sunlit_no_glint"]),
             ("glint-affected", lambda m: m["overall"]["pd_glint"]),
             ("shadowed", lambda m: m["overall"]["pd_shadow"]),
+            ("back-lit (all skin)", lambda m: m["overall"]["pd_backlit"]),
             ("sun ≥ 60°, mean/config", lambda m: m["sun_zenith_ge_60"]["pd_sunlit_mean_over_configs"])]
     x = np.arange(len(cats))
     w = 0.8 / len(models)

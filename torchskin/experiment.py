@@ -58,7 +58,7 @@ def experiment_scene(angles: Sequence[float] = ANGLES_DEG, skin: str | dict = "I
     cam = Camera(width=width, height=height, zenith_deg=90.0, azimuth_deg=0.0, range_m=9.449,
                  target=[0.0, 0.0, 1.3], fov_deg=6.5)
     suns = [Sun(zenith_deg=90.0, azimuth_deg=float(a)) for a in angles]
-    return Scene(mats, meshes, [cam], suns)
+    return Scene(mats, meshes, [cam], suns, illumination="thesis")  # the thesis's lab lamp
 
 
 def appendix_c(sensor: Sensor | None = None, width: int = 192, height: int = 96) -> float:
@@ -73,7 +73,7 @@ def appendix_c(sensor: Sensor | None = None, width: int = 192, height: int = 96)
     ]
     cam = Camera(width=width, height=height, zenith_deg=90.0, azimuth_deg=0.0, range_m=9.449,
                  target=[0.0, 0.0, 1.0], fov_deg=21.0)
-    sc = Scene(mats, meshes, [cam], [Sun(zenith_deg=90.0, azimuth_deg=0.0)])
+    sc = Scene(mats, meshes, [cam], [Sun(zenith_deg=90.0, azimuth_deg=0.0)], illumination="thesis")
     res = render(sc, sensor=sensor)
     k = res.gbuffer.mesh_names.index("middle")
     mid = res.gbuffer.mesh[0] == k

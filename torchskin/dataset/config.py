@@ -27,8 +27,21 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "sun": {
         "zenith_deg": ([0.0, 89.0], (0.0, 90.0)),
         "azimuth_deg": ([0.0, 360.0], (0.0, 360.0)),
-        "sky_fraction": ([0.0, 0.2], (0.0, 1.0)),
         "per_pose": (16, "int>=1"),
+    },
+    # the light model (render.light) and its clear-sky atmosphere, drawn per pose group (one place and day: its
+    # suns share it). Ranges: aerosol optical depth at 500 nm of clean to hazy continental sites (AERONET
+    # climatology, Holben et al. 2001, J Geophys Res 106:12067: annual means 0.03-0.4); precipitable water of dry
+    # to humid air masses (Gueymard 2001, Solar Energy 71:325, SMARTS: 0.5-4 cm); total ozone (TOMS/OMI
+    # climatology: 250-450 Dobson units, 0.25-0.45 atm-cm); surface pressure from sea level to about 1500 m.
+    "light": {
+        "model": ("spectrl2", ("spectrl2", "thesis")),
+        "aerosol_500nm": ([0.03, 0.4], (0.0, 2.0)),
+        "precipitable_water_cm": ([0.5, 4.0], (0.0, 10.0)),
+        "ozone_atm_cm": ([0.25, 0.45], (0.0, 1.0)),
+        "pressure_pa": ([85000.0, 102000.0], (30000.0, 110000.0)),
+        "day_of_year": ([1.0, 365.0], (1.0, 366.0)),
+        "sky_fraction": ([0.0, 0.2], (0.0, 1.0)),  # the "thesis" model's grey sky only
     },
     "camera": {
         "zenith_deg": ([0.0, 90.0], (0.0, 90.0)),  # 90: a horizontal, ground-level camera (the thesis)
@@ -60,6 +73,9 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         # for dyed and natural fabrics (confusers.CLOTHING_FAMILIES), or "fixed": the one grey-brown spectrum
         "partition": ("train", ("train", "test", "fixed")),
     },
+    # the sensor's path between subject and camera: with the "spectrl2" light, its transmittance and airlight
+    # come from the light's atmosphere (light.path_terms) and the airlight is scaled by path_radiance_scale;
+    # with "thesis", the transmittance is drawn from this range and the airlight is the sensor default's, scaled
     "atmosphere": {
         "transmittance": ([0.85, 1.0], (0.0, 1.0)),
         "path_radiance_scale": ([0.0, 2.0], (0.0, 100.0)),
@@ -74,6 +90,11 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     },
     "panels": {
         "kinds": (["lambertian", "spectralon"], "panels"),
+    },
+    # the BRDF of the ground and the confuser patches: "rtlsr", the Ross-Thick/Li-Sparse-Reciprocal kernels with
+    # Roy et al. (2016)'s global per-band shape (render.rtlsr), or "lambertian"
+    "ground": {
+        "brdf": ("rtlsr", ("rtlsr", "lambertian")),
     },
     "sampling": {
         "pixels_per_class": (128, "int>=1"),
@@ -156,6 +177,9 @@ def resolve_config(overrides: dict | None = None) -> dict:
         if not isinstance(keys, dict):
             raise ValueError(f"config section {section!r} must be a table of keys")
         for key, value in keys.items():
+            if (section, key) == ("sun", "sky_fraction"):
+                raise ValueError("config key sun.sky_fraction has moved: the sky comes from the light model "
+                                 "([light] model); light.sky_fraction sets the 'thesis' model's grey sky")
             if key not in SCHEMA[section]:
                 raise ValueError(f"unknown config key {section}.{key}; known: {', '.join(SCHEMA[section])}")
             cfg[section][key] = value
@@ -185,7 +209,7 @@ class PoseGroup:
     seed: int
     camera: dict  # zenith_deg, azimuth_deg, range_m, width, height, fov_deg
     subject: dict  # kind "anny" (phenotype) or "file" (path); yaw_deg
-    suns: list[dict] = field(default_factory=list)  # zenith_deg, azimuth_deg, sky_fraction
+    suns: list[dict] = field(default_factory=list)  # zenith_deg, azimuth_deg
     skins: tissue.SkinParams | None = None  # (K,) float64 batch of the group's skins (``tissue.sample``)
     skin_types: list[str] = field(default_factory=list)  # their Fitzpatrick types
     atmosphere: dict = field(default_factory=dict)
@@ -194,6 +218,8 @@ class PoseGroup:
     confusers: list[dict] = field(default_factory=list)  # earthlib spectrum name, ground position, size
     clothing: str = ""  # earthlib spectrum name of the subject's clothing ("": the fixed clothing spectrum)
     surface: str = DEFAULT_SURFACE  # skin surface model
+    light: dict = field(default_factory=dict)  # model, the atmosphere's fields (scene.Atmosphere), sky_fraction
+    ground_brdf: str = "lambertian"  # material kind of the ground and the confuser patches
 
     def as_dict(self) -> dict:
         """The group as JSON-ready data (skins as parameter lists)."""
@@ -234,8 +260,8 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
                    "head_yaw_deg": u(s["head_yaw_deg"]), "head_pitch_deg": u(s["head_pitch_deg"])}
     subject["yaw_deg"] = u(s["yaw_deg"]) % 360.0
     sn = cfg["sun"]
-    suns = [{"zenith_deg": u(sn["zenith_deg"]), "azimuth_deg": u(sn["azimuth_deg"]) % 360.0,
-             "sky_fraction": u(sn["sky_fraction"])} for _ in range(sn["per_pose"])]
+    suns = [{"zenith_deg": u(sn["zenith_deg"]), "azimuth_deg": u(sn["azimuth_deg"]) % 360.0}
+            for _ in range(sn["per_pose"])]
     skins, skin_types = tissue.sample(cfg["skin"]["per_pose"], rng, cfg["skin"]["types"], dtype=torch.float64)
     a = cfg["atmosphere"]
     atmosphere = {"transmittance": u(a["transmittance"]), "path_radiance_scale": u(a["path_radiance_scale"])}
@@ -260,5 +286,12 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
 
         wardrobe = list(clothing_library(cfg["clothing"]["partition"]))
         clothing = wardrobe[int(rng.integers(len(wardrobe)))]
+    lc = cfg["light"]
+    light = {"model": lc["model"], **{k: u(lc[k]) for k in LIGHT_ATMOSPHERE}, "sky_fraction": u(lc["sky_fraction"])}
+    light["day_of_year"] = int(round(light["day_of_year"]))
     return PoseGroup(index, seed, camera, subject, suns, skins, skin_types, atmosphere, sensor, panels, confusers, clothing,
-                     cfg["skin"]["surface"])
+                     cfg["skin"]["surface"], light, cfg["ground"]["brdf"])
+
+
+#: the ``light`` keys that are ``scene.Atmosphere`` fields (the others take its defaults)
+LIGHT_ATMOSPHERE = ("aerosol_500nm", "precipitable_water_cm", "ozone_atm_cm", "pressure_pa", "day_of_year")

@@ -18,8 +18,9 @@ if TYPE_CHECKING:
 MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when reading the folder
 #: the renderer's revision for datasets: raised whenever the same config and seed render other bytes, so that
 #: ``generate --resume`` does not keep shards of another revision (2: anny bodies in float64, camera rays and
-#: facing tests and angles written out in a fixed order; 1 or missing: before)
-RENDER_REVISION = 2
+#: facing tests and angles written out in a fixed order; 3: the light stage: SPECTRL2 sun, sky and ground-reflected
+#: light, sky views, RTLSR ground and confusers; 1 or missing: before)
+RENDER_REVISION = 3
 
 
 def sha256_file(path: StrPath) -> str:

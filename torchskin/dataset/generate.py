@@ -25,24 +25,34 @@ import numpy as np
 import torch
 
 from .. import __version__, tissue
-from ..angles import relative_azimuth_deg
+from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
 from ..bands import INDEX_BANDS_NM
 from ..boundaries import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import ELM_MIN_SUNLIT, panel_pixels
 from ..render.kernels import cos_to
-from ..render.pipeline import RenderResult, render, render_pixels
+from ..render.light import LightTables, path_terms
+from ..render.pipeline import RenderResult, render, render_pixels, scene_light
 from ..render.raycast import GBuffer, Raycaster
-from ..render.scene import Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
+from ..render.rtlsr import RHO_MAX
+from ..render.scene import Atmosphere, Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
 from ..render.sensor import Sensor
-from .config import PoseGroup, sample_group
+from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
 from .files import MANIFEST, RENDER_REVISION, sha256_file
 
-SCHEMA_VERSION = 3  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
-# clothing and material columns, clothing drawn from earthlib
+SCHEMA_VERSION = 4  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
+# clothing and material columns, clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
+# (sky_view, direct_share_*, light, backlit), sky_fraction derived
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
+#: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
+GROUND_REFLECTANCE = [0.12, 0.16, 0.30, 0.28]
+INDEX_BANDS = [[w, 0.0] for w in INDEX_BANDS_NM]
+#: a group's non-skin rows are drawn from a pool of this many times ``pixels_per_class`` of its non-skin pixels
+OTHER_POOL = 16
+#: the bands whose direct share each row records (544 and 1580 nm: direct_share_544, direct_share_1580)
+SHARE_BANDS = (0, 3)
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
 FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
 
@@ -58,9 +68,16 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "camera_azimuth_deg": ("float32", "camera azimuth", "deg"),
     "relative_azimuth_deg": ("float32", "|sun azimuth - camera azimuth| folded to [0, 180]", "deg"),
     "range_m": ("float32", "camera range to the subject", "m"),
-    "sky_fraction": ("float32", "sky / sun irradiance", ""),
-    "atmosphere_transmittance": ("float32", "path transmittance", ""),
-    "path_radiance_scale": ("float32", "path radiance relative to the sensor default", ""),
+    "backlit": ("bool", "the camera looks towards the sun: relative azimuth >= 120 deg (BACKLIT_MIN_DEG)", ""),
+    "aerosol_500nm": ("float32", "light model atmosphere: aerosol optical depth at 500 nm", ""),
+    "precipitable_water_cm": ("float32", "light model atmosphere: precipitable water", "cm"),
+    "ozone_atm_cm": ("float32", "light model atmosphere: total ozone", "atm-cm"),
+    "pressure_pa": ("float32", "light model atmosphere: surface pressure", "Pa"),
+    "day_of_year": ("int16", "light model atmosphere: day of year", ""),
+    "sky_fraction": ("float32", "derived: diffuse horizontal / direct normal irradiance at 544 nm", ""),
+    "atmosphere_transmittance": ("float32", "sensor path transmittance at 544 nm", ""),
+    "path_radiance_scale": ("float32", "path radiance scale (spectrl2: of Koschmieder's airlight; thesis: of the "
+                            "sensor default)", ""),
     "skin_type": ("string", "Fitzpatrick type of the group's skin", ""),
     "melanosome": ("float32", "melanosome volume fraction", ""),
     "blood": ("float32", "blood level", ""),
@@ -87,6 +104,12 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "theta_r_deg": ("float32", "local view angle", "deg"),
     "delta_phi_deg": ("float32", "local relative azimuth (180: forward plane)", "deg"),
     "shadow": ("bool", "not sunlit: the sun is occluded (cast shadow) or behind the surface (θi > 90°)", ""),
+    "light": ("string", "sunlit or shadow (no direct sun: not shadow, resp. shadow)", ""),
+    "sky_view": ("float32", "the pixel's cosine-weighted view of the sky (hemisphere rays; NaN: a light without sky or "
+                 "ground light, none cast)", ""),
+    "direct_share_544": ("float32", "share of the pixel's irradiance at 544 nm that is direct (sun and circumsolar)",
+                         ""),
+    "direct_share_1580": ("float32", "share of the pixel's irradiance at 1580 nm that is direct", ""),
     "elm_valid": ("bool", "both reference panels sunlit (>= half of each interior): the frame's ELM is physical; "
                   "training and evaluation use only these frames", ""),
     "r544": ("float32", "ELM reflectance at 544 nm", ""),
@@ -131,7 +154,7 @@ def group_scene(group: PoseGroup) -> Scene:
     clothing = spectrum(group.clothing, INDEX_BANDS_NM) if group.clothing else FIXED_CLOTHING
     mats = {"skin": Material("skin", skin="I-II", surface=group.surface),
             "clothing": Material("lambertian", reflectance=clothing),
-            "ground": Material("lambertian", reflectance=[0.12, 0.16, 0.30, 0.28]), **panel_materials(group.panels)}
+            "ground": Material(group.ground_brdf, reflectance=GROUND_REFLECTANCE), **panel_materials(group.panels)}
     if subject["kind"] == "anny":
         pose = {"head": [subject["head_pitch_deg"], 0.0, subject["head_yaw_deg"]]}
         body = MeshSpec("subject", "anny", "skin", params={"phenotype": subject["phenotype"], "pose": pose,
@@ -144,21 +167,34 @@ def group_scene(group: PoseGroup) -> Scene:
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
     confusers = []
     for k, c in enumerate(group.confusers):  # flat patches on the ground around the subject
-        mats[f"confuser{k}"] = Material("lambertian", reflectance=spectrum(c["name"], INDEX_BANDS_NM))
+        refl = spectrum(c["name"], INDEX_BANDS_NM)
+        # "rtlsr" where its energy bound allows (rtlsr.RHO_MAX): brighter spectra stay Lambertian
+        kind = group.ground_brdf if max(refl) <= RHO_MAX else "lambertian"
+        mats[f"confuser{k}"] = Material(kind, reflectance=refl)
         confusers.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}",
                                   params={"width": c["size"], "height": c["size"]},
                                   position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
-    suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], sky_fraction=s["sky_fraction"])
-            for s in group.suns]
-    return Scene(mats, [body, *panels, ground, *confusers], [cam], suns)
+    atm = Atmosphere(**{k: group.light[k] for k in LIGHT_ATMOSPHERE})
+    thesis = group.light["model"] == "thesis"
+    suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], atmosphere=atm,
+                sky_fraction=group.light["sky_fraction"] if thesis else 0.0) for s in group.suns]
+    return Scene(mats, [body, *panels, ground, *confusers], [cam], suns, illumination=group.light["model"])
 
 
-def group_sensor(group: PoseGroup) -> Sensor:
-    """The sensor of a pose group: its noise draw, read noise and atmosphere."""
-    base = Sensor()
+def group_sensor(group: PoseGroup, light: LightTables | None = None) -> Sensor:
+    """The sensor of a pose group: its noise draw, read noise and path. Under a light model with an atmosphere
+    ("spectrl2") the path's transmittance and airlight come from it (``light.path_terms``, the airlight of the
+    group's suns' mean isotropic sky, ``light``: the scene's light tables) and the airlight is scaled by
+    ``path_radiance_scale``; under "thesis" the drawn transmittance and the sensor default's airlight, scaled."""
+    scale = group.atmosphere["path_radiance_scale"]
+    if group.light["model"] == "spectrl2" and light is not None:
+        atm = Atmosphere(**{k: group.light[k] for k in LIGHT_ATMOSPHERE})
+        p = path_terms(atm, light.sky.double().mean(0).tolist(), INDEX_BANDS, group.camera["range_m"])
+        tau, path = p["atmosphere_transmittance"], [x * scale for x in p["path_radiance"]]
+    else:
+        tau, path = group.atmosphere["transmittance"], [p * scale for p in cast(list, Sensor().path_radiance)]
     return Sensor(noise=group.sensor["noise"], read_noise_e=group.sensor["read_noise_e"], seed=group.sensor["seed"],
-                  atmosphere_transmittance=group.atmosphere["transmittance"],
-                  path_radiance=[p * group.atmosphere["path_radiance_scale"] for p in cast(list, base.path_radiance)])
+                  atmosphere_transmittance=tau, path_radiance=path)
 
 
 def pixel_angles_deg(gb: GBuffer, idx: torch.Tensor, sun_dir: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -225,7 +261,8 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
     gb = rc.gbuffer(scene.cameras, sun_dirs.numpy(), compile, shadows=images is not None)
     labels = pixel_labels(group, scene, gb)
-    sensor = group_sensor(group)
+    light = scene_light(scene, torch.float64)
+    sensor = group_sensor(group, light)
     rng = np.random.default_rng(group.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
     pix = panel_pixels(gb, list(scene.panels))  # found once for the group's renders
@@ -235,29 +272,36 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     if skins is None:
         raise ValueError(f"pose group {group.index} has no skins")
     if images is not None:  # full frames of every skin x sun in one batch
-        full = render(scene, device=device, sensor=sensor, gbuffer=gb, skins=skins, panel_pixels=pix, compile=compile)
+        full = render(scene, device=device, sensor=sensor, gbuffer=gb, raycaster=rc, skins=skins, panel_pixels=pix,
+                      compile=compile)
         cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
         return out
-    # the pixels of every configuration (skin x sun), drawn first, then rendered together in one batch
-    picks = [np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
+    # the pixels of every configuration (skin x sun), drawn first, then rendered together in one batch; the non-skin
+    # ones from a pool of the group's non-skin pixels (OTHER_POOL x pixels per class), so that the sky and shadow
+    # rays of a group are cast for a few thousand pixels, not for most of the frame
+    pool = rng.choice(labels.other, min(len(labels.other), max(m, OTHER_POOL * m)), replace=False)
+    picks = [np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(pool, m, replace=False)])
              for _ in range(n_skins * n_suns)]
     union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
     res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins,
-                        panel_pixels=pix, raycaster=rc, compile=compile)
+                        panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS)
     sub = res.gbuffer  # the rendered pixels' G-buffer, shadows cast; rows skin-major, the first n_suns: skin 0
     elm_valid = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
                               list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
-    rows = configuration_rows(group, res, np.concatenate(picks), inverse, gb, sun_dirs, labels, elm_valid.numpy())
+    rows = configuration_rows(group, res, np.concatenate(picks), inverse, gb, sun_dirs, labels, elm_valid.numpy(),
+                              light)
     return {k: [v] for k, v in rows.items()}
 
 
 def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
-                       sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray) -> dict[str, np.ndarray]:
+                       sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray,
+                       light: LightTables) -> dict[str, np.ndarray]:
     """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
     rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
-    found at ``pos`` (same slice) of the pixel render ``res``'s row c; ``elm_valid`` (S,) per sun."""
+    found at ``pos`` (same slice) of the pixel render ``res``'s row c (rendered with ``irradiance``);
+    ``elm_valid`` (S,) per sun; ``light``: the scene's light tables (S rows, float64)."""
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     n_cfg = n_suns * n_skins
     per = len(idx) // n_cfg  # 2m
@@ -266,8 +310,9 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     skins = cast(tissue.SkinParams, group.skins)
     const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
              "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
-             "atmosphere_transmittance": group.atmosphere["transmittance"],
+             "atmosphere_transmittance": float(np.atleast_1d(res_sensor_tau(group, light))[0]),
              "path_radiance_scale": group.atmosphere["path_radiance_scale"],
+             **{k: group.light[k] for k in LIGHT_ATMOSPHERE},
              "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
              "head_yaw_deg": group.subject.get("head_yaw_deg", math.nan),
              "head_pitch_deg": group.subject.get("head_pitch_deg", math.nan),
@@ -283,7 +328,9 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "sun_azimuth_deg": per_sun([s["azimuth_deg"] for s in group.suns]),
                  "relative_azimuth_deg": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                                   for s in group.suns]),
-                 "sky_fraction": per_sun([s["sky_fraction"] for s in group.suns]),
+                 "sky_fraction": sky_fraction(light, [s["zenith_deg"] for s in group.suns])[si],
+                 "backlit": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
+                                     >= BACKLIT_MIN_DEG for s in group.suns]),
                  "skin_type": np.array(group.skin_types, dtype=object)[ki],
                  **{k: np.array([float(x) for x in getattr(skins, k)])[ki]
                     for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen", "subcutaneous_scale")}})
@@ -298,7 +345,29 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "elm_valid": elm_valid[si], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
                  "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
+    shadow = rows["shadow"]
+    rows["light"] = np.where(shadow, "shadow", "sunlit").astype(object)
+    sky = res.gbuffer.sky  # None where the light has no sky or ground light (no sky rays cast): NaN
+    rows["sky_view"] = np.full(n, np.nan, dtype=np.float32) if sky is None else \
+        sky.reshape(-1).cpu()[torch.from_numpy(pos)].float().numpy()
+    direct, diffuse = (x[:, 0, 0].cpu().double()[at] for x in cast(tuple, res.irradiance))  # (n, B)
+    total = direct + diffuse
+    share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
+    rows["direct_share_544"], rows["direct_share_1580"] = share[:, 0], share[:, 1]
     return {k: rows[k] for k in COLUMNS}
+
+
+def sky_fraction(light: LightTables, zenith_deg: list[float]) -> np.ndarray:
+    """Per sun, diffuse horizontal over direct normal irradiance at the first band (544 nm): the thesis model's
+    ``sky_fraction``, derived (NaN where no direct light reaches a horizontal surface)."""
+    cz = torch.cos(torch.deg2rad(torch.tensor(zenith_deg, dtype=torch.float64)))
+    dni = light.direct_horizontal[:, 0].double() / cz
+    return torch.where(dni > 0, light.diffuse_horizontal[:, 0].double() / dni, torch.nan).float().numpy()
+
+
+def res_sensor_tau(group: PoseGroup, light: LightTables) -> list[float] | float:
+    """The group sensor's path transmittance (per band, or one value) (``group_sensor``)."""
+    return cast(list[float] | float, group_sensor(group, light).atmosphere_transmittance)
 
 
 # -------------------------------------------------------------------------------------------------- shards
@@ -385,7 +454,7 @@ def _intact(out: Path, entry: dict) -> bool:
 def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
     per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
     return {"schema_version": SCHEMA_VERSION, "render_revision": RENDER_REVISION, "package_version": __version__,
-            "config": cfg, "master_seed": seed,
+            "config": cfg, "master_seed": seed, "light_model": cfg["light"]["model"],
             "configs": n_groups * per_group, "requested_configs": n_configs, "groups": n_groups,
             "n_shards": n_shards, "images": images,
             "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},

@@ -180,30 +180,32 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
 
 
 def lambert_sky(normal: torch.Tensor, hit: torch.Tensor, material: torch.Tensor, shadow: torch.Tensor,
-                sun_dirs: torch.Tensor, sky_fraction: torch.Tensor, irradiance: torch.Tensor, albedo: torch.Tensor,
-                lambert_f: torch.Tensor, ray_dz: torch.Tensor, sky_background: bool
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The shading every material shares, per sun, pixel and band: a uniform sky on every hit pixel,
-    ρ_hemi/π · E_sky · (1 + n_z)/2, plus the Lambertian part f E cos θi on sunlit pixels; and, with
-    ``sky_background``, the sky's own radiance sky_fraction · E / π on missed rays that climb (``ray_dz`` > 0,
-    the camera rays' z direction).
+                sun_dirs: torch.Tensor, beam: torch.Tensor, sky: torch.Tensor, ground: torch.Tensor,
+                sky_view: torch.Tensor, ground_view: torch.Tensor, albedo: torch.Tensor, lambert_f: torch.Tensor,
+                ray_dz: torch.Tensor, sky_background: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The shading every material shares, per sun, pixel and band: the diffuse light on every hit pixel,
+    ρ_hemi/π · (E_sky V_sky + E_ground R_ground), plus the Lambertian part f E_beam cos θi on sunlit pixels;
+    and, with ``sky_background``, the sky's own radiance E_sky / π on missed rays that climb (``ray_dz`` > 0, the
+    camera rays' z direction).
 
-    ``normal`` (N, 3); ``hit``, ``material`` (N,); ``shadow`` (S, N); ``sun_dirs`` (S, 3); ``sky_fraction``
-    (S,); ``irradiance`` (S, B); ``albedo``, ``lambert_f`` ([S,] M, B) by material.
+    ``normal`` (N, 3); ``hit``, ``material`` (N,); ``shadow`` (S, N); ``sun_dirs`` (S, 3); ``beam``, ``sky``,
+    ``ground`` (S, B): the light tables (``light.LightTables``); ``sky_view`` (N,): the pixel's cosine-weighted view
+    of the sky; ``ground_view`` (N, B): its view of up-facing surfaces weighted by their reflectance (the light
+    they reflect per unit of ``ground``); ``albedo``, ``lambert_f`` ([S,] M, B) by material.
 
     Returns:
         radiance (S, N, B), sunlit mask (S, N) and sunlit cos θi (S, N) (0 where not sunlit).
     """
-    nx, ny, nz = normal[:, 0], normal[:, 1], normal[:, 2]
-    cos_i = sun_dirs[:, 0:1] * nx + sun_dirs[:, 1:2] * ny + sun_dirs[:, 2:3] * nz  # (S, N)
+    cos_i = cos_to([normal[:, 0], normal[:, 1], normal[:, 2]], sun_dirs)  # (S, N)
     lit = (cos_i > 0) & ~shadow & hit
     w = torch.where(lit, cos_i, torch.zeros((), dtype=cos_i.dtype, device=cos_i.device))
-    E = irradiance[:, None, :]  # (S, 1, B)
-    sky = albedo.index_select(-2, material) * (hit * (0.5 / math.pi) * (1 + nz))[:, None]  # ([S,] N, B)
-    L = torch.addcmul((sky_fraction[:, None, None] * E) * sky, w[..., None], lambert_f.index_select(-2, material) * E)
+    E = beam[:, None, :]  # (S, 1, B)
+    diffuse = sky[:, None, :] * (sky_view * hit)[:, None] + ground[:, None, :] * ground_view  # (S, N, B)
+    L = torch.addcmul(albedo.index_select(-2, material) * diffuse * (1 / math.pi), w[..., None],
+                      lambert_f.index_select(-2, material) * E)
     if sky_background:
         up = ~hit & (ray_dz > 0)  # the ray climbs
-        L = torch.where(up[:, None], sky_fraction[:, None, None] * E * (1 / math.pi), L)
+        L = torch.where(up[:, None], sky[:, None, :] * (1 / math.pi), L)
     return L, lit, w
 
 

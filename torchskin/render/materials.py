@@ -10,7 +10,7 @@ Each ``Material`` of a scene resolves (``kind_name``) to an entry of ``KINDS``, 
 
 A new kind is one ``register("name", MaterialKind(...))`` call (as Mitsuba registers BSDF plugins); the skin
 surface models are entries ("skin-thesis", "skin-conserving", "skin-diffuse"), and so are the panels
-("lambertian", "spectralon", "spectralon-brdf").
+("lambertian", "spectralon", "spectralon-brdf") and the MODIS kernel-driven BRDF ("rtlsr", ``render.rtlsr``).
 
 >>> import torch
 >>> from torchskin.render.scene import Material
@@ -35,7 +35,8 @@ import torch
 from .. import data, tissue
 from ..bands import Band, as_bands, band_sampling, per_band
 from ..optics import SURFACE_MODELS, THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
-from .light import sun_irradiance
+from .light import check_light
+from .rtlsr import DEFAULT_KERNELS, check_rtlsr, kernel_weights, rtlsr_brdf_cos
 from .scene import Material, Sun
 
 #: Spectralon reference panels, directional-hemispherical reflectance per band (thesis Table 3)
@@ -55,7 +56,8 @@ class Spectral:
 
     Shape:
         ``grid`` (G,) nm; ``weights`` (G, B) band responses; ``sun_weights`` (G, B) band responses under the
-        first sun's spectrum, each column summing to 1; ``wavelengths`` (B,) band centres, nm.
+        first sun's direct spectrum (the scene's light model), each column summing to 1; ``wavelengths`` (B,)
+        band centres, nm.
     """
 
     bands: tuple[Band, ...]
@@ -251,12 +253,33 @@ def _skin_brdf(ci: torch.Tensor, cr: torch.Tensor, c2b: torch.Tensor, p: dict[st
     return skin_brdf_cos(ci, cr, c2b, p["r_sub"], p["sigma2"], p["rho0"], p["front"])
 
 
+def _check_rtlsr(m: Material) -> None:
+    if m.reflectance is None:
+        raise ValueError("an rtlsr material needs reflectance (its white-sky albedo: one value or one per band)")
+    _check_lambertian(m)
+    check_rtlsr(m.reflectance, m.params)
+
+
+def _rtlsr(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
+    """The white-sky albedo per band is the albedo; the Roy et al. (2016) kernel weights scaled to it
+    (``rtlsr.kernel_weights``) are the BRDF's parameters."""
+    rho = torch.tensor(per_band(cast(float | list[float], m.reflectance), sp.bands, "an rtlsr reflectance"),
+                       dtype=torch.float64)
+    f_iso, f_vol, f_geo = kernel_weights(rho, sp.wavelengths, m.params.get("kernels", DEFAULT_KERNELS))
+    return Compiled(albedo=rho[None], params={"f_iso": f_iso[None], "f_vol": f_vol[None], "f_geo": f_geo[None]})
+
+
+def _rtlsr_brdf(ci: torch.Tensor, cr: torch.Tensor, c2b: torch.Tensor, p: dict[str, torch.Tensor]) -> torch.Tensor:
+    return rtlsr_brdf_cos(ci, cr, c2b, p["f_iso"], p["f_vol"], p["f_geo"])
+
+
 register("lambertian", MaterialKind(_lambertian, None, _check_lambertian))
 register("spectralon", MaterialKind(_spectralon, None, _check_spectralon))
 register("spectralon-brdf", MaterialKind(_spectralon, _spectralon_brdf, _check_spectralon))
 for _surface in SURFACE_MODELS:
     register(f"skin-{_surface}", MaterialKind(_skin, _skin_brdf, _check_skin))
 register("skin-diffuse", MaterialKind(_skin, None, _check_skin))
+register("rtlsr", MaterialKind(_rtlsr, _rtlsr_brdf, _check_rtlsr))
 
 
 # ---------------------------------------------------------------------------------------------- compilation
@@ -278,15 +301,14 @@ class MaterialTables:
 
     Shape:
         ``lambert_f`` ([N,] M, B): albedo/π of Lambertian kinds, 0 for BRDF kinds; ``albedo`` ([N,] M, B);
-        ``reference`` (M, B): hemispherical reflectance (ELM references); ``irradiance`` (S or N, B): sun
-        normal irradiance per band, W m^-2 nm^-1; ``wavelengths`` (B,) nm; ``is_skin`` (M,) bool.
+        ``reference`` (M, B): hemispherical reflectance (ELM references, the ground light's reflectance);
+        ``wavelengths`` (B,) nm; ``is_skin`` (M,) bool. (The light is not a material matter: ``light.LightTables``.)
     """
 
     names: list[str]
     lambert_f: torch.Tensor
     albedo: torch.Tensor
     reference: torch.Tensor
-    irradiance: torch.Tensor
     wavelengths: torch.Tensor
     is_skin: torch.Tensor
     groups: dict[str, BrdfGroup]
@@ -303,25 +325,29 @@ def group_param(rows: list[torch.Tensor | None], table: Callable[[list[torch.Ten
     return table([r if r is not None else torch.zeros_like(first) for r in rows])
 
 
-def spectral_context(bands: Sequence[Band], suns: Sequence[Sun]) -> tuple[Spectral, torch.Tensor]:
-    """The band sampling of ``bands`` and the suns' band irradiance (S, B), float64."""
+def spectral_context(bands: Sequence[Band], suns: Sequence[Sun], illumination: str = "thesis") -> Spectral:
+    """The band sampling of ``bands``, weighted within each band by the first sun's direct spectrum under the
+    light model ``illumination`` (a band where it is 0 keeps its plain response), float64."""
     grid, W = band_sampling(bands, dtype=torch.float64)
-    E = torch.stack([sun_irradiance(s, grid) for s in suns])  # (S, G)
-    wE = W * E[0][:, None]  # band responses under the first sun's spectrum
-    wE = wE / wE.sum(0)
+    E = check_light(illumination, suns[:1]).spectra(suns[:1], grid).direct_normal[0]  # (G,)
+    wE = W * E[:, None]  # band responses under the first sun's spectrum
+    total = wE.sum(0)
+    wE = torch.where(total > 0, wE / total.clamp_min(1e-300), W)
     wl = torch.tensor([b.center_nm for b in bands], dtype=torch.float64)
-    return Spectral(tuple(bands), grid, W, wE, wl), E @ W
+    return Spectral(tuple(bands), grid, W, wE, wl)
 
 
 def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[float]] | Sequence[Band],
                       suns: Sequence[Sun], names: Sequence[str] | None = None, dtype: torch.dtype = torch.float32,
-                      device: torch.device | str = "cpu", skins: tissue.SkinParams | None = None) -> MaterialTables:
+                      device: torch.device | str = "cpu", skins: tissue.SkinParams | None = None,
+                      illumination: str = "thesis") -> MaterialTables:
     """Compile the materials ``names`` (default: all, in order) for ``bands`` under ``suns``.
 
     Args:
         materials: name -> ``Material``.
         bands: ``Band`` objects or (centre, fwhm) pairs, nm.
-        suns: the sources (their spectra weight the band values; the first sun's weights the skin's R_sub).
+        suns: the sources (the first sun's direct spectrum under the light model ``illumination`` weights each
+            band's values within the band; the number of suns sets the batch layout with ``skins``).
         names: the material order of the tables (a G-buffer's ``material_names``).
         skins: a batch of K skins for the material named "skin": every table row is then repeated per sun,
             skin-major (N = K·S rows), as ``render(..., skins=...)`` shades every skin under every sun.
@@ -334,7 +360,7 @@ def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[f
     if skins is not None and ("skin" not in names or materials["skin"].kind != "skin"):
         raise ValueError("skins needs a material named 'skin' of kind 'skin'")
     entries = {n: check_material(materials[n]) for n in names}
-    spectral, e_band = spectral_context(bands, suns)
+    spectral = spectral_context(bands, suns, illumination)
     compiled = {n: entries[n].compile(materials[n], spectral, skins if n == "skin" else None) for n in names}
     K = 1 if skins is None else skins.shape[0]
     S = len(suns)
@@ -358,9 +384,8 @@ def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[f
             member = torch.tensor([k in ids for k in range(len(names))])
             groups[kn] = BrdfGroup(brdf, ids, member.to(device), params)
     is_skin = torch.tensor([materials[n].kind == "skin" for n in names], device=device)
-    irradiance = e_band if skins is None else e_band.repeat(K, 1)
     return MaterialTables(names, to(table(lam)), to(table(albedo)), to(torch.stack([a[0] for a in albedo])),
-                          to(irradiance), to(spectral.wavelengths), is_skin, groups)
+                          to(spectral.wavelengths), is_skin, groups)
 
 
 class MaterialCache:
@@ -375,22 +400,24 @@ class MaterialCache:
 
     def compile(self, materials: dict[str, Material], bands: Sequence[Sequence[float]], suns: Sequence[Sun],
                 names: Sequence[str] | None = None, dtype: torch.dtype = torch.float32,
-                device: torch.device | str = "cpu") -> MaterialTables:
-        """``compile_materials`` through the cache (single skins; batches are compiled directly)."""
+                device: torch.device | str = "cpu", illumination: str = "thesis") -> MaterialTables:
+        """``compile_materials`` through the cache (single skins; batches are compiled directly), keyed on the
+        first sun and the light model too (they weight each band)."""
         names = list(materials) if names is None else list(names)
         band_list = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
         try:
             spec = json.dumps([names, [asdict(materials[n]) for n in names],
-                               [(b.center_nm, b.fwhm_nm) for b in band_list],
-                               [(s.temperature_k, s.scale) for s in suns]], sort_keys=True)
+                               [(b.center_nm, b.fwhm_nm) for b in band_list], asdict(suns[0]), len(suns),
+                               illumination], sort_keys=True)
         except TypeError:  # parameters that are not JSON data: no reliable key
-            return compile_materials(materials, band_list, suns, names, dtype, device)
+            return compile_materials(materials, band_list, suns, names, dtype, device, illumination=illumination)
         key = (spec, str(dtype), str(torch.device(device)), data.tables_version(), registry_version())
         hit = self.entries.get(key)
         if hit is None:
             if len(self.entries) >= self.max_entries:
                 self.entries.clear()
-            hit = self.entries[key] = compile_materials(materials, band_list, suns, names, dtype, device)
+            hit = self.entries[key] = compile_materials(materials, band_list, suns, names, dtype, device,
+                                                        illumination=illumination)
         return hit
 
     def clear(self) -> None:

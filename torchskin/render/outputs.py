@@ -86,6 +86,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     regions = panel_regions(result.panel_pixels, list(result.panels), H, W, camera=c)
     panels = {p: {**v, "region": regions[p]} for p, v in result.panels.items()}
     doc = {"summary": info, "timing_s": result.timing, "panels": panels, "detections": dets,
-           "scene": scene, "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands]}
+           "scene": scene, "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands],
+           "illumination": result.light.summary(result.bands)}
     write_text(out / "render.json", json.dumps(doc, indent=1))
     return info

@@ -1,5 +1,5 @@
-"""The renderer's stages called in order: scene -> meshes -> ray cast (G-buffer) -> materials -> shading ->
-sensor -> ELM -> NDGRI/NDSI rules. ``render`` gives whole frames, ``render_pixels`` chosen pixels of one camera
+"""The renderer's stages called in order: scene -> meshes -> ray cast (G-buffer, shadows, sky view) -> materials
+and light -> shading -> sensor -> ELM -> NDGRI/NDSI rules. ``render`` gives whole frames, ``render_pixels`` chosen pixels of one camera
 (the dataset generator's fast path); both run the same stages (``render_gbuffer``).
 
 Shapes: S suns (S·K skin-major rows for a batch of K skins), C cameras, H x W pixels, B bands; images are
@@ -13,7 +13,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -24,10 +24,12 @@ from ..detect import DEFAULT_BOX, RulesBox, has_index_bands, index_band_position
 from .elm import apply_elm, elm_coefficients, panel_references, panel_values
 from .elm import panel_pixels as find_panel_pixels
 from .kernels import KERNELS, band_tiles, elm_indices
+from .light import LightTables, check_light, light_tables
 from .materials import SHARED_CACHE, MaterialCache, MaterialTables, check_materials, compile_materials, skin_batch
 from .raycast import GBuffer, Raycaster
 from .scene import Scene
 from .sensor import Sensor, sensor_signal
+from .shade import irradiance as shade_irradiance
 from .shade import shade
 
 
@@ -36,6 +38,7 @@ class RenderResult:
     """Everything a render produced. Shape: images (S, C, H, W[, B]) (``render_pixels``: (S, 1, 1, K[, B]))."""
 
     radiance: torch.Tensor  # at-surface radiance, W m^-2 sr^-1 nm^-1
+    light: LightTables  # the light model's tables the frame was shaded with (rows as the images' leading axis)
     signal: torch.Tensor  # DN (or radiance without a sensor)
     reflectance: torch.Tensor  # ELM-calibrated
     ndgri: torch.Tensor  # (S, C, H, W)
@@ -48,6 +51,9 @@ class RenderResult:
     timing: dict
     bands: tuple[Band, ...]
     panel_pixels: list  # [panel][camera] flat interior pixel indices (``elm.panel_pixels``)
+    #: with ``irradiance`` (band indices): the (direct, diffuse) irradiance each pixel receives in those bands,
+    #: each (S, C, H, W, B'), W m^-2 nm^-1 (``shade.irradiance``)
+    irradiance: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def cube(self, s: int = 0, c: int = 0, what: str = "reflectance") -> np.ndarray:
         """Frame (sun ``s``, camera ``c``) of ``what`` ("reflectance", "signal" or "radiance") as a (B, H, W)
@@ -88,13 +94,20 @@ def geometry(scene: Scene, raycaster: Raycaster | None, gbuffer: GBuffer | None,
     return gb, raycaster
 
 
-def cast_shadows(scene: Scene, gb: GBuffer, raycaster: Raycaster | None) -> GBuffer:
-    """``gb`` with shadow masks: itself if it has them, else cast with ``raycaster`` for the scene's suns."""
-    if gb.shadow is not None:
+def cast_shadows(scene: Scene, gb: GBuffer, raycaster: Raycaster | None, light: LightTables | None = None,
+                 shared: Sequence[torch.Tensor] = ()) -> GBuffer:
+    """``gb`` with shadow masks (itself if it has them, else cast with ``raycaster`` for the scene's suns) and,
+    when ``light`` has sky or ground light, its sky view (``Raycaster.with_sky_view``; ``shared``: pixel groups
+    that share one view, the reference panels' interiors)."""
+    need_sky = light is not None and light.needs_sky_view and gb.sky is None
+    if gb.shadow is not None and not need_sky:
         return gb
     if raycaster is None:
-        raise ValueError("the G-buffer has no shadow masks: pass the raycaster that made it to cast them")
-    return raycaster.with_shadows(gb.to("cpu", torch.float32), np.stack([s.direction for s in scene.suns]))
+        what = "shadow masks" if gb.shadow is None else "sky view"
+        raise ValueError(f"the G-buffer has no {what}: pass the raycaster that made it to cast them")
+    if gb.shadow is None:
+        gb = raycaster.with_shadows(gb.to("cpu", torch.float32), np.stack([s.direction for s in scene.suns]))
+    return raycaster.with_sky_view(gb.to("cpu", torch.float32), shared=shared) if need_sky else gb
 
 
 def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
@@ -120,8 +133,15 @@ def material_tables(scene: Scene, gb: GBuffer, dtype: torch.dtype, device: torch
     ``materials.SHARED_CACHE``; batches of skins are compiled directly)."""
     if skins is None:
         cache = SHARED_CACHE if cache is None else cache
-        return cache.compile(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device)
-    return compile_materials(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device, skins)
+        return cache.compile(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device,
+                             illumination=scene.illumination)
+    return compile_materials(scene.materials, scene.bands, scene.suns, gb.material_names, dtype, device, skins,
+                             illumination=scene.illumination)
+
+
+def scene_light(scene: Scene, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> LightTables:
+    """The light tables of ``scene`` (its light model, suns and bands: ``light.light_tables``)."""
+    return light_tables(scene.illumination, scene.suns, scene.bands, dtype, device)
 
 
 def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
@@ -160,21 +180,28 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     >>> meshes = [MeshSpec("wall", "plane", "grey", {"width": 6, "height": 6}, position=[-1, 0, -2]),
     ...           MeshSpec("panel_white", "plane", "white", {"width": 0.4, "height": 0.4}, position=[0, 0.5, 0.8]),
     ...           MeshSpec("panel_dark", "plane", "dark", {"width": 0.4, "height": 0.4}, position=[0, -0.5, 0.8])]
-    >>> res = render(Scene(mats, meshes, [Camera(width=32, height=32, fov_deg=20.0)], [Sun(zenith_deg=40.0)]))
+    >>> cam = Camera(width=32, height=32, fov_deg=20.0)
+    >>> res = render(Scene(mats, meshes, [cam], [Sun(zenith_deg=40.0)], illumination="thesis"))
     >>> res.reflectance.shape
     torch.Size([1, 1, 32, 32, 4])
-    >>> [round(float(x), 4) for x in res.reflectance[0, 0, 2, 2]]  # ideal sensor: ELM recovers the wall's 0.4
+    >>> [round(float(x), 4) for x in res.reflectance[0, 0, 2, 2]]  # ideal sensor, sun alone: ELM recovers the 0.4
     [0.4, 0.4, 0.4, 0.4]
     """
     timing: dict = {}
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)  # before any mesh is built
+    check_light(scene.illumination, scene.suns)
+    light = scene_light(scene, dtype, device)
     gb, raycaster = geometry(scene, raycaster, gbuffer, timing, compile)
-    gb = cast_shadows(scene, gb, raycaster).to(device=torch.device(device), dtype=dtype)
-    pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
-        [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
+    t1 = time.perf_counter()
+    pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else panel_pixels
+    hw = gb.hit[0].numel()  # the panels share one sky view each (flat indices over every camera's pixels)
+    shared = [ix.cpu() + c * hw for per_cam in pix for c, ix in enumerate(per_cam)]
+    gb = cast_shadows(scene, gb, raycaster, light, shared).to(device=torch.device(device), dtype=dtype)
+    timing["sky_view_s"] = time.perf_counter() - t1
+    pix = [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in pix]
     return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
-                          compile)
+                          compile, light)
 
 
 def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str = "cpu",
@@ -182,14 +209,19 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
                   raycaster: Raycaster | None = None, gbuffer: GBuffer | None = None, erode_px: int = 1,
                   elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
                   cache: MaterialCache | None = None,
-                  panel_pixels: list[list[torch.Tensor]] | None = None, compile: bool = False) -> RenderResult:
+                  panel_pixels: list[list[torch.Tensor]] | None = None, compile: bool = False,
+                  irradiance: Sequence[int] | None = None) -> RenderResult:
     """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
     only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
-    brightest of them and the panels (the dataset generator's fast path). Shadow rays are cast for these
-    pixels only when the G-buffer comes without shadow masks. Arguments as ``render``."""
+    brightest of them and the panels (the dataset generator's fast path). Shadow rays (and sky-view rays) are
+    cast for these pixels only when the G-buffer comes without them. ``irradiance``: band indices: also the
+    direct and diffuse irradiance of each pixel in those bands (``RenderResult.irradiance``). Other arguments
+    as ``render``."""
     timing: dict = {}
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)
+    check_light(scene.illumination, scene.suns)
+    light = scene_light(scene, dtype, device)
     gb, raycaster = geometry(scene, raycaster, gbuffer, timing, compile, shadows=False)
     pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
         [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]
@@ -198,12 +230,15 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
     sizes = [len(pixels)] + [len(x) for x in panel_flat]
     pad = -sum(sizes) % PIXEL_MULTIPLE  # copies of the first pixel, so that kernels run in full vector lanes
     gb = gather_pixels(gb, torch.cat([pixels, *panel_flat, pixels[:1].expand(pad if len(pixels) else 0)]))
-    gb = cast_shadows(scene, gb, raycaster).to(device=torch.device(device), dtype=dtype)
     offs = np.cumsum(sizes)
+    shared = [torch.arange(int(offs[k]), int(offs[k + 1])) for k in range(len(panel_flat))]
+    gb = cast_shadows(scene, gb, raycaster, light, shared).to(device=torch.device(device), dtype=dtype)
     pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
     res = render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
-                         compile)
+                         compile, light, irradiance)
     n = len(pixels)
+    if res.irradiance is not None:
+        res.irradiance = (res.irradiance[0][..., :n, :], res.irradiance[1][..., :n, :])
     for name in ("radiance", "signal", "reflectance", "ndgri", "ndsi", "mask", "skin", "lit"):
         setattr(res, name, getattr(res, name)[..., :n, :] if getattr(res, name).dim() == 5 else getattr(res, name)[..., :n])
     return res
@@ -212,20 +247,22 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
 def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], device: torch.device,
                    dtype: torch.dtype, sensor: Sensor | None, box: RulesBox, elm: str,
                    skins: tissue.SkinParams | Sequence[str | dict] | None, cache: MaterialCache | None,
-                   timing: dict, t0: float, compile: bool = False) -> RenderResult:
-    """The stages after the ray cast, on a G-buffer already on ``device``: materials, shading, sensor, ELM with
-    the panels' interior pixels ``pix``, the rules. Arguments as ``render``."""
+                   timing: dict, t0: float, compile: bool = False, light: LightTables | None = None,
+                   irradiance: Sequence[int] | None = None) -> RenderResult:
+    """The stages after the ray cast, on a G-buffer already on ``device`` (with its sky view when the light
+    needs one): materials, shading, sensor, ELM with the panels' interior pixels ``pix``, the rules. ``light``:
+    the scene's light tables (default: computed now). Arguments as ``render``."""
     batch = None if skins is None else skin_batch(skins)
     reps = 1 if batch is None else batch.shape[0]
     t2 = time.perf_counter()
     tables = material_tables(scene, gb, dtype, device, batch, cache)
+    light = (scene_light(scene, dtype, device) if light is None else light).repeat(reps)
     shadow = gb.shadow_masks()
     if reps > 1:
         gb = GBuffer(**{**{f.name: getattr(gb, f.name) for f in fields(gb)},
                         "shadow": shadow.repeat(reps, *([1] * (shadow.dim() - 1)))})
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=dtype, device=device).repeat(reps, 1)
-    sky = torch.tensor([s.sky_fraction for s in scene.suns], dtype=dtype, device=device).repeat(reps)
-    sh = shade(gb, tables, sun_dirs, sky, sky_background=scene.background == "sky", compile=compile)
+    sh = shade(gb, tables, light, sun_dirs, sky_background=scene.background == "sky", compile=compile)
     sync(device)
     timing["shade_s"] = time.perf_counter() - t2
     t3 = time.perf_counter()
@@ -234,17 +271,28 @@ def render_gbuffer(scene: Scene, gb: GBuffer, pix: list[list[torch.Tensor]], dev
         gen = torch.Generator(device=device)
         gen.manual_seed(int(sensor.seed))
     signal = sensor_signal(sh.radiance, sensor, scene.band_list, scene.cameras[0].focal, gen, compile=compile)
-    pv = panel_values(signal, pix)  # (S, C, P, B)
-    panel_ids = [gb.material_names.index(scene.mesh(p).material) for p in scene.panels]
-    refs = panel_references(panel_ids, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
-    refl, g, s, mask = calibrate_detect(signal, pv, refs, gb.hit, scene.band_list, box, compile)
+    if scene.panels:
+        pv = panel_values(signal, pix)  # (S, C, P, B)
+        panel_ids = [gb.material_names.index(scene.mesh(p).material) for p in scene.panels]
+        refs = panel_references(panel_ids, gb, tables, sun_dirs, pix, elm)  # (S, C, P, B)
+        refl, g, s, mask = calibrate_detect(signal, pv, refs, gb.hit, scene.band_list, box, compile)
+    else:  # no reference panels: no ELM, so no reflectance and no detections (the radiance and signal stand)
+        pv = refs = signal.new_zeros(*signal.shape[:2], 0, signal.shape[-1])
+        refl = torch.full_like(signal, math.nan)
+        g = s = torch.full(signal.shape[:-1], math.nan, dtype=signal.dtype, device=signal.device)
+        mask = torch.zeros_like(gb.hit).expand(signal.shape[:-1])
     skin = gb.hit & tables.is_skin[gb.material.clamp_min(0)]
     sync(device)
     timing["sensor_elm_s"] = time.perf_counter() - t3
     timing["total_s"] = time.perf_counter() - t0
     panels = {p: {"reference": refs[:, :, k].tolist(), "signal": pv[:, :, k].tolist()}
               for k, p in enumerate(scene.panels)}
-    return RenderResult(sh.radiance, signal, refl, g, s, mask, skin, sh.lit, panels, gb, timing, scene.band_list, pix)
+    irr = None
+    if irradiance is not None:
+        irr = tuple(x.reshape(*sh.radiance.shape[:-1], -1)
+                    for x in shade_irradiance(gb, tables, light, sun_dirs, sh.lit, list(irradiance)))
+    return RenderResult(sh.radiance, light, signal, refl, g, s, mask, skin, sh.lit, panels, gb, timing, scene.band_list,
+                        pix, cast(tuple[torch.Tensor, torch.Tensor] | None, irr))
 
 
 def calibrate_detect(signal: torch.Tensor, panel_signal: torch.Tensor, references: torch.Tensor, hit: torch.Tensor,

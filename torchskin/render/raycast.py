@@ -5,7 +5,9 @@ all; ``Raycaster`` keeps the built scene to cast many times (datasets, benchmark
 The G-buffer holds, per camera and pixel: hit mask, hit distance, position, smooth normal (vertex normals
 interpolated with the hit's barycentrics, turned towards the viewer), geometric normal, unit vector to the
 viewer, material id and mesh id; and per sun: a shadow mask from ``test_occlusions`` (True: in a cast shadow),
-tested only at hit pixels facing that sun (False elsewhere: a pixel turned away from the sun is unlit anyway).
+tested only at hit pixels facing that sun (False elsewhere: a pixel turned away from the sun is unlit anyway);
+and, for the light models' sky and ground light, each hit pixel's view of the sky and of lit ground
+(``Raycaster.with_sky_view``: hemisphere rays).
 It is built on the CPU and moved to the target device once (``GBuffer.to``); everything after it runs there.
 The per-pixel assembly after the ray cast is one kernel (``kernels.gbuffer_fields``), eager or compiled.
 """
@@ -13,6 +15,7 @@ The per-pixel assembly after the ray cast is one kernel (``kernels.gbuffer_field
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,6 +31,18 @@ SHADOW_OFFSET_M = 1e-3  # shadow-ray origins are pushed this far off the surface
 #: pixels with n·ω_sun above -FACING_MARGIN cast shadow rays (the margin keeps every pixel that shading may find
 #: facing the sun in another dtype)
 FACING_MARGIN = 1e-6
+#: hemisphere rays per pixel for its sky and ground view (``Raycaster.with_sky_view``): a fixed cosine-weighted
+#: Fibonacci pattern, so a view fraction is a count out of this many (standard error <= 0.5 / sqrt(32) = 0.09 for
+#: a single pixel's partial horizon, less for stratified samples; band ratios do not depend on it)
+SKY_RAYS = 32
+#: a hemisphere ray that hits a surface whose normal is at most 60° from +z (cos >= 0.5) sees lit ground: the
+#: ground plane and patches lying on it; anything steeper (the subject, panel stands) is counted as dark
+GROUND_UP_COS = 0.5
+#: rays per open3d call when casting hemisphere rays (bounds the memory of a large frame)
+SKY_RAY_CHUNK = 1 << 20
+#: a group of pixels that shares one view of the sky (``Raycaster.with_sky_view``'s ``shared``: the reference
+#: panels' interiors) casts hemisphere rays from a regular subset of at most this many of its pixels
+SHARED_SKY_PIXELS = 64
 
 
 @dataclass
@@ -45,6 +60,8 @@ class GBuffer:
     shadow: torch.Tensor | None
     material_names: list
     mesh_names: list
+    sky: torch.Tensor | None = None  # (C, H, W) cosine-weighted fraction of the hemisphere that sees the sky
+    ground: torch.Tensor | None = None  # (C, H, W, M) the same, of up-facing surfaces, by their material id
 
     @property
     def position(self) -> torch.Tensor:
@@ -55,6 +72,12 @@ class GBuffer:
     def view(self) -> torch.Tensor:
         """Unit vectors (C, H, W, 3) from the surface to the viewer (minus the ray direction)."""
         return -self.rays[..., 3:]
+
+    def sky_views(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``sky`` and ``ground``, or ValueError when they have not been cast (``Raycaster.with_sky_view``)."""
+        if self.sky is None or self.ground is None:
+            raise ValueError("the G-buffer has no sky view (Raycaster.with_sky_view casts it)")
+        return self.sky, self.ground
 
     def shadow_masks(self) -> torch.Tensor:
         """``shadow``, or ValueError when it has not been cast (``Raycaster.with_shadows``)."""
@@ -197,6 +220,92 @@ class Raycaster:
                              SHADOW_OFFSET_M).to("cpu", torch.float32)
         return self._cast_shadows(gb, sun, facing, origin)
 
+    def with_sky_view(self, gb: GBuffer, rays: int = SKY_RAYS, shared: Sequence[torch.Tensor] = ()) -> GBuffer:
+        """``gb`` with each hit pixel's view of the sky and of up-facing surfaces (a new G-buffer): ``rays``
+        hemisphere rays per pixel (``hemisphere_directions``, turned to the pixel's smooth normal and rotated by a
+        fixed per-pixel angle, a hash of its camera ray, so that neighbours do not share one pattern and a pixel
+        gets the same rays in a frame and in any subset of it), from points ``SHADOW_OFFSET_M`` off the
+        surface along the geometric normal. A ray that escapes upwards sees sky; one that hits a surface facing up
+        (``GROUND_UP_COS``) sees that surface's material, lit by the open sky and sun (one bounce); anything else
+        sees nothing. Being cosine-weighted, each fraction of rays is the view factor itself: for an open plane
+        tilted by β, sky (1 + cos β)/2 and ground (1 - cos β)/2. Counts, not sums: the same bits for any thread
+        count. Missed pixels get 0. ``shared``: groups of flat pixel indices (into all cameras' C·H·W pixels) whose
+        pixels share one view, the mean over a regular subset of at most ``SHARED_SKY_PIXELS`` of them (sorted
+        indices, every k-th): the reference panels' interiors, flat, open and read by ELM through their median,
+        which would otherwise cast 40 % of a dataset's sky rays."""
+        hit = gb.hit.reshape(-1).cpu()
+        n_px, n_mat = hit.numel(), len(self.material_names)
+        groups = [torch.as_tensor(g, dtype=torch.long).cpu().sort().values for g in shared]
+        groups = [g[hit.index_select(0, g)] for g in groups if g.numel()]
+        cast_px = hit.clone()
+        subsets = []
+        for g in groups:
+            cast_px[g] = False
+            sub = g[::max(1, -(-g.numel() // SHARED_SKY_PIXELS))]
+            subsets.append(sub)
+            cast_px[sub] = True
+        idx = cast_px.nonzero().flatten()
+        sky = torch.zeros(n_px, dtype=torch.float32)
+        ground = torch.zeros(n_px, n_mat, dtype=torch.float32)
+        if idx.numel():
+            normal = gb.normal.reshape(-1, 3).cpu().double().index_select(0, idx)
+            origin = point_along(gb.position.reshape(-1, 3).cpu().double().index_select(0, idx),
+                                 gb.geometric_normal.reshape(-1, 3).cpu().double().index_select(0, idx),
+                                 SHADOW_OFFSET_M)
+            view_dir = gb.rays.reshape(-1, 6)[:, 3:].cpu().double().index_select(0, idx)
+            counts_sky, counts_ground = self._hemisphere_counts(origin, normal, pattern_angle(view_dir), rays, n_mat)
+            cs = torch.zeros(n_px, dtype=torch.int64)
+            cg = torch.zeros(n_px, n_mat, dtype=torch.int64)
+            cs[idx], cg[idx] = counts_sky, counts_ground
+            sky[idx] = (counts_sky.double() / rays).float()
+            ground[idx] = (counts_ground.double() / rays).float()
+            for g, sub in zip(groups, subsets):  # integer sums: the same bits whatever the order
+                sky[g] = float(cs[sub].sum()) / (rays * sub.numel())
+                ground[g] = (cg[sub].sum(0).double() / (rays * sub.numel())).float()
+        shp = gb.hit.shape
+        dev = gb.hit.device
+        dtype = gb.normal.dtype
+        return dataclasses.replace(gb, sky=sky.reshape(shp).to(device=dev, dtype=dtype),
+                                   ground=ground.reshape(*shp, n_mat).to(device=dev, dtype=dtype))
+
+    def _hemisphere_counts(self, origin: torch.Tensor, normal: torch.Tensor, psi: torch.Tensor, rays: int,
+                           n_mat: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per pixel (P,): how many of its ``rays`` hemisphere rays (the pattern turned by ``psi`` about the
+        normal) see sky, and (P, M) how many see an up-facing surface of each material (float64 geometry, float32
+        rays for open3d)."""
+        local = hemisphere_directions(rays)  # (K, 3)
+        t, b = tangent_frame(normal)
+        c, s = torch.cos(psi)[:, None], torch.sin(psi)[:, None]
+        x = c * local[None, :, 0] - s * local[None, :, 1]
+        y = s * local[None, :, 0] + c * local[None, :, 1]
+        dirs = x[..., None] * t[:, None] + y[..., None] * b[:, None] + local[None, :, 2:3] * normal[:, None]  # (P, K, 3)
+        P = origin.shape[0]
+        ray = torch.cat([origin[:, None].expand(P, rays, 3), dirs], -1).reshape(-1, 6).float()
+        pix = torch.arange(ray.shape[0]) // rays
+        # a climbing ray that nothing occludes sees sky: one cheap occlusion test; the others (descending, or
+        # occluded) are cast in full for the face they hit
+        up = (ray[:, 5] > 0).nonzero().flatten()
+        free = torch.zeros(ray.shape[0], dtype=torch.bool)
+        free[up] = ~self.occluded(ray.index_select(0, up))
+        counts_sky = torch.bincount(pix[free], minlength=P)
+        counts_ground = torch.zeros(P * n_mat, dtype=torch.int64)
+        rest = (~free).nonzero().flatten()
+        for lo in range(0, rest.numel(), SKY_RAY_CHUNK):
+            sel = rest[lo:lo + SKY_RAY_CHUNK]
+            chunk = ray.index_select(0, sel)
+            ans = self.cast(chunk)
+            escaped = torch.isinf(ans["t_hit"])
+            gid1 = ans["geometry_ids"].long() + 1
+            face = self._gid_face_off[gid1] + ans["primitive_ids"].long().clamp_min(0)
+            pn = ans["primitive_normals"]
+            # the hit face's normal turned towards the ray's origin: up-facing if it points up
+            side = torch.where(dot3(pn, chunk[:, 3:]) > 0, -1.0, 1.0)
+            ok = ~escaped & (pn[:, 2] * side >= GROUND_UP_COS)
+            mat = self._fmat[face]
+            keep = ok & (mat >= 0)
+            counts_ground += torch.bincount(pix[sel][keep] * n_mat + mat[keep], minlength=P * n_mat)
+        return counts_sky, counts_ground.reshape(P, n_mat)
+
     def _cast_shadows(self, gb: GBuffer, sun: torch.Tensor, facing: torch.Tensor, origin: torch.Tensor) -> GBuffer:
         """Shadow rays from the pixels ``facing`` (S, N) each sun (a pixel turned away is unlit whatever lies
         between it and the sun: it casts no ray): origins pushed ``SHADOW_OFFSET_M`` off the surface along the
@@ -216,6 +325,45 @@ class Raycaster:
                 torch.index_select(sun, 0, torch.div(rows, n_px, rounding_mode="floor"), out=srays[:, 3:])
             shadow.index_copy_(0, rows, self.occluded(srays))
         return dataclasses.replace(gb, shadow=shadow.reshape((len(sun),) + gb.hit.shape))
+
+
+def hemisphere_directions(k: int) -> torch.Tensor:
+    """``k`` cosine-weighted directions of the hemisphere about +z, (k, 3) float64: a Fibonacci spiral on the unit
+    disc lifted to the hemisphere (Malley's method), so that each direction stands for an equal share of the
+    cosine-weighted solid angle and the fraction of directions that see something is its view factor.
+
+    >>> d = hemisphere_directions(32)
+    >>> tuple(d.shape), round(float(d[:, 2].min()), 3) > 0, round(float((d * d).sum(1).max()), 6)
+    ((32, 3), True, 1.0)
+    """
+    if k < 1:
+        raise ValueError(f"hemisphere rays must be at least 1, got {k}")
+    i = torch.arange(k, dtype=torch.float64)
+    r = torch.sqrt((i + 0.5) / k)
+    phi = i * (np.pi * (3.0 - np.sqrt(5.0)))  # the golden angle
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), torch.sqrt((1 - r * r).clamp_min(0.0))], -1)
+
+
+def pattern_angle(direction: torch.Tensor) -> torch.Tensor:
+    """A fixed angle in [0, 2π) per camera ray direction (P, 3), float64: a hash of the direction's components
+    (the same ray gives the same angle in a frame and in any subset of its pixels)."""
+    h = direction[:, 0] * 12.9898e3 + direction[:, 1] * 78.233e3 + direction[:, 2] * 37.719e3
+    return torch.frac(torch.frac(h) * 43758.5453) * (2 * np.pi)
+
+
+def tangent_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Two unit vectors (P, 3) orthogonal to the unit normals ``normal`` (P, 3) and to each other (t, b, n
+    right-handed), written out component by component."""
+    nx, ny, nz = normal.unbind(-1)
+    use_x = nz.abs() > 0.9  # helper axis: +z, or +x for normals near the z axis
+    ax = torch.where(use_x, torch.ones_like(nx), torch.zeros_like(nx))
+    az = 1 - ax
+    # t = normalize(helper x n), b = n x t
+    tx, ty, tz = -az * ny, az * nx - ax * nz, ax * ny
+    inv = 1 / torch.sqrt(tx * tx + ty * ty + tz * tz)
+    tx, ty, tz = tx * inv, ty * inv, tz * inv
+    bx, by, bz = ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx
+    return torch.stack([tx, ty, tz], -1), torch.stack([bx, by, bz], -1)
 
 
 def kornia_camera(camera: Camera, dtype: torch.dtype = torch.float64) -> Any:

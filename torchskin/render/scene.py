@@ -64,6 +64,10 @@ class Material:
       diffuse term (``optics.skin_diffuse``): "thesis" (default; ρ_d is the total diffuse-model reflectance,
       front surface included, as the thesis defines it and as its measured images support) or "conserving"
       (the subsurface part only: energy-conserving).
+    - ``kind="rtlsr"``: the MODIS kernel-driven Ross-Thick / Li-Sparse-Reciprocal BRDF (``render.rtlsr``) with
+      ``reflectance`` its white-sky albedo (one value or one per band, at most ``rtlsr.RHO_MAX``) and the shape
+      of Roy et al. (2016)'s global Landsat kernel weights; ``params`` may name the table, ``{"kernels":
+      "roy2016"}`` (the default and only one).
 
     ``params`` holds the parameters of kinds registered by users (``render.materials.register``).
     """
@@ -192,18 +196,56 @@ class Camera:
 
 SUN_SOLID_ANGLE_SR = 6.794e-5  # the solar disc seen from Earth
 
+#: the ranges ``Atmosphere`` accepts (what SPECTRL2 was built for, Bird & Riordan 1986; wider values are refused)
+ATMOSPHERE_RANGES = {"aerosol_500nm": (0.0, 2.0), "precipitable_water_cm": (0.0, 10.0),
+                     "ozone_atm_cm": (0.0, 1.0), "pressure_pa": (30000.0, 110000.0), "day_of_year": (1, 366),
+                     "angstrom_alpha": (0.0, 3.0), "ground_albedo": (0.0, 1.0)}
+
+
+@dataclass
+class Atmosphere:
+    """A clear-sky atmosphere, the inputs of the SPECTRL2 light model (``render.light``; Bird & Riordan 1986):
+    aerosol optical depth at 500 nm, precipitable water (cm), ozone (atm-cm), surface pressure (Pa), day of year
+    (the Earth-Sun distance), the Angström exponent of the aerosol, and the regional ground albedo of SPECTRL2's
+    multiple reflection between ground and sky (it brightens the diffuse sky; the light a scene's own ground
+    reflects into a pixel comes from that ground's material). The defaults are a reference clear sky (aerosol
+    0.1, water 1.42 cm, ozone 0.344 atm-cm, sea level, midsummer, rural aerosol, albedo 0.2)."""
+
+    aerosol_500nm: float = 0.1
+    precipitable_water_cm: float = 1.42
+    ozone_atm_cm: float = 0.344
+    pressure_pa: float = 101325.0
+    day_of_year: int = 172
+    angstrom_alpha: float = 1.14
+    ground_albedo: float = 0.2
+
+    def __post_init__(self):
+        check_finite("atmosphere", **dataclasses.asdict(self))
+        for k, (lo, hi) in ATMOSPHERE_RANGES.items():
+            v = getattr(self, k)
+            if not (lo <= v <= hi):
+                raise ValueError(f"atmosphere {k} must lie in [{lo:g}, {hi:g}], got {v}")
+        if int(self.day_of_year) != self.day_of_year:
+            raise ValueError(f"atmosphere day_of_year must be a whole day, got {self.day_of_year}")
+
 
 @dataclass
 class Sun:
-    """A directional source at (zenith, azimuth) with a 5950 K blackbody spectrum (thesis Fig 1) scaled to
-    the solar disc's solid angle (top-of-atmosphere irradiance), plus an optional uniform sky whose
-    irradiance on a horizontal surface is ``sky_fraction`` times the sun's normal irradiance."""
+    """A directional source at (zenith, azimuth) and what lights the scene with it, read by the scene's light
+    model (``Scene.illumination``, ``render.light``):
+
+    - "spectrl2" (the outdoor default): the clear-sky direct and diffuse spectra of ``atmosphere`` for this sun;
+    - "thesis": a ``temperature_k`` blackbody (thesis Fig 1) scaled to the solar disc's solid angle
+      (top-of-atmosphere irradiance) times ``scale``, plus a uniform grey sky whose irradiance on an open
+      horizontal surface is ``sky_fraction`` times the sun's normal irradiance.
+    """
 
     zenith_deg: float = 30.0
     azimuth_deg: float = 0.0
     temperature_k: float = 5950.0
     scale: float = 1.0
     sky_fraction: float = 0.0
+    atmosphere: Atmosphere = field(default_factory=Atmosphere)
 
     def __post_init__(self):
         check_finite("sun", zenith_deg=self.zenith_deg, azimuth_deg=self.azimuth_deg, temperature_k=self.temperature_k,
@@ -214,6 +256,10 @@ class Sun:
             raise ValueError("sun temperature_k and scale must be > 0")
         if not (0.0 <= self.sky_fraction <= 1.0):
             raise ValueError(f"sky_fraction must lie in [0, 1], got {self.sky_fraction}")
+        if isinstance(self.atmosphere, dict):
+            self.atmosphere = Atmosphere(**self.atmosphere)
+        if not isinstance(self.atmosphere, Atmosphere):
+            raise ValueError(f"sun atmosphere must be an Atmosphere, got {type(self.atmosphere).__name__}")
 
     @property
     def direction(self) -> np.ndarray:
@@ -222,6 +268,8 @@ class Sun:
 
 # ---------------------------------------------------------------------------------------------------- scene
 BACKGROUNDS = ("void", "sky")
+#: the light model of a scene that names none: the clear-sky outdoor model (``render.light``)
+DEFAULT_ILLUMINATION = "spectrl2"
 
 
 @dataclass
@@ -229,8 +277,10 @@ class Scene:
     """Materials (by name), meshes, cameras and suns; ``bands`` as (centre, fwhm) pairs in nm.
 
     ``panels`` names the two reference-panel meshes used for ELM (bright first). ``background``: what a camera
-    ray that hits nothing sees: "void" (no radiance, the default) or "sky" (above the horizon, the uniform sky
-    of each sun, radiance sky_fraction · E / π; below it still void).
+    ray that hits nothing sees: "void" (no radiance, the default) or "sky" (above the horizon, the isotropic
+    sky of each sun, radiance E_sky / π; below it still void). ``illumination``: the light model that turns the
+    suns into direct, sky and ground-reflected irradiance (``render.light``: "spectrl2", the default, or
+    "thesis").
     """
 
     materials: dict[str, Material]
@@ -240,8 +290,11 @@ class Scene:
     bands: list[list[float]] = field(default_factory=default_bands)
     panels: list[str] = field(default_factory=lambda: ["panel_white", "panel_dark"])
     background: str = "void"
+    illumination: str = DEFAULT_ILLUMINATION
 
     def __post_init__(self):
+        if not isinstance(self.illumination, str) or not self.illumination:
+            raise ValueError(f"illumination must name a light model, got {self.illumination!r}")
         if self.background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {BACKGROUNDS}, got {self.background!r}")
         names = [m.name for m in self.meshes]
@@ -251,6 +304,8 @@ class Scene:
             for mat in (m.material, m.other_material):
                 if mat is not None and mat not in self.materials:
                     raise ValueError(f"mesh {m.name!r} uses unknown material {mat!r}")
+        if len(self.panels) not in (0, 2):
+            raise ValueError(f"panels must name two reference panels (bright first) or none, got {self.panels}")
         for p in self.panels:
             if p not in names:
                 raise ValueError(f"reference panel {p!r} is not a mesh of the scene")
@@ -305,6 +360,7 @@ class Scene:
             bands=[list(b) for b in d.get("bands", default_bands())],
             panels=list(d.get("panels", ["panel_white", "panel_dark"])),
             background=d.get("background", "void"),
+            illumination=d.get("illumination", DEFAULT_ILLUMINATION),
         )
 
     @classmethod
@@ -368,6 +424,7 @@ def default_scene(
     diffuse_only: bool = False,
     ground: bool = True,
     surface: str = "thesis",
+    illumination: str = DEFAULT_ILLUMINATION,
 ) -> Scene:
     """The thesis's layout: a subject at the origin facing +x, reference panels either side of it facing the
     camera (vertical for the default horizontal camera in front at 31 ft, 9.449 m; level for a camera overhead;
@@ -398,4 +455,4 @@ def default_scene(
     meshes = [body, *reference_panels(cam.azimuth_deg, tilt, size_m=0.6, height_m=0.9)]
     if ground:
         meshes.append(MeshSpec("ground", "ground", "ground", params={"size": 4000.0}))
-    return Scene(mats, meshes, [cam], [sun or Sun()])
+    return Scene(mats, meshes, [cam], [sun or Sun()], illumination=illumination)
