@@ -287,3 +287,39 @@ def test_config_names_where_the_sky_fraction_went():
 
     with pytest.raises(ValueError, match=r"sun\.sky_fraction has moved.*light\.sky_fraction"):
         resolve_config({"sun": {"sky_fraction": [0.0, 0.2]}})
+
+
+@pytest.mark.parametrize("text,what", [("1580,1080,633,544", "ascending"), ("544,544", "ascending"),
+                                        ("544,,633", "empty item")])
+def test_bands_out_of_order_or_repeated_are_refused(text, what):
+    """Four per-band values (material spectra, sensor settings) are read in band order: a reversed band list
+    put the ground's 1580 nm reflectance on 544 nm; a repeated band overwrote its own image. Both are refused,
+    at the CLI and in a Scene."""
+    from torchskin.bands import parse_bands
+    from torchskin.render.scene import default_scene
+
+    with pytest.raises(ValueError, match=what):
+        parse_bands(text)
+    sc = default_scene(subject="file", mesh_path="unused.obj")
+    sc.bands = [[1580.0, 0.0], [544.0, 0.0]]
+    with pytest.raises(ValueError, match="ascending"):
+        sc.__post_init__()
+
+
+def test_a_range_key_given_one_number_names_the_key():
+    """Was: `[light] aerosol_500nm = 0.1` failed later with "unexpected TypeError"."""
+    from torchskin.dataset.config import resolve_config
+
+    for section, key in (("light", "aerosol_500nm"), ("sun", "zenith_deg")):
+        with pytest.raises(ValueError, match=rf"{section}\.{key} must be \[min, max\]"):
+            resolve_config({section: {key: 0.1}})
+
+
+def test_day_of_year_stays_inside_its_range():
+    from torchskin.dataset.config import resolve_config, sample_group
+
+    with pytest.raises(ValueError, match=r"light\.day_of_year must hold a whole day"):
+        resolve_config({"light": {"day_of_year": [1.2, 1.4]}})  # was: accepted, every row day 1, outside it
+    days = {sample_group(resolve_config({"light": {"day_of_year": [99.6, 100.4]}}), 0, i).light["day_of_year"]
+            for i in range(8)}
+    assert days == {100}

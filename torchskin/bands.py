@@ -114,7 +114,7 @@ def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[B
     for item in text.split(","):
         item = item.strip()
         if not item:
-            continue
+            raise ValueError(f"--bands has an empty item in {text!r} (use centre[/fwhm],... in nm)")
         c, _, f = item.partition("/")
         try:
             band = Band(float(c), float(f) if f else 0.0)
@@ -122,7 +122,17 @@ def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[B
         except ValueError as e:
             raise ValueError(f"bad band {item!r} in --bands (use centre[/fwhm] in nm): {e}") from None
         out.append(band)
+    check_ascending(out, "--bands")
     return as_bands(out)
+
+
+def check_ascending(bands: Sequence[Band], what: str = "bands") -> None:
+    """``ValueError`` unless the band centres strictly ascend: per-band values given as four numbers (material
+    spectra, sensor settings: ``per_band``) are read in band order, so a reversed or repeated band would take
+    another band's value."""
+    c = [b.center_nm for b in bands]
+    if any(b <= a for a, b in zip(c, c[1:])):
+        raise ValueError(f"{what} must list band centres in strictly ascending order, got {', '.join(f'{x:g}' for x in c)}")
 
 
 def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:

@@ -623,7 +623,7 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         boxes = res.model(cfg)
         pfa_train = float(false_alarm_rate(boxes, C).max())
         d1_range = [float(boxes[:, 4].min()), float(boxes[:, 4].max())]
-        pfa_scene = scene_rate(res.model, *scene) if scene is not None else float("nan")
+        pfa_scene = scene_rate(res.model, *scene) if scene is not None else None
         coverage = train_coverage(res.model, X, Y)
     if coverage < MIN_TRAIN_COVERAGE:
         raise ValueError(f"training failed: the learned boxes hold only {coverage:.3f} of the training skin pixels "

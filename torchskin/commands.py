@@ -582,10 +582,11 @@ def cmd_light(args: argparse.Namespace) -> int:
         zeniths = [float(z) for z in args.zenith.split(",")]
     except ValueError:
         raise ValueError(f"--zenith must be comma-separated degrees, got {args.zenith!r}") from None
+    _check_number("--sky", args.sky, 0, 1)
     for z in zeniths:
         _check_angle("--zenith", z, 0, 90)
-        if args.illumination == "spectrl2" and not z < 90:
-            raise ValueError(f"--zenith must be below 90 degrees for spectrl2 (a sun above the horizon), got {z:g}")
+        if not z < 90:  # no direct light on a horizontal surface: the ratio is undefined
+            raise ValueError(f"--zenith must be below 90 degrees (a sun above the horizon), got {z:g}")
     bands = parse_bands(args.bands) if args.bands else DEFAULT_BANDS
     atm = Atmosphere(aerosol_500nm=args.aerosol, precipitable_water_cm=args.water, ozone_atm_cm=args.ozone,
                      pressure_pa=args.pressure, day_of_year=args.day_of_year)
@@ -593,9 +594,11 @@ def cmd_light(args: argparse.Namespace) -> int:
                      bands)
     ratio = (t.diffuse_horizontal / t.direct_horizontal).tolist()
     red = (t.direct_horizontal[:, 0] / t.direct_horizontal[:, -1]).tolist()
+    spectrl2 = args.illumination == "spectrl2"
     if args.json:
         print(json.dumps({**t.summary(bands), "zenith_deg": zeniths, "diffuse_over_direct": ratio,
-                          "direct_first_over_last": red, "atmosphere": dataclasses.asdict(atm)}))
+                          "direct_first_over_last": red,
+                          **({"atmosphere": dataclasses.asdict(atm)} if spectrl2 else {"sky_fraction": args.sky})}))
         return 0
     names = [f"{b.center_nm:g} nm" for b in bands]
     print(f"{'sun zenith':>10}" + "".join(f"{n:>10}" for n in names) + f"{'direct ' + names[0] + '/' + names[-1]:>22}")
@@ -603,7 +606,9 @@ def cmd_light(args: argparse.Namespace) -> int:
         print(f"{z:>9g}°" + "".join(f"{x:>10.3f}" if abs(x) < 1 else f"{x:>10.3g}" for x in row) + f"{r:>22.2f}")
     print(f"diffuse / direct horizontal irradiance ({args.illumination}: aerosol {atm.aerosol_500nm:g} at 500 nm, "
           f"water {atm.precipitable_water_cm:g} cm, ozone {atm.ozone_atm_cm:g} atm-cm, {atm.pressure_pa:g} Pa, "
-          f"day {atm.day_of_year})")
+          f"day {atm.day_of_year})" if spectrl2 else
+          f"diffuse / direct horizontal irradiance ({args.illumination}: a blackbody sun and a grey sky of "
+          f"{args.sky:g} times it; the atmosphere options do not apply)")
     return 0
 
 

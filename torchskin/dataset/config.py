@@ -183,7 +183,16 @@ def resolve_config(overrides: dict | None = None) -> dict:
             if key not in SCHEMA[section]:
                 raise ValueError(f"unknown config key {section}.{key}; known: {', '.join(SCHEMA[section])}")
             cfg[section][key] = value
-    return {s: {k: _check(s, k, v, SCHEMA[s][k][1]) for k, v in keys.items()} for s, keys in cfg.items()}
+    for s, keys in cfg.items():  # a range key given one number: say so (not a TypeError later)
+        for k, v in keys.items():
+            if isinstance(SCHEMA[s][k][0], list) and _is_number(SCHEMA[s][k][0][0] if SCHEMA[s][k][0] else None) \
+                    and not isinstance(v, (list, tuple)):
+                raise ValueError(f"{s}.{k} must be [min, max] (a range; [x, x] for one value), got {v!r}")
+    out = {s: {k: _check(s, k, v, SCHEMA[s][k][1]) for k, v in keys.items()} for s, keys in cfg.items()}
+    lo_d, hi_d = out["light"]["day_of_year"]
+    if math.ceil(lo_d) > math.floor(hi_d):
+        raise ValueError(f"light.day_of_year must hold a whole day, got [{lo_d:g}, {hi_d:g}]")
+    return out
 
 
 def load_config(path: str | os.PathLike | None = None) -> dict:
@@ -288,7 +297,8 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
         clothing = wardrobe[int(rng.integers(len(wardrobe)))]
     lc = cfg["light"]
     light = {"model": lc["model"], **{k: u(lc[k]) for k in LIGHT_ATMOSPHERE}, "sky_fraction": u(lc["sky_fraction"])}
-    light["day_of_year"] = int(round(light["day_of_year"]))
+    lo_d, hi_d = lc["day_of_year"]  # a whole day inside the configured range (resolve_config: there is one)
+    light["day_of_year"] = int(min(max(round(light["day_of_year"]), math.ceil(lo_d)), math.floor(hi_d)))
     return PoseGroup(index, seed, camera, subject, suns, skins, skin_types, atmosphere, sensor, panels, confusers, clothing,
                      cfg["skin"]["surface"], light, cfg["ground"]["brdf"])
 

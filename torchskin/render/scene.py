@@ -27,7 +27,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..bands import INDEX_BANDS_NM, Band, as_bands
+from ..bands import INDEX_BANDS_NM, Band, as_bands, check_ascending
 from ..io import write_text
 
 
@@ -313,7 +313,7 @@ class Scene:
                 raise ValueError(f"reference panel {p!r} must be lambertian or spectralon")
         if not self.cameras or not self.suns:
             raise ValueError("a scene needs at least one camera and one sun")
-        as_bands([cast(tuple[float, float], tuple(b)) for b in self.bands])
+        check_ascending(as_bands([cast(tuple[float, float], tuple(b)) for b in self.bands]), "scene bands")
 
     @property
     def band_list(self) -> tuple[Band, ...]:
