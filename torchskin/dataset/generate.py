@@ -291,17 +291,18 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     elm_valid = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
                               list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
     rows = configuration_rows(group, res, np.concatenate(picks), inverse, gb, sun_dirs, labels, elm_valid.numpy(),
-                              light)
+                              light, sensor)
     return {k: [v] for k, v in rows.items()}
 
 
 def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
                        sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray,
-                       light: LightTables) -> dict[str, np.ndarray]:
+                       light: LightTables, sensor: Sensor) -> dict[str, np.ndarray]:
     """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
     rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
     found at ``pos`` (same slice) of the pixel render ``res``'s row c (rendered with ``irradiance``);
-    ``elm_valid`` (S,) per sun; ``light``: the scene's light tables (S rows, float64)."""
+    ``elm_valid`` (S,) per sun; ``light``: the scene's light tables (S rows, float64); ``sensor``: the group's
+    (``group_sensor``)."""
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     n_cfg = n_suns * n_skins
     per = len(idx) // n_cfg  # 2m
@@ -310,7 +311,7 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     skins = cast(tissue.SkinParams, group.skins)
     const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
              "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
-             "atmosphere_transmittance": float(np.atleast_1d(res_sensor_tau(group, light))[0]),
+             "atmosphere_transmittance": float(np.atleast_1d(sensor.atmosphere_transmittance)[0]),
              "path_radiance_scale": group.atmosphere["path_radiance_scale"],
              **{k: group.light[k] for k in LIGHT_ATMOSPHERE},
              "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
@@ -363,11 +364,6 @@ def sky_fraction(light: LightTables, zenith_deg: list[float]) -> np.ndarray:
     cz = torch.cos(torch.deg2rad(torch.tensor(zenith_deg, dtype=torch.float64)))
     dni = light.direct_horizontal[:, 0].double() / cz
     return torch.where(dni > 0, light.diffuse_horizontal[:, 0].double() / dni, torch.nan).float().numpy()
-
-
-def res_sensor_tau(group: PoseGroup, light: LightTables) -> list[float] | float:
-    """The group sensor's path transmittance (per band, or one value) (``group_sensor``)."""
-    return cast(list[float] | float, group_sensor(group, light).atmosphere_transmittance)
 
 
 # -------------------------------------------------------------------------------------------------- shards
