@@ -354,6 +354,19 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
     for bad in [(out[0],), (out[0][:, :-1], out[1]), (out[0], out[1].astype(np.float64)), (out[0], out[1][:, :, ::2])]:
         with pytest.raises(ValueError, match="out"):
             det(cube, cfg, out=bad)
+    # tiles run the box graph split (edge matrices once per frame, the per-pixel head per tile): the same bits as
+    # the whole graph run per tile, the brightness floor included
+    assert tiled_det_is_split(paths["detector"])
+    joined = OnboardDetector(paths["detector"], threads=2, tile=1024)
+    joined._split = None
+    for floor in (0.0, 0.3):
+        a = OnboardDetector(paths["detector"], threads=2, tile=1024)(cube, cfg, min_reflectance=floor)
+        b = joined(cube, cfg, min_reflectance=floor)
+        assert np.array_equal(a["mask"], b["mask"]) and np.array_equal(a["score"], b["score"])
+        want = (score_t.numpy() > 0) & (cube.sum(1) > 4 * floor)
+        assert np.array_equal(a["mask"] | (np.abs(score_t.numpy()) < 1e-5), want | (np.abs(score_t.numpy()) < 1e-5))
+    assert (OnboardDetector(paths["detector"], tile=1024)(cube, cfg, min_reflectance=0.3)["mask"]
+            < tiled["mask"]).any()  # the floor removes dark pixels the boxes take
     late = cube.copy()
     late[1, 2, 90, 60] = np.nan  # in the last tile of the second frame
     with pytest.raises(ValueError, match="NaN"):
@@ -361,6 +374,12 @@ def test_tiled_onboard_run_equals_one_call(trained, tmp_path):
     late[1, 2, 90, 60] = -0.01
     with pytest.raises(ValueError, match="negative"):
         OnboardDetector(paths["detector"], threads=2, tile=1024)(late, cfg)
+
+
+def tiled_det_is_split(path) -> bool:
+    from torchskin.onboard import OnboardDetector
+
+    return OnboardDetector(path, tile=1024)._split is not None
 
 
 @pytest.mark.parametrize("tile", [1024, 1 << 20])  # tiled on 2 workers (ragged last tile), and one call

@@ -55,6 +55,12 @@ def test_same_seed_same_bytes_and_balanced_classes(tmp_path, subject_obj):
     assert len(df) == sum(s["rows"] for s in a["shards"]) == ds.dataset(tmp_path / "a").count_rows()
     counts = df.groupby(["group", "sun", "skin", "label"]).size().unstack()
     assert (counts[True] == counts[False]).all()  # balanced per configuration
+    # one set of pixels per pose group: every sun x skin of a group shades the same pixels, so a row's view angle
+    # (camera and pixel only) repeats across the group's configurations, while its incidence angle follows the sun
+    views = df.groupby(["group", "sun", "skin"]).theta_r_deg.apply(tuple).groupby("group").nunique()
+    assert (views == 1).all()
+    incid = df.groupby(["group", "sun"]).theta_i_deg.apply(tuple).groupby("group").nunique()
+    assert (incid == 3).all()
     assert set(df.columns) >= {"sun_zenith_deg", "theta_i_deg", "r1580", "ndsi", "shadow", "label"}
     skin = df[df.label & ~df.shadow]
     assert skin.ndsi.median() > 0.5  # skin pixels look like skin at 1080/1580 nm

@@ -481,3 +481,27 @@ def test_panel_pixels_found_once_give_the_same_frames():
     a = render_pixels(sc, idx, sensor=sens, gbuffer=first.gbuffer)
     b = render_pixels(sc, idx, sensor=sens, gbuffer=first.gbuffer, panel_pixels=pix)
     assert torch.equal(a.reflectance, b.reflectance)
+
+
+@pytest.mark.anny
+def test_anny_bodies_are_the_same_bits_alone_and_in_any_batch():
+    """A dataset shard builds its bodies in one anny call (``meshes.anny_batch``); a body must not depend on the
+    batch it was built in, or a group's rows would change with the shard layout."""
+    from torchskin.render.meshes import anny_batch, anny_body
+
+    bodies = [({"gender": g, "height": h}, {"head": [p, 0.0, y]})
+              for g, h, p, y in ((0.2, 0.7, -5.0, 10.0), (0.9, 0.3, 8.0, -25.0), (0.5, 0.5, 0.0, 40.0))]
+    alone = [anny_body(ph, po, cache=False) for ph, po in bodies]
+    with anny_batch(bodies):
+        batched = [anny_body(ph, po, cache=False) for ph, po in bodies]
+    with anny_batch(bodies[::-1] + bodies[:1] * 7):  # another order, another batch size
+        shuffled = [anny_body(ph, po, cache=False) for ph, po in bodies]
+    for a, b, c in zip(alone, batched, shuffled, strict=True):
+        for x, y, z in zip(a, b, c, strict=True):
+            assert np.array_equal(x, y) and np.array_equal(x, z)
+    assert not np.array_equal(alone[0][0], alone[1][0])  # different bodies
+    with anny_batch(bodies[:1]):
+        pass
+    from torchskin.render.meshes import _PREBUILT
+
+    assert not _PREBUILT  # released when the block ends

@@ -62,3 +62,18 @@ def test_brdf_elm_corrects_a_specular_panel_where_dhr_elm_fails():
     rho_dhr = elm(L(f_target), L(f1), L(f2), 0.97, 0.03)
     assert abs(float(rho_brdf) - 0.25) < 1e-12
     assert abs(float(rho_dhr) - 0.25) > 0.01
+
+
+def test_panel_subset_is_a_regular_capped_sample_spread_over_the_panel():
+    from torchskin.render.elm import panel_subset
+
+    ix = torch.arange(1000, 4600, 3)  # 1,200 sorted flat indices of one panel
+    (sub,), = panel_subset([[ix]], 256)
+    assert 128 < sub.numel() <= 256 and bool(torch.isin(sub, ix).all())
+    assert int(sub[0]) == int(ix[0]) and int(ix[-1]) - int(sub[-1]) < 5 * 3  # first to (nearly) last: whole panel
+    steps = sub.diff()
+    assert bool((steps == steps[0]).all())  # every k-th
+    (same,), = panel_subset([[ix[:100]]], 256)
+    assert torch.equal(same, ix[:100])  # under the cap: all of them
+    with pytest.raises(ValueError, match="cap"):
+        panel_subset([[ix]], 0)

@@ -126,6 +126,37 @@ def test_one_compilation_serves_every_frame_size():
 
 @slow
 @needs_compiler
+def test_no_recompilation_across_pose_groups():
+    """Groups with other confuser counts (meshes, materials) and other sensor settings (read noise) reuse the
+    compiled kernels: scene-sized tables are padded (``kernels.table_rows``), scalars are tensor inputs, each BRDF
+    kind is a kernel of its own."""
+    import tempfile
+
+    from torchskin.dataset.config import resolve_config
+    from torchskin.dataset.generate import generate
+
+    cfg = resolve_config({"camera": {"width": 48, "height": 48}, "sun": {"per_pose": 2}, "skin": {"per_pose": 1},
+                          "sampling": {"groups_per_shard": 1, "pixels_per_class": 16}, "confusers": {"count": [0, 4]},
+                          "sensor": {"read_noise_e": [10.0, 200.0]}})
+    with tempfile.TemporaryDirectory() as d:
+        generate(cfg, 2 * 4, 7, f"{d}/warm", quiet=True, compile=True)  # every material kind, some confuser counts
+        graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+        man = generate(cfg, 2 * 6, 8, f"{d}/run", quiet=True, compile=True)
+    assert man["compiled"] and torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+
+
+def test_scene_sized_tables_are_padded_past_the_static_axes():
+    from torchskin.render.kernels import TABLE_ROWS, pad_rows, table_rows
+
+    assert table_rows(5) == table_rows(17) == TABLE_ROWS > 16 and table_rows(TABLE_ROWS + 1) == 2 * TABLE_ROWS
+    x = torch.arange(24.0).reshape(2, 3, 4)
+    y = pad_rows(x)
+    assert y.shape == (2, TABLE_ROWS, 4) and torch.equal(y[:, :3], x) and not y[:, 3:].any()
+    assert pad_rows(y) is y
+
+
+@slow
+@needs_compiler
 def test_compiled_pixel_render_with_a_skin_batch_equals_eager():
     sc = scene(suns=3)
     rc = Raycaster.from_scene(sc)

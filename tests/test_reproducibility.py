@@ -194,7 +194,8 @@ def _rows_digest(rows: dict) -> str:
     for k in sorted(rows):
         for chunk in rows[k]:
             h.update(k.encode())
-            h.update(np.asarray(chunk).astype(str if chunk.dtype == object else chunk.dtype).tobytes())
+            a = np.asarray(chunk)  # string columns come as pyarrow dictionary arrays (object once converted)
+            h.update(a.astype(str if a.dtype == object else a.dtype).tobytes())
     return h.hexdigest()
 
 

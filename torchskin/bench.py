@@ -184,16 +184,27 @@ def _band_slice(tables, b: int):
                                reference=one(tables.reference), wavelengths=one(tables.wavelengths), groups=groups)
 
 
-def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, suns: int = 16, skins: int = 3,
-                  baseline_images: int = 24, repeat: int = 3) -> dict:
-    """Batched generation of one pose group (rays cast once, every sun batched), eager and with the compiled
-    kernels, alternated in one run (medians of ``repeat``; ``first_compiled_seconds`` includes compilation);
-    against rendering each (configuration, band) image on its own with its own ray cast, the way a per-band
-    renderer must; the baseline is timed on ``baseline_images`` images and scaled to suns x skins x bands."""
+def _graphs_compiled() -> int:
+    """Graphs torch.compile has compiled in this process so far (first compilations and recompilations)."""
+    from torch._dynamo.utils import counters
+
+    return int(counters["stats"]["unique_graphs"])
+
+
+def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, groups: int = 32, repeat: int = 3,
+                  baseline_images: int = 24) -> dict:
+    """Dataset generation through ``dataset.generate.generate``: ``groups`` pose groups of the default config
+    (16 suns x 3 skins each, confuser counts, atmospheres and sensor settings varying from group to group),
+    Parquet shards written, eager and with the compiled kernels alternated in one run (medians of ``repeat``),
+    after a warm-up of one shard per path (anny's and the compiler's first calls). ``graphs_compiled_after_warmup``
+    counts compilations during the timed runs: 0 when no group's shapes or settings recompile a kernel. Against
+    rendering each (configuration, band) image on its own with its own ray cast, the way a per-band renderer must
+    (timed on ``baseline_images`` images, scaled to the same configurations)."""
     import dataclasses
+    import tempfile
 
     from .dataset.config import resolve_config, sample_group
-    from .dataset.generate import group_rows, group_scene, group_sensor
+    from .dataset.generate import generate, group_scene, group_sensor
     from .render.light import light_tables
     from .render.materials import compile_materials
     from .render.raycast import Raycaster
@@ -201,25 +212,31 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
     from .render.sensor import sensor_signal
     from .render.shade import shade
 
-    cfg = resolve_config({"camera": {"width": width, "height": height}, "sun": {"per_pose": suns},
-                          "skin": {"per_pose": skins}, "confusers": {"count": [0, 0]}})
-    g = sample_group(cfg, 0, 0)
-    n_pixels = cfg["sampling"]["pixels_per_class"]
+    cfg = resolve_config({"camera": {"width": width, "height": height}})
+    per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
+    n_configs = groups * per_group
     paths = [False] + ([True] if _compiled_available() else [])
     timed: dict[bool, list[float]] = {p: [] for p in paths}
     compile_s = 0.0
-    for p in paths:  # warm-up: anny mesh cache, tables; the compiled kernels' compilation
-        t0 = time.perf_counter()
-        group_rows(g, n_pixels, compile=p)
-        if p:
-            compile_s = time.perf_counter() - t0
-    for _ in range(repeat):  # alternated, so that both paths see the same machine
-        for p in paths:
+    graphs = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for p in paths:  # warm-up: one shard (anny, material tables; the compiled kernels' compilation)
             t0 = time.perf_counter()
-            rows = group_rows(g, n_pixels, compile=p)
-            timed[p].append(time.perf_counter() - t0)
+            generate(cfg, per_group * cfg["sampling"]["groups_per_shard"], 99, f"{tmp}/warm-{p}", quiet=True, compile=p)
+            if p:
+                compile_s = time.perf_counter() - t0
+        for r in range(repeat):  # alternated, so that both paths see the same machine
+            for p in paths:
+                g0 = _graphs_compiled()
+                t0 = time.perf_counter()
+                man = generate(cfg, n_configs, 0, f"{tmp}/run-{r}-{p}", quiet=True, compile=p)
+                timed[p].append(time.perf_counter() - t0)
+                graphs += _graphs_compiled() - g0
+        rows = sum(s["rows"] for s in man["shards"])
     t_eager = statistics.median(timed[False])
     t_batched = statistics.median(timed[paths[-1]])
+    g = sample_group(cfg, 0, 0)
+    suns, skins = cfg["sun"]["per_pose"], cfg["skin"]["per_pose"]
     sc = group_scene(g)
     rc = Raycaster.from_scene(sc)
     sensor = group_sensor(g)
@@ -243,15 +260,15 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, su
         band_sensor = dataclasses.replace(sensor, **one_band)
         sensor_signal(L, band_sensor, [sc.band_list[b]], sc.cameras[0].focal)
     t_per_image = (time.perf_counter() - t0) / len(sample)
-    t_baseline = t_per_image * len(work)
-    n_configs = suns * skins
+    t_baseline_per_config = t_per_image * len(work) / (suns * skins)
     return {"dataset": {
         "configs_per_s": n_configs / t_batched, "configs_per_s_eager": n_configs / t_eager,
         "compiled_over_eager": t_eager / t_batched, "path": "compiled" if paths[-1] else "eager",
-        "first_compiled_seconds": compile_s,
-        "samples_per_s": sum(len(x) for x in rows["label"]) / t_batched,
-        "speedup_vs_per_config_render": t_baseline / t_batched, "batched_seconds": t_batched,
-        "per_image_seconds": t_per_image, "images": len(work), "width": width, "height": height,
+        "first_compiled_seconds": compile_s, "graphs_compiled_after_warmup": graphs if len(paths) == 2 else None,
+        "samples_per_s": rows / t_batched,
+        "speedup_vs_per_config_render": t_baseline_per_config * n_configs / t_batched, "batched_seconds": t_batched,
+        "per_image_seconds": t_per_image, "groups": groups, "configs": n_configs, "width": width, "height": height,
+        "groups_per_shard": cfg["sampling"]["groups_per_shard"],
     }}
 
 

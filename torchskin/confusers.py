@@ -60,13 +60,20 @@ def _library():
 def library(part: str | None = None) -> tuple[list[str], list[str], np.ndarray, np.ndarray]:
     """``(names, classes, wavelengths_nm (K,), reflectance (N, K))`` of the whole library or of one
     partition ("train" / "test")."""
-    names, classes, wl, R, parts = _library()
-    if part is None:
-        return names, classes, wl, R
-    if part not in ("train", "test"):
+    if part is not None and part not in ("train", "test"):
         raise ValueError(f"partition must be 'train' or 'test', got {part!r}")
-    sel = np.nonzero(parts == part)[0]
-    return [names[i] for i in sel], [classes[i] for i in sel], wl, R[sel]
+    names, classes, wl, R = _partition(part)
+    return list(names), list(classes), wl, R
+
+
+@functools.lru_cache(maxsize=4)
+def _partition(part: str | None) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray, np.ndarray]:
+    """``library(part)``, computed once per partition (read-only arrays)."""
+    names, classes, wl, R, parts = _library()
+    sel = np.arange(len(names)) if part is None else np.nonzero(parts == part)[0]
+    R = R[sel]
+    R.flags.writeable = False
+    return tuple(names[i] for i in sel), tuple(classes[i] for i in sel), wl, R
 
 
 def band_reflectance(wavelengths_nm: Sequence[float] | torch.Tensor,
@@ -82,11 +89,10 @@ def band_reflectance(wavelengths_nm: Sequence[float] | torch.Tensor,
 
 def spectrum(name: str, wavelengths_nm: Sequence[float]) -> list[float]:
     """One named spectrum at the given wavelengths (clipped to [0, 1])."""
-    names, _, wl, R = library()
-    try:
-        i = names.index(name)
-    except ValueError:
-        raise ValueError(f"no earthlib spectrum named {name!r}") from None
+    _, _, wl, R = _partition(None)
+    i = _name_index().get(name)
+    if i is None:
+        raise ValueError(f"no earthlib spectrum named {name!r}")
     return np.clip(np.interp(np.asarray(wavelengths_nm, dtype=float), wl, R[i]), 0.0, 1.0).tolist()
 
 

@@ -98,7 +98,7 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     },
     "sampling": {
         "pixels_per_class": (128, "int>=1"),
-        "groups_per_shard": (4, "int>=1"),
+        "groups_per_shard": (16, "int>=1"),
     },
 }
 

@@ -17,6 +17,7 @@ import json
 import math
 import os
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -30,9 +31,10 @@ from ..bands import INDEX_BANDS_NM
 from ..boundaries import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
-from ..render.elm import ELM_MIN_SUNLIT, panel_pixels
+from ..render.elm import ELM_MIN_SUNLIT, panel_pixels, panel_subset
 from ..render.kernels import cos_to
 from ..render.light import LightTables, path_terms
+from ..render.meshes import anny_batch
 from ..render.pipeline import RenderResult, render, render_pixels, scene_light
 from ..render.raycast import GBuffer, Raycaster
 from ..render.rtlsr import RHO_MAX
@@ -41,16 +43,18 @@ from ..render.sensor import Sensor
 from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
 from .files import MANIFEST, RENDER_REVISION, sha256_file
 
-SCHEMA_VERSION = 4  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
+SCHEMA_VERSION = 5  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
 # clothing and material columns, clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
-# (sky_view, direct_share_*, light, backlit), sky_fraction derived
+# (sky_view, direct_share_*, light, backlit), sky_fraction derived; 5: one set of pixels per pose group (every sun x
+# skin of a group shades the same 2 x pixels_per_class pixels), panel medians from a capped sample (PANEL_SAMPLE)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
 GROUND_REFLECTANCE = [0.12, 0.16, 0.30, 0.28]
 INDEX_BANDS = [[w, 0.0] for w in INDEX_BANDS_NM]
-#: a group's non-skin rows are drawn from a pool of this many times ``pixels_per_class`` of its non-skin pixels
-OTHER_POOL = 16
+#: the reference panels' interior pixels a group renders for its ELM medians (per panel, a regular sample:
+#: ``elm.panel_subset``); the median ELM reflectance moves by ~0.2 % against the whole interior
+PANEL_SAMPLE = 256
 #: the bands whose direct share each row records (544 and 1580 nm: direct_share_544, direct_share_1580)
 SHARE_BANDS = (0, 3)
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
@@ -156,9 +160,8 @@ def group_scene(group: PoseGroup) -> Scene:
             "clothing": Material("lambertian", reflectance=clothing),
             "ground": Material(group.ground_brdf, reflectance=GROUND_REFLECTANCE), **panel_materials(group.panels)}
     if subject["kind"] == "anny":
-        pose = {"head": [subject["head_pitch_deg"], 0.0, subject["head_yaw_deg"]]}
-        body = MeshSpec("subject", "anny", "skin", params={"phenotype": subject["phenotype"], "pose": pose,
-                                                           "cache": False},
+        phenotype, pose = group_body(group)
+        body = MeshSpec("subject", "anny", "skin", params={"phenotype": phenotype, "pose": pose, "cache": False},
                         yaw_deg=subject["yaw_deg"], other_material="clothing")
     else:
         body = MeshSpec("subject", "file", "skin", params={"path": subject["path"]}, yaw_deg=subject["yaw_deg"])
@@ -179,6 +182,12 @@ def group_scene(group: PoseGroup) -> Scene:
     suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], atmosphere=atm,
                 sky_fraction=group.light["sky_fraction"] if thesis else 0.0) for s in group.suns]
     return Scene(mats, [body, *panels, ground, *confusers], [cam], suns, illumination=group.light["model"])
+
+
+def group_body(group: PoseGroup) -> tuple[dict, dict]:
+    """The anny phenotype and pose of a pose group's subject (an anny subject only)."""
+    subject = group.subject
+    return subject["phenotype"], {"head": [subject["head_pitch_deg"], 0.0, subject["head_yaw_deg"]]}
 
 
 def group_sensor(group: PoseGroup, light: LightTables | None = None) -> Sensor:
@@ -251,11 +260,12 @@ def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
 
 def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | str = "cpu",
                images: list | None = None, compile: bool = False) -> dict[str, list]:
-    """Rows for every sun x skin of a pose group, as column -> list of numpy chunks (one per configuration):
-    ``pixels_per_class`` skin and as many non-skin pixels (fewer if fewer are visible; balanced per
-    configuration). With a list ``images``, the full reflectance cubes of the group, (skins, suns, bands,
-    H, W) float16, are appended to it. Shadow rays are cast only for the sampled pixels and the panels'
-    interior (every pixel with ``images``). ``compile``: the renderer's compiled kernels (``render.kernels``)."""
+    """Rows for every sun x skin of a pose group, as column -> list of numpy chunks: ``pixels_per_class`` skin
+    and as many non-skin pixels (fewer if fewer are visible; balanced), drawn once for the group, under every
+    configuration (sun x skin). With a list ``images``, the full reflectance cubes of the group, (skins, suns,
+    bands, H, W) float16, are appended to it. Shadow and sky rays are cast only for the sampled pixels and the
+    panels' capped sample (``PANEL_SAMPLE``; every pixel with ``images``). ``compile``: the renderer's compiled
+    kernels (``render.kernels``)."""
     scene = group_scene(group)
     rc = Raycaster.from_scene(scene)
     sun_dirs = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
@@ -265,7 +275,8 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     sensor = group_sensor(group, light)
     rng = np.random.default_rng(group.seed)
     out: dict[str, list] = {k: [] for k in COLUMNS}
-    pix = panel_pixels(gb, list(scene.panels))  # found once for the group's renders
+    # the panels' interior, capped to a regular sample (PANEL_SAMPLE), found once for the group's renders
+    pix = panel_subset(panel_pixels(gb, list(scene.panels)), PANEL_SAMPLE)
     m = min(pixels_per_class, len(labels.skin), len(labels.other))
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     skins = group.skins
@@ -278,20 +289,17 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
         return out
-    # the pixels of every configuration (skin x sun), drawn first, then rendered together in one batch; the non-skin
-    # ones from a pool of the group's non-skin pixels (OTHER_POOL x pixels per class), so that the sky and shadow
-    # rays of a group are cast for a few thousand pixels, not for most of the frame
-    pool = rng.choice(labels.other, min(len(labels.other), max(m, OTHER_POOL * m)), replace=False)
-    picks = [np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(pool, m, replace=False)])
-             for _ in range(n_skins * n_suns)]
-    union, inverse = np.unique(np.concatenate(picks), return_inverse=True)
-    res = render_pixels(scene, torch.from_numpy(union), device=device, sensor=sensor, gbuffer=gb, skins=skins,
-                        panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS)
+    # one set of pixels for the whole group (m skin, m other), shaded under every sun x skin in one batch: only the
+    # kept pixels are shaded (each configuration's rows are these pixels under its sun and skin)
+    picks = np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
+    res = render_pixels(scene, torch.from_numpy(picks), device=device, sensor=sensor, gbuffer=gb, skins=skins,
+                        panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS, light=light)
     sub = res.gbuffer  # the rendered pixels' G-buffer, shadows cast; rows skin-major, the first n_suns: skin 0
     elm_valid = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
                               list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
-    rows = configuration_rows(group, res, np.concatenate(picks), inverse, gb, sun_dirs, labels, elm_valid.numpy(),
-                              light, sensor)
+    n_cfg = n_suns * n_skins
+    rows = configuration_rows(group, res, np.tile(picks, n_cfg), np.tile(np.arange(2 * m), n_cfg), gb, sun_dirs,
+                              labels, elm_valid.numpy(), light, sensor)
     return {k: [v] for k, v in rows.items()}
 
 
@@ -320,7 +328,8 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
              **{k: group.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
              "panels": group.panels, "surface": group.surface, "clothing": group.clothing}
     n = len(idx)
-    rows = {k: np.full(n, v, dtype=object if isinstance(v, str) else None) for k, v in const.items()}
+    rows: dict[str, Any] = {k: strings(np.zeros(n, np.int32), [v]) if isinstance(v, str) else np.full(n, v)
+                            for k, v in const.items()}
 
     def per_sun(values: list) -> np.ndarray:
         return np.array(values)[si]
@@ -332,14 +341,14 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "sky_fraction": sky_fraction(light, [s["zenith_deg"] for s in group.suns])[si],
                  "backlit": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                      >= BACKLIT_MIN_DEG for s in group.suns]),
-                 "skin_type": np.array(group.skin_types, dtype=object)[ki],
+                 "skin_type": strings(ki, group.skin_types),
                  **{k: np.array([float(x) for x in getattr(skins, k)])[ki]
                     for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen", "subcutaneous_scale")}})
     at = (torch.from_numpy(cfg), torch.from_numpy(pos))
     refl = res.reflectance[:, 0, 0].cpu()[at].float()
     ti, tr, dp = pixel_angles_deg(gb, torch.from_numpy(idx), sun_dirs[torch.from_numpy(si)])
-    rows.update({"confuser": labels.confuser_names[labels.mesh[idx] + 1],
-                 "material": labels.material_labels[labels.material[idx] + 1],
+    rows.update({"confuser": strings(labels.mesh[idx] + 1, labels.confuser_names),
+                 "material": strings(labels.material[idx] + 1, labels.material_labels),
                  "label": np.tile(np.repeat(np.array([True, False]), per // 2), n_cfg), "theta_i_deg": ti.numpy(),
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
                  "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
@@ -347,7 +356,7 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
     shadow = rows["shadow"]
-    rows["light"] = np.where(shadow, "shadow", "sunlit").astype(object)
+    rows["light"] = strings(shadow, ["sunlit", "shadow"])
     sky = res.gbuffer.sky  # None where the light has no sky or ground light (no sky rays cast): NaN
     rows["sky_view"] = np.full(n, np.nan, dtype=np.float32) if sky is None else \
         sky.reshape(-1).cpu()[torch.from_numpy(pos)].float().numpy()
@@ -356,6 +365,15 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
     rows["direct_share_544"], rows["direct_share_1580"] = share[:, 0], share[:, 1]
     return {k: rows[k] for k in COLUMNS}
+
+
+def strings(codes: np.ndarray, vocabulary: Sequence[str] | np.ndarray):
+    """A string column chunk as a pyarrow dictionary array: ``vocabulary[codes]`` (written as plain strings,
+    ``write_shard``; building it costs a fraction of converting Python strings one by one)."""
+    import pyarrow as pa
+
+    return pa.DictionaryArray.from_arrays(pa.array(np.asarray(codes, dtype=np.int32)),
+                                          pa.array([str(v) for v in vocabulary], type=pa.string()))
 
 
 def sky_fraction(light: LightTables, zenith_deg: list[float]) -> np.ndarray:
@@ -402,13 +420,20 @@ def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
     cols = {}
     for c in COLUMNS:
         chunks = rows[c]
+        if schema.field(c).type == pa.string():  # dictionary chunks (``strings``) or object arrays
+            cols[c] = pa.concat_arrays([x.cast(pa.string()) if isinstance(x, pa.Array)
+                                        else pa.array(np.asarray(x, dtype=object), type=pa.string()) for x in chunks]) \
+                if chunks else pa.array([], type=pa.string())
+            continue
         arr = np.concatenate(chunks) if chunks else np.zeros(0)
-        cols[c] = pa.array(arr if schema.field(c).type != pa.string() else arr.astype(object),
-                           type=schema.field(c).type)
+        cols[c] = pa.array(arr, type=schema.field(c).type)
     table = pa.table(cols, schema=schema)
     path = out_dir / shard_name(k)
     with atomic_path(path, suffix=".tmp") as tmp:
-        pq.write_table(table, tmp, compression="zstd", write_statistics=False)
+        # dictionary pages for the string columns only: trying them on the float columns (the default) tripled the
+        # write time and grew the file
+        pq.write_table(table, tmp, compression="zstd", write_statistics=False,
+                       use_dictionary=[c for c in COLUMNS if COLUMNS[c][0] == "string"])
     return {"name": path.name, "rows": table.num_rows, "sha256": sha256_file(path), "bytes": path.stat().st_size}
 
 
@@ -432,10 +457,12 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
     full reflectance cubes of its groups; ``compile``: with the renderer's compiled kernels."""
     rows: dict[str, list] = {c: [] for c in COLUMNS}
     cubes: list | None = [] if images else None
-    for gi in shard_groups(cfg, k, n_groups):
-        part = group_rows(sample_group(cfg, seed, gi), cfg["sampling"]["pixels_per_class"], device, cubes, compile)
-        for c in COLUMNS:
-            rows[c].extend(part[c])  # lists of numpy chunks
+    groups = [sample_group(cfg, seed, gi) for gi in shard_groups(cfg, k, n_groups)]
+    with anny_batch([group_body(g) for g in groups if g.subject["kind"] == "anny"]):  # the shard's bodies at once
+        for group in groups:
+            part = group_rows(group, cfg["sampling"]["pixels_per_class"], device, cubes, compile)
+            for c in COLUMNS:
+                rows[c].extend(part[c])  # lists of numpy chunks
     entry = {**write_shard(out_dir, k, rows), "compiled": compile}
     if cubes is not None:
         entry["images"] = write_images(out_dir, k, cubes)
@@ -579,14 +606,12 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
     write_text(out / MANIFEST, json.dumps(manifest(), indent=1))
     from tqdm import tqdm
 
-    per_shard = cfg["sampling"]["groups_per_shard"] * cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
-    todo = [k for k in range(n_shards) if k not in done]
+    per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
 
-    def record(k, entry):
-        done[k] = entry
-        write_text(out / MANIFEST, json.dumps(manifest(), indent=1))
+    def per_shard(k: int) -> int:  # configurations of shard k (the last shard may hold fewer groups)
+        return len(shard_groups(cfg, k, n_groups)) * per_group
 
-    with tqdm(total=n_shards * per_shard, initial=(n_shards - len(todo)) * per_shard, unit="config",
+    with tqdm(total=n_groups * per_group, initial=sum(per_shard(k) for k in done), unit="config",
               disable=quiet, desc="generate") as bar:
         if backend == "local":
             for k in todo:
@@ -595,10 +620,10 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
                 except OSError as e:  # full disk, permissions: the temporary shard is already removed
                     raise ValueError(f"writing {shard_name(k)} into {str(out)!r} failed: {e.strerror or e}") from None
                 record(k, entry)
-                bar.update(per_shard)
+                bar.update(per_shard(k))
         else:
             _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, images, compile,
-                     lambda k, e: (record(k, e), bar.update(per_shard)))
+                     lambda k, e: (record(k, e), bar.update(per_shard(k))))
     return manifest()
 
 

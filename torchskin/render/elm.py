@@ -81,6 +81,16 @@ def panel_pixels(gb: GBuffer, panel_names: list[str], erode_px: int = 1) -> list
     return out
 
 
+def panel_subset(pixels: list[list[torch.Tensor]], cap: int) -> list[list[torch.Tensor]]:
+    """At most ``cap`` of each panel's interior pixels per camera (``panel_pixels``): a regular subset of the
+    sorted flat indices (every k-th, k = ceil(n / cap)), spread over the whole panel, so that its median stands for
+    the interior's (the dataset generator's capped panel sample: the panels' interiors otherwise outnumber the
+    sampled pixels of a frame many times over)."""
+    if cap < 1:
+        raise ValueError(f"panel sample cap must be >= 1 pixel, got {cap}")
+    return [[ix[::max(1, -(-ix.numel() // cap))] for ix in per_cam] for per_cam in pixels]
+
+
 def panel_regions(pixels: list[list[torch.Tensor]], panel_names: list[str], height: int, width: int,
                   camera: int = 0) -> dict[str, list[int]]:
     """An axis-aligned rectangle [y0, y1, x0, x1] (rows y0..y1-1, columns x0..x1-1) of each panel's interior

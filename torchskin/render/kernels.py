@@ -19,6 +19,7 @@ Inductor keeps compiled kernels on disk between runs (``TORCHINDUCTOR_CACHE_DIR`
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -107,6 +108,29 @@ def mark_dynamic(args: tuple) -> None:
             for d, size in enumerate(a.shape):
                 if size > 16:
                     torch._dynamo.maybe_mark_dynamic(a, d)
+
+
+#: lookup tables whose length follows the scene's content (meshes, materials) are padded to a multiple of this
+#: (``table_rows``): longer than ``mark_dynamic``'s 16, so that the compiled kernels take every scene's tables
+#: without recompiling
+TABLE_ROWS = 32
+
+
+def table_rows(n: int) -> int:
+    """``n`` rounded up to a multiple of ``TABLE_ROWS`` (at least one multiple)."""
+    return max(TABLE_ROWS, -(-n // TABLE_ROWS) * TABLE_ROWS)
+
+
+def pad_rows(x: torch.Tensor, dim: int = -2) -> torch.Tensor:
+    """``x`` with zeros appended along ``dim`` up to ``table_rows`` rows (itself when already that long): per-material
+    tables handed to a compiled kernel, whose unused rows no pixel indexes."""
+    n = x.shape[dim]
+    extra = table_rows(n) - n
+    if extra == 0:
+        return x
+    shape = list(x.shape)
+    shape[dim] = extra
+    return torch.cat([x, x.new_zeros(shape)], dim)
 
 
 def _signature(a: object) -> tuple:
@@ -248,13 +272,31 @@ def brdf_radiance(brdf: Callable, params: dict[str, torch.Tensor], normal: torch
     return torch.addcmul(radiance, sunlit_cos[..., None] * irradiance, brdf(ci, cr, c2b, params))
 
 
+@functools.cache
+def brdf_kernel(brdf: Callable) -> Callable:
+    """``brdf_radiance`` with the BRDF ``brdf`` bound, as a kernel of its own (one per BRDF kind, named after it):
+    each kind compiles once into its own kernel instead of recompiling one shared kernel whenever another kind
+    comes next."""
+
+    def kernel(params: dict[str, torch.Tensor], normal: torch.Tensor, ray_dirs: torch.Tensor, sun_dirs: torch.Tensor,
+               radiance: torch.Tensor, sunlit_cos: torch.Tensor, irradiance: torch.Tensor) -> torch.Tensor:
+        return brdf_radiance(brdf, params, normal, ray_dirs, sun_dirs, radiance, sunlit_cos, irradiance)
+
+    name = getattr(brdf, "__qualname__", type(brdf).__name__)
+    kernel.__name__ = f"brdf_radiance[{name}]"
+    kernel.__qualname__ = f"brdf_radiance[{getattr(brdf, '__module__', '')}.{name}]"
+    return kernel
+
+
 def sensor_dn(radiance: torch.Tensor, path: torch.Tensor, tau: torch.Tensor, gain: torch.Tensor,
-              noise: torch.Tensor | None, dn_per_e: float, read_noise_dn2: float, levels: int, atmosphere: bool,
-              quantize: bool) -> torch.Tensor:
+              noise: torch.Tensor | None, dn_per_e: torch.Tensor, read_noise_dn2: torch.Tensor, levels: int,
+              atmosphere: bool, quantize: bool) -> torch.Tensor:
     """Digital numbers from at-surface radiance (eq 2.5.2 after the exposure): L_aperture = τ L + L_path (with
     ``atmosphere``), DN = L_aperture · ``gain``; plus shot and read noise, σ² = DN·g + σ_read² (DN², g =
     ``dn_per_e``) times the standard-normal draw ``noise`` (None: no noise); then the ADC: rounded and clipped
-    to [0, levels - 1] with ``quantize``, else clipped to [0, levels]."""
+    to [0, levels - 1] with ``quantize``, else clipped to [0, levels]. ``dn_per_e`` and ``read_noise_dn2`` are
+    0-d tensors, inputs of a compiled kernel rather than constants baked into it (a new read noise would
+    recompile it)."""
     L = aperture_radiance(radiance, path, tau) if atmosphere else radiance
     dn = L * gain
     if noise is not None:

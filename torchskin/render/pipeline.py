@@ -210,18 +210,19 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
                   elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
                   cache: MaterialCache | None = None,
                   panel_pixels: list[list[torch.Tensor]] | None = None, compile: bool = False,
-                  irradiance: Sequence[int] | None = None) -> RenderResult:
+                  irradiance: Sequence[int] | None = None, light: LightTables | None = None) -> RenderResult:
     """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
     only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
     brightest of them and the panels (the dataset generator's fast path). Shadow rays (and sky-view rays) are
     cast for these pixels only when the G-buffer comes without them. ``irradiance``: band indices: also the
-    direct and diffuse irradiance of each pixel in those bands (``RenderResult.irradiance``). Other arguments
-    as ``render``."""
+    direct and diffuse irradiance of each pixel in those bands (``RenderResult.irradiance``). ``light``: the
+    scene's light tables if already computed (``scene_light``; cast to ``dtype`` and ``device``). Other
+    arguments as ``render``."""
     timing: dict = {}
     t0 = time.perf_counter()
     check_materials(scene.materials, scene.band_list)
     check_light(scene.illumination, scene.suns)
-    light = scene_light(scene, dtype, device)
+    light = scene_light(scene, dtype, device) if light is None else light.to(device, dtype)
     gb, raycaster = geometry(scene, raycaster, gbuffer, timing, compile, shadows=False)
     pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else \
         [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in panel_pixels]

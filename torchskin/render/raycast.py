@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..optics import dot3
-from .kernels import KERNELS, cos_to, gbuffer_fields, point_along
+from .kernels import KERNELS, cos_to, gbuffer_fields, point_along, table_rows
 from .meshes import TriMesh, build_meshes
 from .scene import Camera, Scene
 
@@ -131,9 +131,11 @@ class Raycaster:
             nf += len(m.faces)
         n_gid = max(gid_to_mesh) + 1
         # lookup tables indexed by geometry id + 1 (open3d's INVALID_ID reads as -1 in int32); a miss maps
-        # to a sentinel face nf (a dummy triangle of material -1)
-        self._gid_mesh = torch.full((n_gid + 1,), -1, dtype=torch.int64)
-        self._gid_face_off = torch.full((n_gid + 1,), nf, dtype=torch.int64)
+        # to a sentinel face nf (a dummy triangle of material -1); padded to ``kernels.table_rows`` rows, so that
+        # scenes with another mesh count (more confusers) reuse the compiled kernels
+        rows = table_rows(n_gid + 1)
+        self._gid_mesh = torch.full((rows,), -1, dtype=torch.int64)
+        self._gid_face_off = torch.full((rows,), nf, dtype=torch.int64)
         for gid, k in gid_to_mesh.items():
             self._gid_mesh[gid + 1] = k
             self._gid_face_off[gid + 1] = face_off[k]

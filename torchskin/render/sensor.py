@@ -128,7 +128,9 @@ def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands: Sequence
         if sensor.noise else None  # drawn eagerly, whichever path computes the rest
     gain = k * g
     x, gain, tiles = band_tiles(radiance, gain if gain.dim() == 1 else gain.reshape(S, C, B))
+    dn_per_e, read2 = (torch.tensor(v, dtype=radiance.dtype, device=radiance.device)
+                       for v in (g, (sensor.read_noise_e * g) ** 2))
     dn = KERNELS.get(sensor_dn, compile, radiance.device)(
-        x, tile(tb["path"], tiles), tile(tb["tau"], tiles), gain, None if z is None else z.view(x.shape), g,
-        (sensor.read_noise_e * g) ** 2, levels, sensor.atmosphere, sensor.quantize)
+        x, tile(tb["path"], tiles), tile(tb["tau"], tiles), gain, None if z is None else z.view(x.shape), dn_per_e,
+        read2, levels, sensor.atmosphere, sensor.quantize)
     return dn.view(radiance.shape)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .kernels import KERNELS, brdf_radiance, cos_to, lambert_sky, local_cosines
+from .kernels import KERNELS, brdf_kernel, cos_to, lambert_sky, local_cosines, pad_rows
 from .light import LightTables
 from .materials import MaterialTables
 from .raycast import GBuffer
@@ -117,19 +117,20 @@ def shade(gb: GBuffer, tables: MaterialTables, light: LightTables, sun_dirs: tor
     sky_view, ground_view = diffuse_views(gb, tables, light)
     L, lit, w = KERNELS.get(lambert_sky, compile, n.device)(
         n, hit, mat, gb.shadow_masks().reshape(S, -1), sun_dirs, light.beam, light.sky, light.ground, sky_view,
-        ground_view, tables.albedo, tables.lambert_f, gb.rays.reshape(-1, 6)[:, 5], sky_background)
+        ground_view, pad_rows(tables.albedo), pad_rows(tables.lambert_f), gb.rays.reshape(-1, 6)[:, 5],
+        sky_background)
     if dense is None:
         dense = n.device.type != "cpu"
     dirs = gb.rays.reshape(-1, 6)[:, 3:]
     for group in tables.groups.values():  # BRDF kinds carry no Lambertian part (lambert_f = 0): add f E cos θi
-        kernel = KERNELS.get(brdf_radiance, compile, n.device)
+        kernel = KERNELS.get(brdf_kernel(group.brdf), compile, n.device)
         if dense:  # every pixel, then selected: no data-dependent pixel count (no host round trip)
             sel = (hit & group.member[mat])[:, None]
-            L = torch.where(sel, kernel(group.brdf, gather_params(group.params, mat), n, dirs, sun_dirs, L, w, E), L)
+            L = torch.where(sel, kernel(gather_params(group.params, mat), n, dirs, sun_dirs, L, w, E), L)
             continue
         idx = (hit & group.member[mat]).nonzero().flatten()
         if idx.numel():
-            L.index_copy_(1, idx, kernel(group.brdf, gather_params(group.params, mat.index_select(0, idx)),
+            L.index_copy_(1, idx, kernel(gather_params(group.params, mat.index_select(0, idx)),
                                          n.index_select(0, idx), dirs.index_select(0, idx), sun_dirs,
                                          L.index_select(1, idx), w.index_select(1, idx), E))
     B = L.shape[-1]
