@@ -611,6 +611,12 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
     def per_shard(k: int) -> int:  # configurations of shard k (the last shard may hold fewer groups)
         return len(shard_groups(cfg, k, n_groups)) * per_group
 
+    todo = [k for k in range(n_shards) if k not in done]
+
+    def record(k, entry):
+        done[k] = entry
+        write_text(out / MANIFEST, json.dumps(manifest(), indent=1))
+
     with tqdm(total=n_groups * per_group, initial=sum(per_shard(k) for k in done), unit="config",
               disable=quiet, desc="generate") as bar:
         if backend == "local":
