@@ -8,7 +8,8 @@ the thesis skin surface model, clothing drawn from each dataset's earthlib parti
 Writes WORK/train (seed 1, earthlib train partition), WORK/heldout (seed 2, test partition: used to compare
 the models and choose the detector) and WORK/test (seed 3, test partition: never used for any choice, the
 figures quoted for the exports); an existing complete dataset is kept (--resume), one rendered by another
-renderer revision (``dataset.files.RENDER_REVISION``) is regenerated (--overwrite)."""
+renderer revision (``dataset.files.RENDER_REVISION``) or another dataset schema (``SCHEMA_VERSION``) is regenerated
+(--overwrite)."""
 
 import argparse
 import sys
@@ -16,6 +17,7 @@ from pathlib import Path
 
 from torchskin.cli import main
 from torchskin.dataset.files import RENDER_REVISION, manifest
+from torchskin.dataset.generate import SCHEMA_VERSION
 from torchskin.io import write_text
 
 
@@ -38,6 +40,10 @@ def run(argv=None) -> int:
         if old is not None and old.get("render_revision", 1) != RENDER_REVISION:
             print(f"[generate] {name}: rendered by renderer revision {old.get('render_revision', 1)}, regenerating "
                   f"with revision {RENDER_REVISION}", flush=True)
+            keep = "--overwrite"
+        elif old is not None and old.get("schema_version") != SCHEMA_VERSION:
+            print(f"[generate] {name}: dataset schema {old.get('schema_version')}, regenerating with schema "
+                  f"{SCHEMA_VERSION}", flush=True)
             keep = "--overwrite"
         rc = main(["generate", "--config", str(cfg), "--configs", str(n), "--seed", str(seed), "--out",
                    f"{a.work}/{name}", keep])

@@ -190,12 +190,12 @@ class OnboardDetector(_Model):
         tile."""
         from onnxruntime import OrtValue
 
+        per_frame, edges = None, []
         if self._split is not None:
             per_frame, session = self._split
-            edges = dict(zip(per_frame.get_outputs(), per_frame.run(None, {"config": c}), strict=True))
-            edges = {o.name: v for o, v in edges.items()}
+            edge_names = [o.name for o in per_frame.get_outputs()]
         else:
-            session, edges = self.session, {}
+            session = self.session
         io = session.io_binding()
         buf = self._buffers.get(slot)
         if buf is None:  # kept between calls: no fresh pages to fault in per frame
@@ -217,10 +217,11 @@ class OnboardDetector(_Model):
                 clipped[b] += np.count_nonzero(t < 0)
                 np.maximum(t, 0, out=t)  # NaN stays NaN
             low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
-            if b != frame:
-                if edges:
-                    for name, v in edges.items():
-                        io.bind_cpu_input(name, np.ascontiguousarray(v[b:b + 1]))
+            if b != frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
+                if per_frame is not None:  # kept referenced while bound: the binding does not copy them
+                    edges = per_frame.run(None, {"config": c[b:b + 1]})
+                    for name, v in zip(edge_names, edges, strict=True):
+                        io.bind_cpu_input(name, v)
                 else:
                     io.bind_cpu_input("config", c[b:b + 1])
                 frame = b

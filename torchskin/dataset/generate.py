@@ -566,6 +566,10 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
             (out / IMAGES_DIR).rmdir()
     if existing and resume and (out / MANIFEST).is_file():
         old = json.loads((out / MANIFEST).read_text())
+        if old.get("schema_version") != SCHEMA_VERSION:
+            raise ValueError(f"--resume: {str(out)!r} holds a dataset of schema {old.get('schema_version')}, this "
+                             f"torchskin writes schema {SCHEMA_VERSION} (other rows for the same seed): regenerate it "
+                             "with --overwrite")
         if (old.get("config") != cfg or old.get("master_seed") != seed
                 or old.get("requested_configs", old.get("configs")) != n_configs):
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
