@@ -122,7 +122,6 @@ def _subgraph(m, inputs: list[str], outputs: list[str]):
     producer = {o: n for n in m.graph.node for o in n.output}
     inits = {t.name: t for t in m.graph.initializer}
     types = {v.name: v for v in [*m.graph.input, *m.graph.output]}
-    keep: list = []
     seen: set[int] = set()
     todo = list(outputs)
     while todo:
@@ -132,7 +131,6 @@ def _subgraph(m, inputs: list[str], outputs: list[str]):
         node = producer[name]  # KeyError: the outputs need something besides the inputs
         if id(node) not in seen:
             seen.add(id(node))
-            keep.append(node)
             todo += list(node.input)
     order = [n for n in m.graph.node if id(n) in seen]  # the original order is topological
     used = {i for n in order for i in n.input}

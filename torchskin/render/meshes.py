@@ -51,10 +51,10 @@ def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray, cross: np.ndarray | None = None) -> np.ndarray:
     """Area-weighted vertex normals (unit length; zero-area neighbourhoods get +z). ``cross``: the faces'
     ``face_cross`` if already computed."""
-    v = vertices
     fn = face_cross(vertices, faces) if cross is None else cross
     corner = faces.T.reshape(-1)  # every face's corners, corner 0 of all faces first (np.add.at's order)
-    n = np.stack([np.bincount(corner, weights=np.tile(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1)
+    n = np.stack([np.bincount(corner, weights=np.tile(fn[:, c], 3), minlength=len(vertices)) for c in range(3)],
+                 axis=1)
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
     return n.astype(np.float32)
@@ -244,17 +244,19 @@ def _anny_forward(bodies: list[tuple[dict, dict]]) -> list[tuple[np.ndarray, np.
     with torch.no_grad(), contextlib.redirect_stdout(io.StringIO()):  # warp's messages stay off stdout
         out = model(pose_parameters=pose_t, phenotype_kwargs=kw)
     f = model.faces.numpy().astype(np.int64)
+    f32 = f.astype(np.int32)
     bi, bw = model.vertex_bone_indices.numpy(), model.vertex_bone_weights.numpy()
     dominant = bi[np.arange(len(bi)), bw.argmax(1)]
     skin_bones = [i for i, name in enumerate(labels) if name in _SKIN_BONES or name.startswith(_SKIN_BONE_PREFIXES)]
     face_skin = np.isin(dominant, skin_bones)[f].sum(1) >= 2
+    f32.flags.writeable = face_skin.flags.writeable = False  # shared by every body of the batch
     result = []
     for i in range(n):
         v = out["vertices"][i].double().numpy()
         # anny faces -y with its origin at mid-body: turn to face +x, feet on z = 0
         v = np.stack([-v[:, 1], v[:, 0], v[:, 2]], axis=1)
         v[:, 2] -= v[:, 2].min()
-        result.append((v.astype(np.float32), f.astype(np.int32), face_skin.copy()))
+        result.append((v.astype(np.float32), f32, face_skin))
     return result
 
 
