@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchskin.compiled import KernelCache
 from torchskin.detect import DEFAULT_BOX, RulesBox, rules_detector
 from torchskin.devices import compiler_problem
 from torchskin.render import kernels
@@ -170,8 +171,8 @@ def test_compiled_pixel_render_with_a_skin_batch_equals_eager():
 
 
 def test_fallback_without_compiler_is_the_eager_path(monkeypatch):
-    monkeypatch.setattr(kernels, "compiler_available", lambda device="cpu": False)
-    local = kernels.StageKernels()
+    monkeypatch.setattr("torchskin.compiled.compiler_problem", lambda device="cpu": "no compiler here")
+    local = KernelCache()
     with pytest.warns(RuntimeWarning, match="eagerly"):
         fn = local.get(kernels.elm_line, True)
     assert fn is kernels.elm_line
@@ -193,8 +194,8 @@ def test_fallback_without_compiler_is_the_eager_path(monkeypatch):
 
 
 def test_compile_failure_falls_back_with_a_warning(monkeypatch):
-    local = kernels.StageKernels()
-    monkeypatch.setattr(kernels, "compiler_available", lambda device="cpu": True)
+    local = KernelCache()
+    monkeypatch.setattr("torchskin.compiled.compiler_problem", lambda device="cpu": None)
 
     def broken(fn, **kw):
         def run(*a):
@@ -280,16 +281,26 @@ def test_kernel_functions_keep_their_device_and_dtype(device):
                                             / (refl.reshape(-1, 4)[0, 0] + refl.reshape(-1, 4)[0, 1])), rel_tol=1e-6)
 
 
-def test_inductor_cache_is_one_folder_per_cpu_capability(monkeypatch, tmp_path):
-    """Kernels compiled for one vector ISA are never loaded under another (torch's own cache does not key CPU
-    kernels on it): the default folder names the torch version and the CPU capability; a user's
-    TORCHINDUCTOR_CACHE_DIR is kept as given."""
+def test_one_kernel_cache_writes_no_environment(monkeypatch, tmp_path):
+    """The skin model and the renderer share one compiled-kernel cache, and torchskin writes no environment
+    variable (Inductor's cache folder is the user's TORCHINDUCTOR_CACHE_DIR or Inductor's default; torch.compile
+    itself, stubbed here, records its default there)."""
+    import os
+
+    from torchskin import compiled, tissue
     from torchskin.devices import inductor_cache_dir
 
+    assert kernels.KERNELS is compiled.KERNELS
+    assert tissue._evaluate.__globals__["KERNELS"] is compiled.KERNELS
+    monkeypatch.setattr("torchskin.compiled.compiler_problem", lambda device="cpu": None)
+    monkeypatch.setattr(torch, "compile", lambda fn, **kw: fn)
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    got = inductor_cache_dir()
-    assert got == str(tmp_path / "torchskin" / "inductor" /
-                      f"{torch.__version__}-{torch.backends.cpu.get_cpu_capability()}")
+    before = dict(os.environ)
+    local = KernelCache()
+    local.get(kernels.elm_line, True)  # compiled lazily: nothing runs yet
+    assert len(local) == 1 and dict(os.environ) == before
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    assert inductor_cache_dir() == os.path.abspath(default_cache_dir())
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
     assert inductor_cache_dir() == str(tmp_path / "mine") and str(kernels.cache_dir()) == str(tmp_path / "mine")

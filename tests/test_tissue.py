@@ -10,6 +10,7 @@ from conftest import dtype_for
 
 from torchskin import tissue as T
 from torchskin.bands import DEFAULT_BANDS
+from torchskin.compiled import KERNELS, KernelCache
 from torchskin.detect import DEFAULT_BOX, indices, rules_detector
 from torchskin.devices import compiler_problem
 
@@ -224,7 +225,7 @@ def test_compiled_path_equals_eager():
     eager = T.total_reflectance(skins, wl)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)  # a fallback to the eager loop would warn
-        comp = T.total_reflectance(skins, wl, compile=True, kernels=T.CompiledKernels())
+        comp = T.total_reflectance(skins, wl, compile=True, kernels=KernelCache())
     assert float((comp - eager).abs().max()) < 1e-5
 
 
@@ -235,8 +236,8 @@ def test_compile_where_unvalidated_runs_the_eager_loop_with_one_warning(monkeypa
     assert "AVX2" in str(compiler_problem("cpu"))
     skins, _ = T.sample(8, 1, dtype=torch.float64)
     wl = T.wavelength_grid(450, 1600, 50, dtype=torch.float64)
-    kernels = T.CompiledKernels()
-    with pytest.warns(RuntimeWarning, match="eagerly: compiled CPU kernels are validated only for AVX512"):
+    kernels = KernelCache()
+    with pytest.warns(RuntimeWarning, match="eagerly on cpu: compiled CPU kernels are validated only for AVX512"):
         comp = T.total_reflectance(skins, wl, compile=True, kernels=kernels)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once per kernel and device
@@ -244,14 +245,23 @@ def test_compile_where_unvalidated_runs_the_eager_loop_with_one_warning(monkeypa
     assert torch.equal(comp, T.total_reflectance(skins, wl)) and torch.equal(again, comp)
 
 
-def test_compiled_kernel_cache_is_an_explicit_object():
-    """The compiled-kernel cache is an object a caller can hold and clear (compiling is lazy: no kernel runs)."""
-    kernels = T.CompiledKernels()
-    first = kernels.get("double", lambda x: 2 * x)
-    assert len(kernels) == 1 and kernels.get("double", lambda x: 3 * x) is first
+def test_compiled_kernel_cache_is_an_explicit_object(monkeypatch):
+    """The compiled-kernel cache is an object a caller can hold and clear (compiling is lazy: no kernel runs); the
+    skin model's default is the package's one cache, ``compiled.KERNELS``, which the renderer shares."""
+    monkeypatch.setattr("torchskin.compiled.compiler_problem", lambda device="cpu": None)
+    kernels = KernelCache()
+    kernels.get(lambda x: 2 * x, True, name="double")
+    held = kernels._compiled[("double", "cpu")]
+    kernels.get(lambda x: 3 * x, True, name="double")
+    assert len(kernels) == 1 and kernels._compiled[("double", "cpu")] is held  # cached by name: not compiled again
+
+    def triple(x):
+        return 3 * x
+
+    assert kernels.get(triple, False) is triple  # compile=False: the eager function itself
     kernels.clear()
     assert len(kernels) == 0
-    assert isinstance(T.COMPILED_KERNELS, T.CompiledKernels)
+    assert T._evaluate.__globals__["KERNELS"] is KERNELS and isinstance(KERNELS, KernelCache)
 
 
 def test_replaced_water_table_is_never_served_stale():

@@ -24,9 +24,11 @@ SUPPORT_FWHM = 1.5  # a band's response is truncated at centre +- 1.5 FWHM (+- 3
 MAX_GRID_POINTS = 1_000_000
 
 
-def _model_range() -> tuple[float, float]:
-    from .tissue import MODEL_RANGE_NM  # lazy: tissue imports this module (through optics)
+#: the wavelengths the skin model covers, nm (its absorption tables' common range; ``tissue.MODEL_RANGE_NM``)
+MODEL_RANGE_NM = (400.0, 1700.0)
 
+
+def _model_range() -> tuple[float, float]:
     return MODEL_RANGE_NM
 
 

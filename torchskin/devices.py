@@ -55,31 +55,30 @@ __all__ = ["available_devices", "check_device"]
 
 
 def inductor_cache_dir() -> str:
-    """Where torch.compile (Inductor) keeps compiled kernels between runs: ``TORCHINDUCTOR_CACHE_DIR`` when set,
-    else ``~/.cache/torchskin/inductor/<torch version>-<CPU capability>`` (``XDG_CACHE_HOME`` honoured). One folder
-    per CPU capability: torch 2.13's cache does not key its CPU kernels on the vector ISA, and kernels built for
-    AVX-512 and loaded under ``ATEN_CPU_CAPABILITY=avx2`` computed garbage (NaN, 1e31) in this project's tests."""
+    """Where torch.compile (Inductor) keeps compiled kernels between runs: ``TORCHINDUCTOR_CACHE_DIR`` when the user
+    sets it, else Inductor's own default (a ``torchinductor_<user>`` folder in the temporary directory). torchskin
+    reads it and never sets it (it writes no environment variables). Kernels built under one CPU vector ISA and
+    loaded under another computed garbage in this project's tests (torch 2.13's cache does not key CPU kernels on
+    the ISA); compiled CPU kernels run only under ``COMPILED_CPU_CAPABILITIES``, so no other ISA loads them."""
     import os
-    from pathlib import Path
 
     if os.environ.get("TORCHINDUCTOR_CACHE_DIR"):
-        return os.environ["TORCHINDUCTOR_CACHE_DIR"]
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "torchskin" / "inductor"
-    return str(base / f"{torch.__version__}-{torch.backends.cpu.get_cpu_capability()}")
+        return os.path.abspath(os.environ["TORCHINDUCTOR_CACHE_DIR"])
+    try:
+        from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+    except ImportError:  # a torch without this module: its documented default
+        import getpass
+        import tempfile
+
+        return os.path.join(tempfile.gettempdir(), f"torchinductor_{getpass.getuser()}")
+    return os.path.abspath(default_cache_dir())
 
 
-def use_inductor_cache() -> None:
-    """Point Inductor at ``inductor_cache_dir()`` before a first ``torch.compile`` (it reads the variable when it
-    first compiles)."""
-    import os
-
-    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", inductor_cache_dir())
-
-
-#: torch CPU capabilities whose Inductor kernels this project has validated (compiled = eager in every test). Under
-#: AVX2 (``ATEN_CPU_CAPABILITY=avx2`` on an AVX-512 machine, torch 2.13) Inductor's kernels for the skin model and
-#: the renderer returned garbage (1e31, NaN) in every other 8-float block after unrelated float64 work in the same
-#: process (an L-BFGS fit), with a cold or warm cache, one thread or two: a wrong answer without an error. Until a
+#: torch CPU capabilities whose Inductor kernels this project has validated (compiled = eager in every test).
+#: Kernels compiled under one capability must never be loaded under another (``inductor_cache_dir``): widen this
+#: only together with a cache folder per ISA. Under AVX2 (``ATEN_CPU_CAPABILITY=avx2`` on an AVX-512 machine,
+#: torch 2.13) Inductor's kernels for the skin model and the renderer returned garbage (1e31, NaN) in every other
+#: 8-float block after unrelated float64 work in the same process (an L-BFGS fit), with a cold or warm cache, one thread or two: a wrong answer without an error. Until a
 #: torch release is shown free of it, other capabilities run the eager kernels.
 COMPILED_CPU_CAPABILITIES = ("AVX512",)
 

@@ -22,8 +22,8 @@ from __future__ import annotations
 import json
 import os
 import threading
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, cast
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -60,7 +60,7 @@ class _Model:
         self.bands_nm = json.loads(meta.get("bands_nm", "[]"))
         self._pool: ThreadPoolExecutor | None = None
 
-    def _config(self, config) -> tuple[np.ndarray, np.ndarray]:
+    def _config(self, config: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         c = np.asarray(config)
         if c.ndim == 1:
             c = c[None]
@@ -90,7 +90,7 @@ def model_inputs(path: str | os.PathLike) -> list[str]:
     return [i.name for i in sess.get_inputs()]
 
 
-def _split_box_graph(path: str, options) -> tuple | None:
+def _split_box_graph(path: str, options: Any) -> tuple | None:
     """A box detector graph (``export._detector_graph``: edge matrices ``det_w0..`` from the configuration, then
     per pixel one MatMul per edge form, Min, Greater) as two onnxruntime sessions: the per-frame part
     (config -> edge matrices) and the per-pixel head (cube + edge matrices -> mask, score), so that tiles do not
@@ -114,7 +114,7 @@ def _split_box_graph(path: str, options) -> tuple | None:
         return None
 
 
-def _subgraph(m, inputs: list[str], outputs: list[str]):
+def _subgraph(m: Any, inputs: list[str], outputs: list[str]) -> Any:
     """The part of ONNX model ``m`` that computes ``outputs`` from ``inputs`` (and initializers): the nodes found
     walking back from the outputs, stopping at the inputs."""
     from onnx import TensorProto, helper
@@ -135,7 +135,7 @@ def _subgraph(m, inputs: list[str], outputs: list[str]):
     order = [n for n in m.graph.node if id(n) in seen]  # the original order is topological
     used = {i for n in order for i in n.input}
 
-    def info(name: str):
+    def info(name: str) -> Any:
         return types.get(name) or helper.make_tensor_value_info(name, TensorProto.FLOAT, None)
 
     graph = helper.make_graph(order, "part", [info(i) for i in inputs], [info(o) for o in outputs],
@@ -180,7 +180,9 @@ class OnboardDetector(_Model):
         self._buffers: dict[int, np.ndarray] = {}
         self._split = _split_box_graph(self.path, self.session.get_session_options())
 
-    def _run_tiles(self, flat, c, mask, score, take, slot: int = 0, clipped=None, floor: float = 0.0) -> float:
+    def _run_tiles(self, flat: np.ndarray, c: np.ndarray, mask: np.ndarray, score: np.ndarray,
+                   take: Callable[[], tuple[int, int, int] | None], slot: int = 0, clipped: np.ndarray | None = None,
+                   floor: float = 0.0) -> float:
         """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffer
         ``slot``; return the smallest reflectance seen (NaN if any). ``clipped`` (per-frame counts): set
         negative values to 0 and count them. ``floor``: pixels whose band sum is not above it are not skin.
@@ -261,14 +263,14 @@ class OnboardDetector(_Model):
         return {"mask": mask, "score": score}
 
     @staticmethod
-    def _check_low(low) -> None:
+    def _check_low(low: float) -> None:
         if np.isnan(low):
             raise ValueError("cube holds NaN or infinite reflectance")
         if low < 0:
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
-    def _check_cube(self, cube) -> np.ndarray:
+    def _check_cube(self, cube: ArrayLike) -> np.ndarray:
         """``cube`` as an array, after the checks of rank, band count, dtype and size (``ValueError``)."""
         x = np.asarray(cube)
         if x.ndim != 4:
@@ -283,7 +285,7 @@ class OnboardDetector(_Model):
         return x
 
     @staticmethod
-    def _check_out(out, shape: tuple[int, int, int]) -> None:
+    def _check_out(out: tuple[np.ndarray, np.ndarray], shape: tuple[int, int, int]) -> None:
         """``ValueError`` unless ``out`` is a (mask, score) pair of writeable C-contiguous bool and float32 arrays
         of ``shape``."""
         if (not isinstance(out, (tuple, list)) or len(out) != 2
@@ -368,7 +370,7 @@ class OnboardDetector(_Model):
         counts = [np.zeros(B, dtype=np.int64) if clipped is not None else None for _ in range(k)]  # per worker
         queue, lock = iter(jobs), threading.Lock()
 
-        def take():  # workers pull the next tile: a worker that starts late simply takes fewer
+        def take() -> tuple[int, int, int] | None:  # workers pull the next tile: a worker that starts late simply takes fewer
             with lock:
                 return next(queue, None)
 

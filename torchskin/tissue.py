@@ -40,10 +40,12 @@ import torch
 from . import data
 from ._checks import TensorLike, as_tensor, broadcast_shapes, check_range
 from .bands import MAX_GRID_POINTS
+from .bands import MODEL_RANGE_NM as _BANDS_MODEL_RANGE_NM
+from .compiled import KERNELS, KernelCache
 from .optics import DEFAULT_SURFACE, MAX_INCIDENCE_RAD, schlick_cos, skin_diffuse, surface_front
 
-#: wavelengths covered by every table the model uses (nm)
-MODEL_RANGE_NM = (400.0, 1700.0)
+#: wavelengths covered by every table the model uses (nm; defined in ``bands``, which sits below this module)
+MODEL_RANGE_NM = _BANDS_MODEL_RANGE_NM
 
 LAYER_NAMES = (
     "stratum_corneum",
@@ -529,11 +531,12 @@ def _spectra(layers: SkinLayers, wl: torch.Tensor) -> _Spectra:
 
 
 # ---------------------------------------------------------------------------------------------- the model
-def _layer_optics(params: SkinParams, sp: _Spectra, wl: torch.Tensor, i: int):
+def _layer_optics(params: SkinParams, sp: _Spectra, wl: torch.Tensor,
+                  i: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(mu_a, mu_s', d)`` of layer ``i`` (eqs 2.4.1, 2.4.3-2.4.5); each broadcasts to ``P + (W,)``."""
     L = params.layers
 
-    def lv(name):
+    def lv(name: str) -> torch.Tensor:
         return _layer_value(L, name, i, wl)
 
     mu_s = sp.scatter[i]
@@ -554,12 +557,12 @@ def _layer_optics(params: SkinParams, sp: _Spectra, wl: torch.Tensor, i: int):
     return mu_a, mu_s, d
 
 
-def _km(params, sp, wl, i):
+def _km(params: SkinParams, sp: _Spectra, wl: torch.Tensor, i: int) -> tuple[torch.Tensor, torch.Tensor]:
     mu_a, mu_s, d = _layer_optics(params, sp, wl, i)
     return km_layer(*km_coefficients(mu_a, mu_s), d)
 
 
-def _prepare(params: SkinParams, wavelengths):
+def _prepare(params: SkinParams, wavelengths: TensorLike) -> tuple[torch.Tensor, _Spectra]:
     wl = check_wavelengths(as_tensor(wavelengths, dtype=params.dtype, device=params.device))
     return wl, _spectra(params.layers, wl)
 
@@ -596,7 +599,7 @@ class _Hot:
 
 
 def _hot_tensors(layers: SkinLayers, wl: torch.Tensor, sp: _Spectra) -> _Hot:
-    def lv(name, i):
+    def lv(name: str, i: int) -> torch.Tensor:
         return _layer_value(layers, name, i, wl)
 
     dermal = []
@@ -648,53 +651,6 @@ def _stack(melanosome: torch.Tensor, blood: torch.Tensor, oxygenation: torch.Ten
     return R if r0 is None else surface_total(r0, R)
 
 
-class CompiledKernels:
-    """A cache of ``torch.compile``d model kernels (the hot loop, for ``compile=True``), one per kernel name.
-
-    ``COMPILED_KERNELS`` is the one the model uses unless a caller passes its own (``kernels=``); ``clear()``
-    drops the compiled kernels (they are compiled again on next use). A kernel takes every wavelength- and
-    table-derived tensor as an input and holds none of their values, so it needs no key on the table version
-    (``data.tables_version()``): it stays correct after ``data.register_table``. ``torch.compile`` itself
-    specialises it per shape, dtype and device.
-
-    >>> kernels = CompiledKernels()
-    >>> len(kernels)
-    0
-    """
-
-    def __init__(self) -> None:
-        self._kernels: dict[str, Callable[..., torch.Tensor]] = {}
-
-    def get(self, name: str, fn: Callable[..., torch.Tensor],
-            device: torch.device | str = "cpu") -> Callable[..., torch.Tensor]:
-        """The compiled ``fn`` cached under ``name`` for ``device``'s type (compiled on first use,
-        ``dynamic=False``); ``fn`` itself, with one warning, where ``devices.compiler_problem`` names a reason."""
-        key = f"{name}:{torch.device(device).type}"
-        kernel = self._kernels.get(key)
-        if kernel is None:
-            from .devices import compiler_problem, use_inductor_cache
-
-            why = compiler_problem(device)
-            if why is not None:
-                import warnings
-
-                warnings.warn(f"running the skin model's {name} kernel eagerly: {why}", RuntimeWarning, stacklevel=3)
-                kernel = self._kernels[key] = fn
-                return kernel
-            use_inductor_cache()  # one cache folder per CPU capability
-            kernel = self._kernels[key] = torch.compile(fn, dynamic=False)
-        return kernel
-
-    def clear(self) -> None:
-        """Drop every compiled kernel."""
-        self._kernels.clear()
-
-    def __len__(self) -> int:
-        return len(self._kernels)
-
-
-#: the compiled-kernel cache of ``compile=True`` evaluations that pass no ``kernels``
-COMPILED_KERNELS = CompiledKernels()
 #: elements (skins x wavelengths) per block on the CPU: the hot loop's temporaries then stay in cache
 CPU_BLOCK = 1 << 17
 
@@ -717,9 +673,9 @@ def _check_angles(theta_i: torch.Tensor, rho0: torch.Tensor) -> None:
 
 
 def _evaluate(params: SkinParams, wavelengths: TensorLike, r0: TensorLike | None = None, compile: bool = False,
-              kernels: CompiledKernels | None = None) -> torch.Tensor:
+              kernels: KernelCache | None = None) -> torch.Tensor:
     """R_sub (``r0`` None) or the total reflectance with a front surface of reflectance ``r0``; with
-    ``compile`` through the compiled hot loop of ``kernels`` (default ``COMPILED_KERNELS``)."""
+    ``compile`` through the compiled hot loop of ``kernels`` (default: the package's one cache, ``compiled.KERNELS``)."""
     params, out_dtype = _working(params)
     wl, sp = _prepare(params, wavelengths)
     h = _hot_tensors(params.layers, wl, sp)
@@ -730,7 +686,7 @@ def _evaluate(params: SkinParams, wavelengths: TensorLike, r0: TensorLike | None
         if r0.dim() > 1 or (r0.dim() == 1 and r0.shape[0] not in (1, wl.numel())):
             late_r0, r0 = r0, None  # batch-dependent surface: applied after the blocked stack
     fn: Callable[..., torch.Tensor] = (
-        (COMPILED_KERNELS if kernels is None else kernels).get("stack", _stack, wl.device) if compile else _stack)
+        (KERNELS if kernels is None else kernels).get(_stack, True, wl.device, dynamic=False) if compile else _stack)
     cols = [t.expand(shape).reshape(-1, 1) for t in params.tensors().values()]
     n = cols[0].shape[0]
     block = n if (wl.device.type != "cpu" or compile) else max(1, CPU_BLOCK // max(wl.numel(), 1))
@@ -743,7 +699,7 @@ def _evaluate(params: SkinParams, wavelengths: TensorLike, r0: TensorLike | None
 
 
 def subsurface_reflectance(params: SkinParams, wavelengths: TensorLike, *, compile: bool = False,
-                           kernels: CompiledKernels | None = None) -> torch.Tensor:
+                           kernels: KernelCache | None = None) -> torch.Tensor:
     """Diffuse reflectance R_sub of the nine layers over the substrate, without the front surface (eqs
     2.4.1-2.4.13).
 
@@ -757,7 +713,7 @@ def subsurface_reflectance(params: SkinParams, wavelengths: TensorLike, *, compi
         wavelengths: in nm, within ``MODEL_RANGE_NM``.
         compile: run the hot loop through ``torch.compile`` (one fused kernel; the first call per shape and
             dtype compiles, which takes tens of seconds; worth it for millions of evaluations).
-        kernels: the compiled-kernel cache for ``compile=True`` (default ``COMPILED_KERNELS``).
+        kernels: the compiled-kernel cache for ``compile=True`` (default: the package's one cache, ``compiled.KERNELS``).
 
     Shape:
         ``params`` of batch shape P and ``wavelengths`` (W,) give ``P + (W,)``.
@@ -777,7 +733,10 @@ def layer_stack(params: SkinParams, wavelengths: TensorLike) -> list[tuple[torch
     for inspection and for checking ``subsurface_reflectance`` against an explicit recursion."""
     wl, sp = _prepare(params, wavelengths)
     shp = params.shape + wl.shape
-    out = [tuple(x.expand(shp) for x in _km(params, sp, wl, i)) for i in range(9)]
+    out = []
+    for i in range(9):
+        r, tau = _km(params, sp, wl, i)
+        out.append((r.expand(shp), tau.expand(shp)))
     sub = (params.subcutaneous_scale.unsqueeze(-1) * sp.substrate).expand(shp)
     out.append((sub, torch.zeros_like(sub)))
     return out
@@ -785,7 +744,7 @@ def layer_stack(params: SkinParams, wavelengths: TensorLike) -> list[tuple[torch
 
 # ------------------------------------------------------------------------------------- angular dependence
 def total_reflectance(params: SkinParams, wavelengths: TensorLike, r0: TensorLike = 0.04, *, compile: bool = False,
-                      kernels: CompiledKernels | None = None) -> torch.Tensor:
+                      kernels: KernelCache | None = None) -> torch.Tensor:
     """Total diffuse-model reflectance R0 + (1-R0)² R_sub / (1 - R0 R_sub) (section 3.2.3): the subsurface
     stack under a front surface of reflectance R0.
 
@@ -870,7 +829,7 @@ def diffuse_reflectance(
 
 def reflectance(params: SkinParams, wavelengths: TensorLike, theta_i: TensorLike = 0.0, rho0: TensorLike = 0.04,
                 angular: str = "exact", *, compile: bool = False,
-                kernels: CompiledKernels | None = None) -> torch.Tensor:
+                kernels: KernelCache | None = None) -> torch.Tensor:
     """Diffuse-model (hemispherical) reflectance R0 + ρ_d(R0) at incidence ``theta_i``, with the front surface
     R0 = Schlick(ρ0, θi) (eq 2.2.7). At normal incidence with ρ0 = 0.04 (n = 1.5) this is the reflectance that
     set the rules-detector box. Half-precision skins are evaluated in float32.

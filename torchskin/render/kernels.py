@@ -12,24 +12,22 @@ is present or Inductor fails.
 Random draws never happen inside a kernel: noise is drawn eagerly with the caller's generator and passed in,
 so a seed gives the same noise whichever path runs.
 
-Inductor keeps compiled kernels on disk between runs (``TORCHINDUCTOR_CACHE_DIR``; torchskin sets it to
-``~/.cache/torchskin/inductor/<torch version>-<CPU capability>`` unless it is set already:
-``devices.inductor_cache_dir``).
+The compiled forms live in the package's one kernel cache, ``compiled.KERNELS`` (``KernelCache``, shared with the
+skin model's hot loop). Inductor keeps compiled kernels on disk between runs (``devices.inductor_cache_dir``).
 """
 
 from __future__ import annotations
 
 import functools
 import math
-import time
-import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
+from ..compiled import KERNELS, KernelCache, mark_dynamic  # noqa: F401 - re-exported: the renderer's stages import them here
 from ..detect import RulesBox, normalized_difference, rules_detector
-from ..devices import compiler_problem, inductor_cache_dir, use_inductor_cache
+from ..devices import compiler_problem, inductor_cache_dir
 
 
 def cache_dir() -> Path:
@@ -41,73 +39,6 @@ def compiler_available(device: torch.device | str = "cpu") -> bool:
     """Whether ``torch.compile`` kernels are used for ``device`` (``devices.compiler_problem`` is None: a C++
     compiler and a validated CPU capability on the CPU, Triton on CUDA, Metal on MPS)."""
     return compiler_problem(device) is None
-
-
-class StageKernels:
-    """Compiled forms of kernel functions, one per (function, device type), and the wall time of each call
-    that compiled (``compile_seconds``, by kernel name; a later shape that needs another specialisation adds
-    to it). ``clear()`` drops them all."""
-
-    def __init__(self) -> None:
-        self._compiled: dict[tuple[str, str], Callable] = {}
-        self._signatures: set[tuple] = set()
-        self._failed: set[tuple[str, str]] = set()
-        self.compile_seconds: dict[str, float] = {}
-
-    def clear(self) -> None:
-        self._compiled.clear()
-        self._signatures.clear()
-        self._failed.clear()
-        self.compile_seconds.clear()
-
-    def get(self, fn: Callable, compile: bool, device: torch.device | str = "cpu") -> Callable:
-        """``fn`` compiled for ``device`` when ``compile`` (and a compiler is present), else ``fn``."""
-        kind = torch.device(device).type
-        key = (fn.__qualname__, kind)
-        if not compile or key in self._failed:
-            return fn
-        if not compiler_available(kind):  # one warning per device, not per kernel
-            self._fail(("compiled kernels", kind), compiler_problem(kind) or "no compiler for this device")
-            return fn
-        if key not in self._compiled:
-            use_inductor_cache()
-            self._compiled[key] = torch.compile(fn)
-        compiled = self._compiled[key]
-
-        def run(*args):
-            mark_dynamic(args)
-            sig = (key, *(_signature(a) for a in args))
-            if sig in self._signatures:
-                return compiled(*args)
-            t0 = time.perf_counter()
-            try:
-                out = compiled(*args)
-            except Exception as e:  # noqa: BLE001 - any compiler failure falls back to the eager reference
-                self._fail(key, f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
-                return fn(*args)
-            self._signatures.add(sig)
-            self.compile_seconds[fn.__name__] = self.compile_seconds.get(fn.__name__, 0.0) + time.perf_counter() - t0
-            return out
-
-        return run
-
-    def _fail(self, key: tuple[str, str], why: str) -> None:
-        if key not in self._failed:
-            self._failed.add(key)
-            warnings.warn(f"running {key[0]} eagerly on {key[1]}: {why}", RuntimeWarning, stacklevel=3)
-
-
-def mark_dynamic(args: tuple) -> None:
-    """Mark every axis longer than 16 of the tensor arguments dynamic (pixels, faces, rows of pixels), so that one
-    compilation serves every frame size; shorter axes (components, bands, band tiles, suns) stay static, so that
-    Inductor vectorises along them with known strides."""
-    for a in args:
-        if isinstance(a, dict):
-            mark_dynamic(tuple(a.values()))
-        elif isinstance(a, torch.Tensor):
-            for d, size in enumerate(a.shape):
-                if size > 16:
-                    torch._dynamo.maybe_mark_dynamic(a, d)
 
 
 #: lookup tables whose length follows the scene's content (meshes, materials) are padded to a multiple of this
@@ -131,22 +62,6 @@ def pad_rows(x: torch.Tensor, dim: int = -2) -> torch.Tensor:
     shape = list(x.shape)
     shape[dim] = extra
     return torch.cat([x, x.new_zeros(shape)], dim)
-
-
-def _signature(a: object) -> tuple:
-    """What decides whether a compiled function specialises anew: dtype, rank and the static (short) axes'
-    sizes (see ``mark_dynamic``)."""
-    if isinstance(a, torch.Tensor):
-        return (a.dtype, a.dim(), tuple(s if s <= 16 else -1 for s in a.shape))
-    if isinstance(a, dict):
-        return tuple((k, _signature(v)) for k, v in a.items())
-    if callable(a):
-        return (type(a), id(a))
-    return (type(a), a if isinstance(a, (bool, int, float)) else None)
-
-
-#: the process-wide compiled kernels (``clear()`` to compile again)
-KERNELS = StageKernels()
 
 
 def point_along(origin: torch.Tensor, direction: torch.Tensor, distance: torch.Tensor | float) -> torch.Tensor:

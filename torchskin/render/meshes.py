@@ -18,9 +18,10 @@ import json
 import math
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -133,7 +134,7 @@ _SKIN_BONES = ("neck01", "neck02", "neck03", "head")
 _SKIN_BONE_PREFIXES = ("wrist", "finger", "metacarpal")
 
 
-def _euler_deg_to_matrix(angles) -> torch.Tensor:
+def _euler_deg_to_matrix(angles: Sequence[float] | np.ndarray | torch.Tensor) -> torch.Tensor:
     ax, ay, az = (math.radians(float(a)) for a in angles)
     cx, sx, cy, sy, cz, sz = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay), math.cos(az), math.sin(az)
     rx = torch.tensor([[1, 0, 0], [0, cx, -sx], [0, sx, cx]], dtype=ANNY_DTYPE)
@@ -199,7 +200,7 @@ _PREBUILT: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
 @contextlib.contextmanager
-def anny_batch(bodies: Sequence[tuple[dict | None, dict | None]]):
+def anny_batch(bodies: Sequence[tuple[dict | None, dict | None]]) -> Iterator[None]:
     """Build the anny bodies ``[(phenotype, pose), ...]`` in one batched anny call (padded to a multiple of
     ``ANNY_BATCH_MULTIPLE``) and let ``anny_body`` return them inside the ``with`` block: a dataset shard builds
     its pose groups' bodies together, ~4 ms a body instead of ~20 ms one by one. The bodies are those of one
@@ -297,7 +298,7 @@ ANNY_DTYPE = torch.float64
 
 
 @functools.lru_cache(maxsize=1)
-def _anny_model():
+def _anny_model() -> Any:
     import anny
 
     with contextlib.redirect_stdout(io.StringIO()):
@@ -355,7 +356,7 @@ def write_obj(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
     write_text(path, "\n".join(lines) + "\n")
 
 
-def _raise_empty(p: Path):
+def _raise_empty(p: Path) -> NoReturn:
     raise ValueError(f"mesh file {str(p)!r} holds no triangles (empty or unreadable)")
 
 
@@ -398,7 +399,7 @@ def build_mesh(spec: MeshSpec) -> TriMesh:
     c, s = math.cos(math.radians(spec.yaw_deg)), math.sin(math.radians(spec.yaw_deg))
     ct, st = math.cos(math.radians(spec.tilt_deg)), math.sin(math.radians(spec.tilt_deg))
 
-    def turn(x):
+    def turn(x: np.ndarray) -> np.ndarray:
         x = np.stack([ct * x[:, 0] - st * x[:, 2], x[:, 1], st * x[:, 0] + ct * x[:, 2]], 1)  # tilt
         return np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], 1)  # yaw
 

@@ -161,7 +161,7 @@ class Raycaster:
             r = self.rays[key] = camera_rays(camera)
         return r
 
-    def _tensor(self, x: torch.Tensor):
+    def _tensor(self, x: torch.Tensor) -> Any:
         return self.o3d.core.Tensor.from_numpy(np.ascontiguousarray(x.numpy()))
 
     def cast(self, rays: torch.Tensor) -> dict:

@@ -118,7 +118,7 @@ class MeshSpec:
     other_material: str | None = None
     tilt_deg: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if self.kind not in ("anny", "file", "plane", "cylinder", "sphere", "ground"):
             raise ValueError(f"mesh kind must be anny, file, plane, cylinder, sphere or ground, got {self.kind!r}")
         if len(self.position) != 3:
@@ -151,7 +151,7 @@ class Camera:
     fov_deg: float | None = 14.0
     focal_px: float | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         check_finite("camera", width=self.width, height=self.height, zenith_deg=self.zenith_deg,
                 azimuth_deg=self.azimuth_deg, range_m=self.range_m)
         if len(self.target) != 3 or not all(math.isfinite(float(v)) for v in self.target):
@@ -219,7 +219,7 @@ class Atmosphere:
     angstrom_alpha: float = 1.14
     ground_albedo: float = 0.2
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         check_finite("atmosphere", **dataclasses.asdict(self))
         for k, (lo, hi) in ATMOSPHERE_RANGES.items():
             v = getattr(self, k)
@@ -247,7 +247,7 @@ class Sun:
     sky_fraction: float = 0.0
     atmosphere: Atmosphere = field(default_factory=Atmosphere)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         check_finite("sun", zenith_deg=self.zenith_deg, azimuth_deg=self.azimuth_deg, temperature_k=self.temperature_k,
                 scale=self.scale, sky_fraction=self.sky_fraction)
         if not (0.0 <= self.zenith_deg <= 180.0):
@@ -292,7 +292,7 @@ class Scene:
     background: str = "void"
     illumination: str = DEFAULT_ILLUMINATION
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not isinstance(self.illumination, str) or not self.illumination:
             raise ValueError(f"illumination must name a light model, got {self.illumination!r}")
         if self.background not in BACKGROUNDS:

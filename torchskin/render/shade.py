@@ -129,9 +129,13 @@ def shade(gb: GBuffer, tables: MaterialTables, light: LightTables, sun_dirs: tor
             L = torch.where(sel, kernel(gather_params(group.params, mat), n, dirs, sun_dirs, L, w, E), L)
             continue
         idx = (hit & group.member[mat]).nonzero().flatten()
-        if idx.numel():
-            L.index_copy_(1, idx, kernel(gather_params(group.params, mat.index_select(0, idx)),
-                                         n.index_select(0, idx), dirs.index_select(0, idx), sun_dirs,
-                                         L.index_select(1, idx), w.index_select(1, idx), E))
+        k = idx.numel()
+        if k:
+            # compiled: a group of <= 16 pixels is padded to 17 (its last pixel repeated), so that its pixel axis
+            # stays dynamic (``kernels.mark_dynamic``) and a small group does not compile a kernel of its own
+            take = torch.cat([idx, idx[-1:].expand(17 - k)]) if compile and k <= 16 else idx
+            L.index_copy_(1, idx, kernel(gather_params(group.params, mat.index_select(0, take)),
+                                         n.index_select(0, take), dirs.index_select(0, take), sun_dirs,
+                                         L.index_select(1, take), w.index_select(1, take), E)[:, :k])
     B = L.shape[-1]
     return Shading(L.reshape(S, *shp, B), lit.reshape(S, *shp))

@@ -1,0 +1,123 @@
+"""The package's import graph has no cycle: every ``import`` and ``from ... import`` in ``torchskin``, those inside
+functions included (imports under ``if TYPE_CHECKING:`` only serve type checkers and do not count), read from the
+source with ``ast``; a package's ``__init__`` counts as the package."""
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "torchskin"
+
+
+def module_name(path: Path, package: Path = PACKAGE) -> str:
+    parts = list(path.relative_to(package.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def imported(path: Path, modules: set[str], package_dir: Path = PACKAGE) -> set[str]:
+    """The torchskin modules ``path`` imports (outside ``if TYPE_CHECKING:`` blocks)."""
+    name = module_name(path, package_dir)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+
+    def resolve(target: str) -> str | None:  # the deepest known module that ``target`` names
+        while target and target not in modules:
+            target = target.rpartition(".")[0]
+        return target or None
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and is_type_checking(node):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, ast.Import):
+            out.update(m for a in node.names if (m := resolve(a.name)) and a.name.startswith("torchskin"))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.startswith("torchskin"):
+                for a in node.names:  # ``from . import tissue`` imports the module torchskin.tissue
+                    m = resolve(f"{target}.{a.name}") if f"{target}.{a.name}" in modules else resolve(target)
+                    if m:
+                        out.add(m)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(ast.parse(path.read_text(), str(path)))
+    out.discard(name)
+    return out
+
+
+def import_graph(package_dir: Path = PACKAGE) -> dict[str, set[str]]:
+    files = sorted(package_dir.rglob("*.py"))
+    modules = {module_name(p, package_dir) for p in files}
+    return {module_name(p, package_dir): imported(p, modules, package_dir) for p in files}
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per strongly connected component of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return found
+
+
+def test_the_cycle_finder_finds_a_lazy_import_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_the_walk_sees_imports_inside_functions_and_skips_type_checking(tmp_path):
+    pkg = tmp_path / "torchskin"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .b import X\n"
+                              "def f():\n    from . import c\n    import torchskin.b.inner\n")
+    (pkg / "b").mkdir()
+    (pkg / "b" / "__init__.py").write_text("from ..c import Y\n")
+    (pkg / "c.py").write_text("")
+    graph = import_graph(pkg)
+    assert graph["torchskin.a"] == {"torchskin.c", "torchskin.b"} and graph["torchskin.b"] == {"torchskin.c"}
+    (pkg / "c.py").write_text("def g():\n    from .a import f\n")  # a lazy import closes a cycle
+    assert cycles(import_graph(pkg)) == [["torchskin.a", "torchskin.b", "torchskin.c"]]
+
+
+def test_no_import_cycle_in_the_package():
+    found = cycles(import_graph())
+    assert not found, "import cycles (imports inside functions count): " + "; ".join(" <-> ".join(c) for c in found)
