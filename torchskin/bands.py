@@ -28,10 +28,6 @@ MAX_GRID_POINTS = 1_000_000
 MODEL_RANGE_NM = (400.0, 1700.0)
 
 
-def _model_range() -> tuple[float, float]:
-    return MODEL_RANGE_NM
-
-
 @dataclass(frozen=True)
 class Band:
     """A spectral band: centre and full width at half maximum of a Gaussian response, both in nm."""
@@ -111,7 +107,7 @@ def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[B
     >>> [(b.center_nm, b.fwhm_nm) for b in parse_bands("544,1080/20")]
     [(544.0, 0.0), (1080.0, 20.0)]
     """
-    lo, hi = _model_range() if within is None else within
+    lo, hi = MODEL_RANGE_NM if within is None else within
     out = []
     for item in text.split(","):
         item = item.strip()
@@ -227,7 +223,7 @@ def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype: torch.dtyp
     if isinstance(step_nm, bool) or not isinstance(step_nm, (int, float)) or not (
             math.isfinite(step_nm) and step_nm > 0):
         raise ValueError(f"step_nm must be a positive finite number of nm, got {step_nm!r}")
-    lo, hi = _model_range() if within is None else within
+    lo, hi = MODEL_RANGE_NM if within is None else within
     counts = []
     for b in bands:
         check_band_within(b, lo, hi)

@@ -78,8 +78,9 @@ def inductor_cache_dir() -> str:
 #: Kernels compiled under one capability must never be loaded under another (``inductor_cache_dir``): widen this
 #: only together with a cache folder per ISA. Under AVX2 (``ATEN_CPU_CAPABILITY=avx2`` on an AVX-512 machine,
 #: torch 2.13) Inductor's kernels for the skin model and the renderer returned garbage (1e31, NaN) in every other
-#: 8-float block after unrelated float64 work in the same process (an L-BFGS fit), with a cold or warm cache, one thread or two: a wrong answer without an error. Until a
-#: torch release is shown free of it, other capabilities run the eager kernels.
+#: 8-float block after unrelated float64 work in the same process (an L-BFGS fit), with a cold or warm cache, one
+#: thread or two: a wrong answer without an error. Until a torch release is shown free of it, other capabilities
+#: run the eager kernels.
 COMPILED_CPU_CAPABILITIES = ("AVX512",)
 
 

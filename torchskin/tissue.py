@@ -39,13 +39,9 @@ import torch
 
 from . import data
 from ._checks import TensorLike, as_tensor, broadcast_shapes, check_range
-from .bands import MAX_GRID_POINTS
-from .bands import MODEL_RANGE_NM as _BANDS_MODEL_RANGE_NM
+from .bands import MAX_GRID_POINTS, MODEL_RANGE_NM
 from .compiled import KERNELS, KernelCache
 from .optics import DEFAULT_SURFACE, MAX_INCIDENCE_RAD, schlick_cos, skin_diffuse, surface_front
-
-#: wavelengths covered by every table the model uses (nm; defined in ``bands``, which sits below this module)
-MODEL_RANGE_NM = _BANDS_MODEL_RANGE_NM
 
 LAYER_NAMES = (
     "stratum_corneum",

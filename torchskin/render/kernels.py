@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from ..compiled import KERNELS, KernelCache, mark_dynamic  # noqa: F401 - re-exported: the renderer's stages import them here
+from ..compiled import KERNELS  # noqa: F401 - re-exported: the renderer's stages take the one cache from here
 from ..detect import RulesBox, normalized_difference, rules_detector
 from ..devices import compiler_problem, inductor_cache_dir
 

@@ -132,7 +132,7 @@ def shade(gb: GBuffer, tables: MaterialTables, light: LightTables, sun_dirs: tor
         k = idx.numel()
         if k:
             # compiled: a group of <= 16 pixels is padded to 17 (its last pixel repeated), so that its pixel axis
-            # stays dynamic (``kernels.mark_dynamic``) and a small group does not compile a kernel of its own
+            # stays dynamic (``compiled.mark_dynamic``) and a small group does not compile a kernel of its own
             take = torch.cat([idx, idx[-1:].expand(17 - k)]) if compile and k <= 16 else idx
             L.index_copy_(1, idx, kernel(gather_params(group.params, mat.index_select(0, take)),
                                          n.index_select(0, take), dirs.index_select(0, take), sun_dirs,
