@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torchskin.cli import main
-from torchskin.commands import MAX_SAMPLE
+from torchskin.cli.spectra import MAX_SAMPLE
 
 EXPORTS = Path(__file__).resolve().parents[1] / "exports"
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchskin.onboard import elm_apply, elm_fit, panel_signal
-from torchskin.onboard_cli import parse_roi
+from torchskin.cli.calibrate import parse_roi
 from torchskin.render.elm import elm_coefficients
 
 GAIN = np.array([12000.0, 9000.0, 15000.0, 7000.0])
@@ -90,7 +90,8 @@ def test_bad_regions_and_nan():
         elm_apply(dn, -GAIN, OFFSET)
 
 
-@pytest.mark.parametrize("module", ["torchskin.onboard", "torchskin.onboard_cli", "torchskin.cli"])
+@pytest.mark.parametrize("module", ["torchskin.onboard", "torchskin.cli", "torchskin.cli.detect",
+                                    "torchskin.cli.calibrate", "torchskin.onboard_cli"])
 def test_onboard_modules_import_without_torch(module):
     """The runtime, its command line and the dispatcher import with numpy (and onnxruntime) alone."""
     r = subprocess.run([sys.executable, "-c", f"import sys, {module}; assert 'torch' not in sys.modules"],

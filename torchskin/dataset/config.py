@@ -21,6 +21,7 @@ import torch
 
 from .. import tissue
 from ..optics import DEFAULT_SURFACE, SURFACE_MODELS
+from ..render.scene import PANEL_KINDS
 
 #: every key with its default and allowed domain: section -> key -> (default, domain or kind)
 SCHEMA: dict[str, dict[str, tuple]] = {
@@ -156,9 +157,8 @@ def _check(section: str, key: str, value, domain):
             raise ValueError(f"{name} must list Fitzpatrick types from {list(tissue.FITZPATRICK_TYPES)}, got {value!r}")
         return list(value)
     if domain == "panels":
-        ok = ("lambertian", "spectralon", "spectralon-brdf")
-        if not value or any(p not in ok for p in value):
-            raise ValueError(f"{name} must list panel kinds from {list(ok)}, got {value!r}")
+        if not value or any(p not in PANEL_KINDS for p in value):
+            raise ValueError(f"{name} must list panel kinds from {list(PANEL_KINDS)}, got {value!r}")
         return list(value)
     if domain == "paths":
         if not isinstance(value, list) or any(not isinstance(p, str) for p in value):

@@ -1,0 +1,7 @@
+"""``python -m torchskin.cli``: the ``torchskin`` command."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,138 @@
+"""``torchskin calibrate``: signals (DN or radiance) to reflectance with the empirical line (ELM) through
+reference panels in the frame, numpy only (``torchskin.cli.main`` dispatches here without importing torch; the
+ELM itself is ``torchskin.onboard``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from ..errors import Parser, check_input_file, check_output_file, one_line
+from ..io import save_npy, write_text
+from ..onboard import elm_apply, elm_fit
+from .cubes import load_cube
+from .options import add_json, add_out_file
+
+PROG = "torchskin calibrate"
+DESCRIPTION = ("Signals (DN or radiance) to reflectance with the empirical line through reference panels in the "
+               "frame (numpy only).")
+HELP = "signals to reflectance with ELM through panel regions (numpy only)"
+
+
+def parse_roi(text: str) -> tuple[int, int, int, int]:
+    """``"Y0:Y1:X0:X1"`` (rows Y0..Y1-1, columns X0..X1-1) -> a tuple of ints.
+
+    >>> parse_roi("4:20:40:56")
+    (4, 20, 40, 56)
+    """
+    parts = str(text).split(":")
+    try:
+        roi = tuple(int(p) for p in parts)
+    except ValueError:
+        roi = ()
+    if len(roi) != 4:
+        raise ValueError(f"a panel region must be Y0:Y1:X0:X1 (integers), got {text!r}")
+    return roi  # type: ignore[return-value]  # four ints, checked above
+
+
+def parse_panel(text: str) -> tuple[tuple[int, int, int, int], float | list[float]]:
+    """A ``--panel`` value ``"Y0:Y1:X0:X1=REFL[,REFL...]"`` -> (region, reflectance: one value or one per band).
+
+    >>> parse_panel("4:20:4:20=0.97"), parse_panel("1:3:1:3=0.4,0.5")
+    (((4, 20, 4, 20), 0.97), ((1, 3, 1, 3), [0.4, 0.5]))
+    """
+    roi, sep, rho = text.partition("=")
+    try:
+        vals = [float(v) for v in rho.split(",")] if sep else []
+    except ValueError:
+        vals = []
+    if not vals or not all(np.isfinite(vals)):
+        raise ValueError(f"--panel must be Y0:Y1:X0:X1=REFL[,REFL...] with finite reflectances, got {text!r}")
+    return parse_roi(roi), vals[0] if len(vals) == 1 else vals
+
+
+def read_coefficients(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """(gain, offset) from an ELM coefficients JSON (``--save-coefficients``), one-line errors otherwise."""
+    coef_path = check_input_file(path, "--coefficients", (".json",))
+    try:
+        doc = json.loads(coef_path.read_text())
+        return np.asarray(doc["gain"], np.float64), np.asarray(doc["offset"], np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"cannot read --coefficients {path!r}: {one_line(e)}") from None
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The ``torchskin calibrate`` options."""
+    ap.add_argument("--cube", required=True, help=".npy signal cube (bands, H, W), or (B, bands, H, W) with "
+                    "--coefficients")
+    ap.add_argument("--panel", action="append", default=[], metavar="Y0:Y1:X0:X1=REFL",
+                    help="a reference panel: pixel region and reflectance (one value, or one per band separated by "
+                         "commas); repeat for each panel (at least 2)")
+    ap.add_argument("--coefficients", help="apply a saved gain/offset JSON instead of fitting panels")
+    ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
+    add_out_file(ap, "the reflectance cube, .npy (float32)")
+    ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
+    add_json(ap)
+
+
+def calibrate_parser() -> Parser:
+    """The ``torchskin calibrate`` argument parser, on its own (the torch-free path)."""
+    ap = Parser(prog=PROG, description=DESCRIPTION)
+    add_arguments(ap)
+    return ap
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``torchskin calibrate`` entry of the full parser (the same options as ``calibrate_parser``)."""
+    ap: argparse.ArgumentParser = sub.add_parser("calibrate", help=HELP, description=DESCRIPTION)
+    add_arguments(ap)
+    ap.set_defaults(func=cmd_calibrate)
+    return ap
+
+
+def cli_calibrate(argv: list[str]) -> int:
+    """``torchskin calibrate --cube DN.npy (--panel Y0:Y1:X0:X1=REFL ... | --coefficients ELM.json) --out
+    REFL.npy [--save-coefficients ELM.json] [--erode PX] [--json]`` (numpy only)."""
+    return cmd_calibrate(calibrate_parser().parse_args(argv))
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Run ``torchskin calibrate`` on parsed options."""
+    if bool(args.panel) == bool(args.coefficients):
+        raise ValueError("give either --panel (at least twice) or --coefficients")
+    out = check_output_file(args.out, "--out", (".npy",))
+    save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
+        if args.save_coefficients else None
+    cube = load_cube(args.cube, "--cube")
+    if args.coefficients:
+        gain, offset = read_coefficients(args.coefficients)
+        fit = None
+    else:
+        panels = [parse_panel(p) for p in args.panel]  # (region, reflectance)
+        if cube.ndim != 3:
+            raise ValueError(f"fitting panels needs one frame (bands, H, W), got shape {cube.shape}")
+        fit = elm_fit(cube, panels, args.erode)
+        gain, offset = fit["gain"], fit["offset"]
+    refl = elm_apply(cube, gain, offset)
+    if not np.isfinite(refl).all():
+        raise ValueError("the calibrated cube holds NaN or infinite values (check the coefficients)")
+    coef = {"gain": gain.tolist(), "offset": offset.tolist()}
+    if fit is not None:
+        coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
+                          for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
+        coef["residual"] = fit["residual"].tolist()
+    coef_text = json.dumps(coef, indent=1)  # everything prepared before the first file is written
+    save_npy(out, refl)
+    if save_coef is not None:
+        write_text(save_coef, coef_text)
+    res = {**coef, "out": args.out, "shape": list(refl.shape),
+           "reflectance_range": [float(refl.min()), float(refl.max())]}
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
+              f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
+              + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
+    return 0

@@ -1,0 +1,103 @@
+"""``torchskin detect``: the skin mask of a reflectance cube with the exported detector, numpy and onnxruntime
+only (``torchskin.cli.main`` dispatches here without importing torch; the runtime is ``torchskin.onboard``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from ..errors import Parser, check_input_file, check_output_file
+from ..onboard import OnboardDetector
+from .cubes import load_cube, write_mask_png
+from .options import add_json, add_out_file
+
+PROG = "torchskin detect"
+DESCRIPTION = "Skin mask of a reflectance cube with the exported detector (numpy + onnxruntime, no torch)."
+HELP = "skin mask of a cube with detector.onnx (numpy + onnxruntime only)"
+
+#: the ``torchskin detect`` option (without ``--``, ``_`` for ``-``) that gives each configuration feature
+FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
+                    "relative_azimuth_deg": "relative_azimuth", "range_m": "range"}
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """The ``torchskin detect`` options."""
+    ap.add_argument("--model", required=True, help="detector.onnx")
+    ap.add_argument("--cube", required=True, help=".npy reflectance cube (4, H, W) or (B, 4, H, W), float32")
+    ap.add_argument("--sun-zenith", type=float, help="degrees")
+    ap.add_argument("--camera-zenith", type=float, help="degrees")
+    ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
+    ap.add_argument("--range", type=float, help="metres (if the model uses it)")
+    add_out_file(ap, "the mask PNG of the first frame", required=False)
+    ap.add_argument("--clip-negative", action="store_true",
+                    help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
+                         "clipped, instead of refusing the cube")
+    ap.add_argument("--min-reflectance", type=float, default=None,
+                    help="pixels whose mean reflectance over the bands is not above this are never skin (their "
+                         "indices are noise); default: the floor the model was evaluated with (its metadata "
+                         "min_reflectance; 0 for models without it)")
+    add_json(ap)
+
+
+def detect_parser() -> Parser:
+    """The ``torchskin detect`` argument parser, on its own (the torch-free path)."""
+    ap = Parser(prog=PROG, description=DESCRIPTION)
+    add_arguments(ap)
+    return ap
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``torchskin detect`` entry of the full parser (the same options as ``detect_parser``)."""
+    ap: argparse.ArgumentParser = sub.add_parser("detect", help=HELP, description=DESCRIPTION)
+    add_arguments(ap)
+    ap.set_defaults(func=cmd_detect)
+    return ap
+
+
+def configuration_values(args: argparse.Namespace, features: list[str]) -> list[float]:
+    """The value of each configuration feature the model takes, from its option (``FLAG_FOR_FEATURE``)."""
+    values = []
+    for f in features:
+        flag = FLAG_FOR_FEATURE.get(f, f)
+        v = getattr(args, flag, None)
+        if v is None:
+            raise ValueError(f"the model needs --{flag.replace('_', '-')} ({f})")
+        if not np.isfinite(v):
+            raise ValueError(f"--{flag.replace('_', '-')} must be a finite number, got {v}")
+        values.append(v)
+    return values
+
+
+def cli_detect(argv: list[str]) -> int:
+    """``torchskin detect --model detector.onnx --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
+    --relative-azimuth DEG [--range M] [--out MASK.png] [--json]`` (numpy + onnxruntime only)."""
+    return cmd_detect(detect_parser().parse_args(argv))
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    """Run ``torchskin detect`` on parsed options."""
+    mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
+    det = OnboardDetector(check_input_file(args.model, "--model", (".onnx",)))
+    cube = load_cube(args.cube, "--cube")
+    if cube.ndim == 3:
+        cube = cube[None]
+    values = configuration_values(args, det.features)
+    out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
+              negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
+    if mask_path is not None:
+        write_mask_png(mask_path, out["mask"][0])
+    frac = float(out["mask"].mean())
+    clipped = out.get("clipped_values")
+    if args.json:
+        res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
+               "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
+        if clipped is not None:
+            res["clipped_values"] = clipped.tolist()
+        print(json.dumps(res))
+    else:
+        flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
+        clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
+        print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
+    return 0

@@ -1,0 +1,72 @@
+"""``torchskin generate``: a randomized, labelled pixel dataset (Parquet shards with a checksummed manifest)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ..errors import check_input_file, check_output_folder
+from .options import add_device, add_json, add_out_folder, add_seed, add_surface
+
+#: ``generate --compile`` choices -> ``dataset.generate.generate(compile=...)``
+COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": False}
+
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from ..dataset.config import load_config
+    from ..dataset.generate import generate
+    from ..devices import check_device
+
+    if args.resume and args.overwrite:
+        raise ValueError("--resume and --overwrite exclude each other")
+    check_output_folder(args.out, "--out")
+    if args.config:
+        check_input_file(args.config, "--config", (".toml",))
+    cfg = load_config(args.config)
+    if args.surface:
+        cfg["skin"]["surface"] = args.surface  # one of SURFACE_MODELS (argparse choices)
+    for p in cfg["subject"]["meshes"]:
+        check_input_file(p, "subject.meshes", (".obj", ".ply"))
+    if args.backend == "local":
+        check_device(args.device)
+    if args.seed < 0:
+        raise ValueError(f"--seed must be a non-negative integer, got {args.seed}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
+                   quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
+                   workers=args.workers, images=args.images, compile=COMPILE_CHOICES[args.compile])
+    rows = sum(s["rows"] for s in man["shards"])
+    if args.json:
+        print(json.dumps({"out": str(args.out), "configs": man["configs"], "groups": man["groups"],
+                          "shards": len(man["shards"]), "rows": rows}))
+    else:  # --quiet hides the progress bar, not the result
+        print(f"wrote {len(man['shards'])} shards, {rows} rows ({man['groups']} pose groups) to {args.out}")
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``torchskin generate`` command."""
+    gp = sub.add_parser("generate", help="generate a randomized labelled pixel dataset (Parquet shards)",
+                        description="Draw random sun/camera/subject/skin configurations (TOML config, see "
+                                    "torchskin/dataset/config.py), render them and write balanced labelled skin / "
+                                    "non-skin pixels as Parquet shards with a checksummed manifest.")
+    gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
+    gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
+    add_surface(gp, lead="overrides the configuration's skin.surface (its default: thesis)", from_config=True)
+    add_seed(gp, "the dataset's draws, its master seed")
+    add_out_folder(gp, "the Parquet shards and their manifest")
+    gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
+    gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    gp.add_argument("--quiet", action="store_true", help="no progress bar (the one-line summary is still printed)")
+    add_device(gp)
+    gp.add_argument("--images", action="store_true", help="also store full reflectance cubes (images-*.npy)")
+    gp.add_argument("--compile", choices=list(COMPILE_CHOICES), default="auto",
+                    help="render with the compiled kernels (torch.compile; seconds to compile, then faster): on, "
+                         "off, or auto (default: on from 20,000 configurations when a C++ compiler is present)")
+    gp.add_argument("--backend", choices=["local", "ray"], default="local", help="run shards here or on Ray")
+    gp.add_argument("--address", help="Ray cluster address (default: start a local cluster)")
+    gp.add_argument("--workers", type=int, help="CPUs of the local Ray cluster (default: all)")
+    add_json(gp)
+    gp.set_defaults(func=cmd_generate)
+    return gp
