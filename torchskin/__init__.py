@@ -3,7 +3,8 @@
 Modules: ``tissue`` (9-layer Kubelka-Munk skin), ``optics`` (Fresnel, Schlick, microfacet lobe, combined
 BRDF), ``detect`` (NDSI/NDGRI, rules box, Bhattacharyya), ``bands``, ``angles``, ``data``, ``render`` (the
 renderer's stages: scene, meshes, raycast, materials, light, shade, sensor, elm, pipeline, outputs), ``fit``,
-``dataset``, ``boundaries``, ``classifier``, ``evaluate``, ``experiment``, ``export``, and ``onboard`` /
+``dataset``, ``detectors`` (the detector kinds: ``boxes``, ``classifier``, their registry; ``boundaries`` and
+``classifier`` are the old names of the two kinds), ``evaluate``, ``experiment``, ``export``, and ``onboard`` /
 ``onboard_cli`` (numpy + onnxruntime only). Submodules load on first use, so ``import torchskin.onboard`` does
 not import torch.
 """
@@ -13,8 +14,8 @@ from types import ModuleType
 
 __version__ = "0.1.0"
 
-_SUBMODULES = ("angles", "bands", "boundaries", "classifier", "confusers", "data", "dataset", "detect", "evaluate",
-               "experiment", "export", "fit", "onboard", "onboard_cli", "optics", "render", "tissue")
+_SUBMODULES = ("angles", "bands", "boundaries", "classifier", "confusers", "data", "dataset", "detect", "detectors",
+               "evaluate", "experiment", "export", "fit", "onboard", "onboard_cli", "optics", "render", "tissue")
 
 
 def __getattr__(name: str) -> ModuleType:
