@@ -121,3 +121,54 @@ def test_the_walk_sees_imports_inside_functions_and_skips_type_checking(tmp_path
 def test_no_import_cycle_in_the_package():
     found = cycles(import_graph())
     assert not found, "import cycles (imports inside functions count): " + "; ".join(" <-> ".join(c) for c in found)
+
+
+def with_packages(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """``graph`` with the packages Python runs on the way to a module: importing ``a.b.c`` runs ``a/__init__``
+    and ``a/b/__init__`` first, so every importer of ``a.b.c`` reaches ``a`` and ``a.b`` too."""
+    out = {m: set(deps) for m, deps in graph.items()}
+    for m, deps in graph.items():
+        for d in deps:
+            parts = d.split(".")
+            out[m].update(p for p in (".".join(parts[:i]) for i in range(1, len(parts))) if p in graph)
+    return out
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module ``start`` loads, directly or through others (imports inside functions included)."""
+    seen: set[str] = set()
+    todo = [start]
+    while todo:
+        for d in graph.get(todo.pop(), ()):
+            if d not in seen:
+                seen.add(d)
+                todo.append(d)
+    return seen
+
+
+def test_reachable_follows_the_packages_on_the_way():
+    g = with_packages({"t": set(), "t.a": {"t.p.f"}, "t.p": {"t.p.learner"}, "t.p.f": set(), "t.p.learner": set()})
+    assert reachable(g, "t.a") == {"t", "t.p", "t.p.f", "t.p.learner"}  # t.p's __init__ drags the learner in
+
+
+#: the learners and what sits above them: the detector kinds that train, their registry, the old names of the kinds,
+#: and the modules that judge and export models
+UPPER = {"torchskin.detectors.boxes", "torchskin.detectors.classifier", "torchskin.detectors.registry",
+         "torchskin.boundaries", "torchskin.classifier", "torchskin.evaluate", "torchskin.export",
+         "torchskin.modelcard", "torchskin.commands", "torchskin.cli"}
+#: the layers below the learners: the index formulas, the datasets and the detectors' shared features
+LOWER = ("torchskin.detect", "torchskin.bands", "torchskin.confusers", "torchskin.detectors",
+         "torchskin.detectors.features", "torchskin.detectors.protocol", "torchskin.detectors.graphs")
+
+
+def test_no_module_imports_upward():
+    """Datasets, the index formulas and the detectors' shared modules never load a learner (nor what uses one),
+    counting the package ``__init__`` files Python runs on the way (so ``torchskin.detectors``'s stays light)."""
+    graph = with_packages(import_graph())
+    lower = [m for m in graph if m in LOWER or m == "torchskin.dataset" or m.startswith("torchskin.dataset.")]
+    assert "torchskin.dataset.generate" in lower and "torchskin.detectors.features" in lower
+    bad = {m: sorted(reachable(graph, m) & UPPER) for m in lower}
+    bad = {m: up for m, up in bad.items() if up}
+    assert not bad, "modules that import upward: " + "; ".join(f"{m} -> {', '.join(up)}" for m, up in bad.items())
+    # and the generator does use the shared features (the layering is not vacuous)
+    assert "torchskin.detectors.features" in reachable(graph, "torchskin.dataset.generate")

@@ -281,7 +281,7 @@ def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
 
     import numpy as np
 
-    from .boundaries import BoundaryModel
+    from .detectors.boxes import BoundaryModel
     from .evaluate import MIN_REFLECTANCE
     from .export import export
     from .onboard import Boundaries, OnboardDetector

@@ -20,6 +20,41 @@ def normalized_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a - b) / (a + b)
 
 
+def ratio_indices(R: torch.Tensor, zero_undefined: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The three normalised differences of reflectance in the four index bands (g, r, n, s) = 544, 633, 1080,
+    1580 nm (``INDEX_BANDS_NM``): NDGRI = (g - r) / (g + r) and NDSI = (n - s) / (n + s) (eq 2.5.10's indices)
+    and NDVN = ((g + r) - (n + s)) / (g + r + n + s), the visible/NIR balance. The one home of these formulas
+    (the onboard runtime evaluates them through the exported graphs).
+
+    Args:
+        R: reflectance with the four bands on the last axis, in ``INDEX_BANDS_NM`` order.
+        zero_undefined: False (default): plain ratios, NaN where a band sum is 0 (undefined indices: no box
+            holds them). True: 0 wherever the band sum is not positive (finite inputs for a network).
+
+    Shape:
+        R: (..., 4); each output: (...).
+
+    Returns:
+        (NDGRI, NDSI, NDVN).
+
+    >>> g, s, v = ratio_indices(torch.tensor([[0.3, 0.6, 0.5, 0.1], [0.0, 0.0, 0.5, 0.1]]))
+    >>> [round(x, 4) for x in (g[0].item(), s[0].item(), v[0].item())], bool(g[1].isnan())
+    ([-0.3333, 0.6667, 0.2], True)
+    >>> ratio_indices(torch.zeros(1, 4), zero_undefined=True)
+    (tensor([0.]), tensor([0.]), tensor([0.]))
+    """
+    g, r, n, s = R.unbind(-1)
+    if not zero_undefined:  # the normalised difference: NDGRI and NDSI exactly as ``indices``
+        return normalized_difference(g, r), normalized_difference(n, s), normalized_difference(g + r, n + s)
+    vis, nir = g + r, n + s
+    tiny = torch.finfo(R.dtype).tiny
+
+    def nd(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        return torch.where(d > 0, (a - b) / d.clamp_min(tiny), torch.zeros_like(d))
+
+    return nd(g, r, vis), nd(n, s, nir), nd(vis, nir, vis + nir)
+
+
 def ndgri(green: TensorLike, red: TensorLike) -> torch.Tensor:
     """Normalized Difference Green-Red Index, (ρ544 - ρ633)/(ρ544 + ρ633): green minus red (DESIGN.md; the
     thesis prints eq 2.5.9 the other way round).

@@ -20,19 +20,13 @@ from numpy.typing import ArrayLike
 
 from .angles import BACKLIT_MIN_DEG
 from .bands import INDEX_BANDS_NM
-from .boundaries import (
-    BAND_COLUMNS,
-    FEATURES,
-    BoundaryModel,
-    confuser_indices,
-    false_alarm_rate,
-    inside_box,
-    ratio_indices,
-)
-from .boundaries import MIN_REFLECTANCE as Bd_MIN_REFLECTANCE
-from .classifier import SkinClassifier
 from .dataset.files import manifest, open_dataset, read_valid
 from .detect import DEFAULT_BOX
+from .detectors import registry
+from .detectors.boxes import false_alarm_rate, inside_box
+from .detectors.features import BAND_COLUMNS, FEATURES, confuser_indices, ratio_indices
+from .detectors.features import MIN_REFLECTANCE as _MIN_REFLECTANCE
+from .detectors.protocol import CalibrationData, DetectorModel
 
 #: one model path or several (``load_candidate``)
 ModelPaths = str | os.PathLike | Sequence[str | os.PathLike]
@@ -43,8 +37,8 @@ CAMERA_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 GLINT_REFLECTANCE = 0.01
 #: index-plane grid (per axis, over [-1, 1]) on which the decision region of a non-box model is measured
 AREA_GRID = 64
-#: brightness floor of the evaluation protocol, applied to every model alike (``boundaries.MIN_REFLECTANCE``)
-MIN_REFLECTANCE = Bd_MIN_REFLECTANCE
+#: brightness floor of the evaluation protocol, applied to every model alike (``detectors.features.MIN_REFLECTANCE``)
+MIN_REFLECTANCE = _MIN_REFLECTANCE
 
 
 @dataclass
@@ -53,7 +47,7 @@ class Candidate:
     1080, 1580 nm and configuration features; ``boxes(X) -> (n, 4)`` for box models (None otherwise)."""
 
     name: str
-    kind: str  # "static", "boxes", "classifier" or "detector"
+    kind: str  # "static", "detector" (a detector.onnx), "boxes" (also boundaries.onnx) or a checkpoint's kind
     features: list[str]
     decide: Callable
     boxes: Callable | None = None
@@ -97,41 +91,27 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
         b = Boundaries(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
         return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
-    model, ck = load_model(p)
-    if isinstance(model, SkinClassifier):
-        clf = model
-        decide = lambda R, X: clf.decide(R, X)  # noqa: E731
-        return Candidate(name, "classifier", list(clf.features), decide, None, p, ck.get("meta", {}))
-    m = model
-    boxes_of = lambda X: m(torch.as_tensor(X, dtype=torch.float32)).detach()  # noqa: E731
-    return Candidate(name, "boxes", list(m.features), _box_decide(boxes_of), boxes_of, p, ck.get("meta", {}))
+    model, ck = registry.load(p)
+    return model_candidate(model, name, p, ck.get("meta", {}))
 
 
-def load_model(path: str | os.PathLike, what: str = "model") -> tuple[BoundaryModel | SkinClassifier, dict]:
-    """The model of a torchskin checkpoint (``boundaries.BoundaryModel`` or ``classifier.SkinClassifier``, by the
-    checkpoint's ``kind``) and the checkpoint dict; ``ValueError`` with one line naming ``what`` and the file for
-    anything else."""
-    from . import boundaries, classifier
+def model_candidate(model: DetectorModel, name: str, path: str = "", meta: dict | None = None) -> Candidate:
+    """A candidate of a detector model of any registered kind (``detectors.registry``): its ``decide`` and, for a
+    box kind, its ``boxes``."""
+    return Candidate(name, registry.kind_of(model), list(model.features), model.decide, registry.boxes_of(model),
+                     path, meta or {})
 
-    ck = load_checkpoint(path)
-    try:
-        model: BoundaryModel | SkinClassifier = (classifier.load(path) if ck.get("kind") == "classifier"
-                                                 else boundaries.load(path))
-    except (KeyError, RuntimeError, TypeError) as e:
-        raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
-    return model, ck
+
+def load_model(path: str | os.PathLike, what: str = "model") -> tuple[DetectorModel, dict]:
+    """The model of a torchskin checkpoint (by the checkpoint's ``kind``: ``detectors.registry.load``) and the
+    checkpoint dict; ``ValueError`` with one line naming ``what`` and the file for anything else."""
+    return registry.load(path, what)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
-    """The dict of a torchskin model checkpoint (``ValueError`` with one line for anything else)."""
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many types for junk files
-        raise ValueError(f"cannot read model checkpoint {str(path)!r}: not a torch checkpoint, or truncated "
-                         f"({type(e).__name__})") from None
-    if not isinstance(ck, dict) or "state_dict" not in ck:
-        raise ValueError(f"{str(path)!r} is not a torchskin model checkpoint")
-    return ck
+    """The dict of a torchskin model checkpoint (``ValueError`` with one line for anything else;
+    ``detectors.registry.load_checkpoint``)."""
+    return registry.load_checkpoint(path)
 
 
 def box_function(model_path: str | os.PathLike) -> tuple[list[str], Callable]:
@@ -401,57 +381,24 @@ def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLi
     confusers and clothing (the test partition), where configuration-dependent boxes, shaped around what
     training showed them, let more through. The comparison and the choice then happen at the same budgets,
     and the fresh test set stays untouched."""
-    import torch as _t
-
-    from .boundaries import save as save_boxes
-    from .classifier import save as save_classifier
-
     if not (0.0 <= scene_budget < 1.0) or not (0.0 <= pfa_budget < 1.0):
         raise ValueError(f"budgets must lie in [0, 1), got scene {scene_budget}, earthlib {pfa_budget}")
     model, ck = load_model(model_path)
+    calibrate = getattr(model, "calibrate_to_budget", None)
+    if calibrate is None:
+        raise ValueError(f"{str(model_path)!r}: detector kind {registry.kind_of(model)!r} cannot be calibrated")
     rows = _Rows(data_dir, list(model.features))
-    nonskin = ~rows.label
-    bright = rows.R.mean(-1) > min_reflectance
     test_R, test_pts = _earthlib_test()
-    if isinstance(model, SkinClassifier):
-        with _t.no_grad():
-            logit = model(rows.R[nonskin & bright], rows.X[nonskin & bright])
-        k = int(math.floor(scene_budget * int(nonskin.sum())))
-        before = float(model.threshold)
-        need = float(logit.sort(descending=True).values[k]) if k < logit.numel() else before
-        model.threshold.fill_(max(before, need))
-        knob, value, start = "threshold", float(model.threshold), before
-        with _t.no_grad():
-            rate = float((model.decide(rows.R[nonskin], rows.X[nonskin]) & bright[nonskin]).float().mean())
-        save: Callable = save_classifier
-    else:
-        start = float(model.scale)
-        tb = test_R.mean(-1) > min_reflectance
-        pts = _t.where(tb[:, None], test_pts, _t.full_like(test_pts, math.nan))
-
-        def ok(scale: float) -> bool:
-            model.scale.fill_(scale)
-            with _t.no_grad():
-                box = model(rows.X)
-                hit = inside_box(box, rows.g, rows.s, rows.v) & bright
-                earth = float(false_alarm_rate(model(rows.cfg_X), pts).max())
-            return float(hit[nonskin].float().mean()) <= scene_budget and earth <= pfa_budget
-
-        lo, hi = 0.0, start
-        if ok(start):
-            lo = start
-        else:
-            for _ in range(iters):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if ok(mid) else (lo, mid)
-        ok(lo)
-        with _t.no_grad():
-            rate = float((inside_box(model(rows.X), rows.g, rows.s, rows.v) & bright)[nonskin].float().mean())
-        knob, value = "scale", lo
-        save = save_boxes
+    tb = test_R.mean(-1) > min_reflectance
+    data = CalibrationData(R=rows.R, X=rows.X, ndgri=rows.g, ndsi=rows.s, ndvn=rows.v, cfg_X=rows.cfg_X,
+                           nonskin=~rows.label, bright=rows.R.mean(-1) > min_reflectance, test_R=test_R,
+                           test_bright=tb, test_pts=torch.where(tb[:, None], test_pts,
+                                                                torch.full_like(test_pts, math.nan)))
+    c = calibrate(data, scene_budget, pfa_budget, iters)
+    knob, start, value, rate = c["knob"], c["before"], c["after"], c["pfa_scene"]
     record = {"data": str(data_dir), "scene_budget": scene_budget, "pfa_budget": pfa_budget, "knob": knob,
               "before": start, "after": value, "pfa_scene": rate, "rows": rows.n}
-    save(model, out_path, {**ck.get("meta", {}), "calibration": record})
+    registry.save(model, out_path, {**ck.get("meta", {}), "calibration": record})
     return record
 
 

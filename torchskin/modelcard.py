@@ -1,9 +1,12 @@
 """Model cards (Markdown) for the exported boundary models: what the model is, intended use, training data,
-held-out metrics from ``torchskin evaluate`` and limits."""
+held-out metrics from ``torchskin evaluate`` and limits. What a card says of the detector itself (its intended
+use and its false-alarm tuning) comes from the model's kind (``card_use``, ``card_false_alarms``), found through
+``torchskin.detectors.registry``."""
 
 from __future__ import annotations
 
 import json
+from typing import Any
 
 from . import __version__
 
@@ -87,30 +90,23 @@ def _metrics_section(ev: dict, checkpoint: str = "") -> list[str]:
     return out
 
 
-_USE = {
-    "boxes": "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with the NDGRI/NDSI "
-             "rules detector of the thesis (eq 2.5.10), the rules box chosen for the frame's sun and camera geometry "
-             "instead of the fixed diffuse-model box, plus a visible/NIR rule NDVN = ((g + r) - (n + s)) / (g + r + "
-             "n + s) >= d1 (box column 5) that keeps litter, bark and dry vegetation out where the box reaches down "
-             "towards them.",
-    "classifier": "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with a "
-                  "configuration-conditioned MLP on the band ratios NDGRI, NDSI and NDVN (`torchskin.classifier`), "
-                  "thresholded at the false-alarm budget.",
-}
+def _kind(train: dict) -> Any:
+    """The detector kind a training summary describes (by its ``method``; ``detectors.registry.kind_for_method``:
+    a box model unless the method is another kind's)."""
+    from .detectors import registry
+
+    return registry.kind_for_method(train.get("method"))
 
 
 def _false_alarm_line(train: dict) -> str:
     # "calibration" here (and "calibrated threshold" in ``_INPUTS``) means the false-alarm tuning
     # (``boundaries.tune_false_alarms``, ``classifier.tune_threshold``); the words and the summary key
-    # ``calibration_configs`` are part of the shipped cards and checkpoints (exports/), so they stay
-    if train.get("method") == "classifier":
-        how = (f"the decision threshold was raised to {_f(train.get('threshold'))} (logit) so that at most "
-               f"{_f(train.get('pfa_budget'))} of the earthlib *train* spectra are called skin in any of "
-               f"{train.get('calibration_configs', 'n/a')} configurations")
-    else:
-        how = (f"the boxes were shrunk by {_f(train.get('scale'))} so that at most {_f(train.get('pfa_budget'))} of "
-               f"the earthlib *train* spectra fall inside any box over {train.get('calibration_configs', 'n/a')} "
-               f"configurations (worst case after calibration: {_f(train.get('pfa_train_worst'))})")
+    # ``calibration_configs`` are part of the shipped cards and checkpoints (exports/), so they stay. Each kind
+    # words its own tuning (``card_false_alarms``)
+    kind = _kind(train)
+    words = getattr(kind, "card_false_alarms", None)
+    how = (words(train, _f) if words is not None else
+           f"tuned to at most {_f(train.get('pfa_budget'))} of the earthlib *train* spectra called skin")
     return (f"- False alarms: {how}. The earthlib *test* partition (SHA-256 of the spectrum name) was never used "
             "in training.")
 
@@ -131,7 +127,7 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
         *(["## Which model", "", f"Made from `{meta.get('detector_model', '')}`: {meta.get('detector_reason', '')}",
            ""] if kind == "detector" else []),
         "## Intended use", "",
-        _USE["classifier" if train.get("method") == "classifier" else "boxes"],
+        getattr(_kind(train), "card_use", f"Onboard skin detection with the `{_kind(train).kind}` detector kind."),
         "Run it with `torchskin.onboard` or `torchskin detect` (numpy + onnxruntime only). Reflectance must be "
         "calibrated (empirical line with reference panels) first; pixels whose mean reflectance is not above "
         f"{meta.get('min_reflectance', '0.005')} are not skin (the brightness floor of the evaluation, applied by "

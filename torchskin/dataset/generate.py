@@ -28,7 +28,7 @@ import torch
 from .. import __version__, tissue
 from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
 from ..bands import INDEX_BANDS_NM
-from ..boundaries import BAND_COLUMNS
+from ..detectors.features import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import ELM_MIN_SUNLIT, panel_pixels, panel_subset

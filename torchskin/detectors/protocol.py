@@ -1,0 +1,154 @@
+"""The ``DetectorModel`` protocol every detector kind satisfies, the optional ``BoxDetectorModel`` (kinds whose
+decision region is a box per configuration), and the plain records the kinds take from their callers
+(``TrainRequest`` from the command line, ``CalibrationData`` from ``torchskin.evaluate``).
+
+A kind is a class (usually an ``nn.Module``) with:
+
+- ``kind``: its name, stored in its checkpoints (``registry.save``) and reported by ``torchskin evaluate``;
+- ``methods``: the training methods (``torchskin train --method``) that make it;
+- ``features`` and ``domain``: the configuration features it takes and their training domain ((k, 2));
+- ``decide(R, config)``: the skin mask of ELM reflectance (n, 4) (``BAND_COLUMNS`` order) under configurations
+  (n, k);
+- ``detector_graph(meta)``: its ``detector.onnx`` (cube (B, 4, H, W) + config (B, k) -> mask, score), ``meta`` the
+  ONNX metadata;
+- ``checkpoint(meta)`` and ``from_checkpoint(ck)``: its torch checkpoint dict (without ``kind``: the registry adds
+  it) and back.
+
+Everything else is optional, and found on the class when it is there:
+
+- ``boxes(config)`` and ``boundaries_graph(meta)`` (``BoxDetectorModel``): a box per configuration;
+- ``from_training(req)`` (a classmethod): ``torchskin train --method`` for the kind's methods (``TrainRequest``);
+- ``calibrate_to_budget(data, scene_budget, pfa_budget, iters)``: ``evaluate.calibrate_to_budget``
+  (``CalibrationData``);
+- ``reference_detector()``: the torch module its ``detector.onnx`` computes;
+- ``card_use`` and ``card_false_alarms(train, f)``: the model card's words for the kind.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
+
+import torch
+
+if TYPE_CHECKING:
+    import onnx
+
+
+@runtime_checkable
+class DetectorModel(Protocol):
+    """A detector kind (see the module docstring)."""
+
+    kind: ClassVar[str]
+    methods: ClassVar[tuple[str, ...]]
+    features: tuple[str, ...]
+
+    @property
+    def domain(self) -> torch.Tensor:
+        """The training domain (k, 2) of the configuration features: (low, high) per feature."""
+        ...
+
+    def decide(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
+        """Skin mask (n,) bool of reflectance ``R`` (n, 4) under configurations ``config`` (n, k)."""
+        ...
+
+    def detector_graph(self, meta: dict[str, str]) -> onnx.ModelProto:
+        """The ONNX graph cube (B, 4, H, W) + config (B, k) -> ``mask`` bool and ``score`` float32 (B, H, W),
+        with ``meta`` as its metadata."""
+        ...
+
+    def checkpoint(self, meta: dict) -> dict:
+        """The torch checkpoint dict (``state_dict``, what ``from_checkpoint`` needs, ``meta``)."""
+        ...
+
+    @classmethod
+    def from_checkpoint(cls, ck: dict) -> DetectorModel:
+        """The model (eval mode) of a checkpoint dict written from ``checkpoint``."""
+        ...
+
+
+@runtime_checkable
+class BoxDetectorModel(DetectorModel, Protocol):
+    """A kind whose decision region is a box per configuration: ``boxes(config)`` (n, k) -> (n, 4 or 5),
+    (b1, b2, c1, c2[, d1]) (``boxes.BOX_ORDER``). ``torchskin.evaluate`` measures its false alarms and areas on
+    the boxes, draws its ROC by scaling them, and ``torchskin export`` writes them as ``boundaries.onnx``."""
+
+    def boxes(self, config: torch.Tensor) -> torch.Tensor:
+        """The boxes (n, 4 or 5) of configurations (n, k) (no graph)."""
+        ...
+
+    def boundaries_graph(self, meta: dict[str, str]) -> onnx.ModelProto:
+        """The ONNX graph config (N, k) -> boxes (N, 5), with ``meta`` as its metadata."""
+        ...
+
+
+@dataclass(frozen=True)
+class TrainRequest:
+    """What ``torchskin train`` asks of a kind (``registry.train``): the dataset, the method and the options of the
+    command line (each kind reads those it has; defaults are the command's).
+
+    Attributes:
+        data: the generated dataset folder.
+        method: the training method (``registry.methods()``).
+        pfa_budget: the false-alarm budget on the earthlib train spectra, in [0, 1).
+        scene_budget: the largest share of the dataset's non-skin pixels called skin, in [0, 1).
+        use_scene: hold the dataset's non-skin pixels to ``scene_budget`` (False: the earthlib spectra only).
+        sunlit_only: learn from sunlit skin only.
+        hidden, steps, seed: network width, optimisation steps, seed.
+        ndvn_rule: boxes and quantiles: the visible/NIR rule (NDVN >= d1).
+        q: quantiles: the quantile of the box edges.
+        margin, width_cost, spread_cost: boxes: ``BoxTraining``'s fields of those names.
+    """
+
+    data: str | os.PathLike
+    method: str = "boxes"
+    pfa_budget: float = 1e-3
+    scene_budget: float = 1e-4
+    use_scene: bool = True
+    sunlit_only: bool = False
+    hidden: int = 32
+    steps: int = 1500
+    seed: int = 0
+    ndvn_rule: bool = True
+    q: float = 0.15
+    margin: float = 0.03
+    width_cost: float = 0.05
+    spread_cost: float = 0.1
+
+
+@dataclass
+class CalibrationData:
+    """The validation rows a kind calibrates itself on (``evaluate.calibrate_to_budget``).
+
+    Attributes:
+        R: ELM reflectance (n, 4); X: configurations (n, k).
+        ndgri, ndsi, ndvn: the rows' indices (n,) (the dataset's NDGRI and NDSI columns, NDVN from ``R``).
+        cfg_X: one row per distinct configuration (c, k).
+        nonskin: the non-skin rows (n,) bool; bright: rows above the brightness floor (n,) bool.
+        test_R: the earthlib test spectra (m, 4); test_bright: those above the floor (m,) bool;
+        test_pts: their (NDGRI, NDSI, NDVN) (m, 3), NaN where not bright.
+    """
+
+    R: torch.Tensor
+    X: torch.Tensor
+    ndgri: torch.Tensor
+    ndsi: torch.Tensor
+    ndvn: torch.Tensor
+    cfg_X: torch.Tensor
+    nonskin: torch.Tensor
+    bright: torch.Tensor
+    test_R: torch.Tensor
+    test_bright: torch.Tensor
+    test_pts: torch.Tensor
+
+
+def write_checkpoint(model: DetectorModel, path: str | os.PathLike, meta: dict | None = None) -> None:
+    """Write ``model``'s checkpoint with its ``kind`` first (``{"kind": ..., **model.checkpoint(meta)}``),
+    atomically through a buffer: the same model gives the same bytes."""
+    from ..io import save_torch
+
+    save_torch(path, {"kind": model.kind, **model.checkpoint(meta or {})})
+
+
+__all__ = ["BoxDetectorModel", "CalibrationData", "DetectorModel", "TrainRequest", "write_checkpoint"]

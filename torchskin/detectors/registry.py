@@ -1,0 +1,154 @@
+"""The registry of detector kinds: kind name -> model class (``protocol.DetectorModel``), and what the rest of
+torchskin does with a model through it, never by testing its class: load and save checkpoints (``load``, ``save``:
+every checkpoint names its kind; box checkpoints written before they did are ``boxes``), train by method
+(``train``), tell a model's kind (``kind_of``) and its boxes (``boxes_of``), and find the kind a training summary
+describes (``kind_for_method``: the model cards).
+
+The built-in kinds, ``boxes`` (``boxes.BoundaryModel``) and ``classifier`` (``classifier.SkinClassifier``), are
+registered when this module loads. A new kind is one module plus one call:
+
+>>> from torchskin.detectors import registry
+>>> sorted(registry.kinds())
+['boxes', 'classifier']
+>>> registry.kind_for_method("quantiles").kind
+'boxes'
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, cast
+
+import torch
+
+from .boxes import BoundaryModel
+from .classifier import SkinClassifier
+from .protocol import BoxDetectorModel, DetectorModel, TrainRequest, write_checkpoint
+
+#: the kind of a checkpoint without a ``kind`` key: box checkpoints were written without one
+LEGACY_KIND = "boxes"
+
+_KINDS: dict[str, type[DetectorModel]] = {}
+
+
+def register(cls: type[DetectorModel], replace: bool = False) -> type[DetectorModel]:
+    """Register a detector kind under ``cls.kind`` (usable as a class decorator); its ``methods`` become training
+    methods of ``train`` and ``kind_for_method``. ``ValueError`` when the name or a method is taken (unless
+    ``replace``) or when the class lacks a part of ``DetectorModel``."""
+    kind = getattr(cls, "kind", None)
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"{cls.__name__} needs a class attribute kind (a non-empty string)")
+    missing = [a for a in ("decide", "detector_graph", "checkpoint", "from_checkpoint", "methods") if not hasattr(cls, a)]
+    if missing:
+        raise ValueError(f"detector kind {kind!r} ({cls.__name__}) lacks {', '.join(missing)} (protocol.DetectorModel)")
+    if not replace:
+        if kind in _KINDS and _KINDS[kind] is not cls:
+            raise ValueError(f"detector kind {kind!r} is already registered ({_KINDS[kind].__name__})")
+        taken = {m: k for k, c in _KINDS.items() if c is not cls for m in c.methods}
+        clash = [m for m in cls.methods if m in taken]
+        if clash:
+            raise ValueError(f"training method(s) {', '.join(clash)} of kind {kind!r} already belong to "
+                             f"{', '.join(sorted({taken[m] for m in clash}))}")
+    _KINDS[kind] = cls
+    return cls
+
+
+def unregister(kind: str) -> None:
+    """Remove a registered kind (``KeyError`` if there is none of that name)."""
+    del _KINDS[kind]
+
+
+def kinds() -> dict[str, type[DetectorModel]]:
+    """The registered kinds, name -> class (a copy)."""
+    return dict(_KINDS)
+
+
+def get(kind: str) -> type[DetectorModel]:
+    """The class of a registered kind; ``ValueError`` naming the known kinds otherwise."""
+    try:
+        return _KINDS[kind]
+    except KeyError:
+        raise ValueError(f"unknown detector kind {kind!r}; known kinds: {', '.join(sorted(_KINDS))}") from None
+
+
+def kind_of(model: Any) -> str:
+    """The kind name of a model (``ValueError`` for an object that is not a registered kind's)."""
+    kind = getattr(type(model), "kind", None)
+    if not isinstance(kind, str) or kind not in _KINDS:
+        raise ValueError(f"{type(model).__name__} is not a registered detector kind")
+    return kind
+
+
+def methods() -> tuple[str, ...]:
+    """Every training method of the registered kinds, in registration order (``torchskin train --method``)."""
+    return tuple(m for c in _KINDS.values() for m in c.methods)
+
+
+def kind_for_method(method: str | None, default: str | None = LEGACY_KIND) -> type[DetectorModel]:
+    """The kind a training method makes (a training summary's ``method``); an unknown or missing method gives
+    ``default`` (the model cards' rule: anything that is not another kind's method is a box model), and
+    ``ValueError`` with ``default=None``."""
+    for c in _KINDS.values():
+        if method in c.methods:
+            return c
+    if default is None:
+        raise ValueError(f"unknown training method {method!r}; known methods: {', '.join(methods())}")
+    return get(default)
+
+
+def boxes_of(model: Any) -> Any:
+    """The ``boxes(config)`` function of a box kind (``protocol.BoxDetectorModel``), or None for a kind that decides
+    otherwise."""
+    return model.boxes if isinstance(model, BoxDetectorModel) else None
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """The dict of a torchskin model checkpoint (``ValueError`` with one line for anything else)."""
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for junk files
+        raise ValueError(f"cannot read model checkpoint {str(path)!r}: not a torch checkpoint, or truncated "
+                         f"({type(e).__name__})") from None
+    if not isinstance(ck, dict) or "state_dict" not in ck:
+        raise ValueError(f"{str(path)!r} is not a torchskin model checkpoint")
+    return ck
+
+
+def load(path: str | os.PathLike, what: str = "model") -> tuple[DetectorModel, dict]:
+    """The model of a torchskin checkpoint, by its ``kind`` (none: ``LEGACY_KIND``), in eval mode, and the
+    checkpoint dict; ``ValueError`` with one line naming ``what`` and the file for anything else."""
+    ck = load_checkpoint(path)
+    kind = ck.get("kind", LEGACY_KIND)
+    if not isinstance(kind, str) or kind not in _KINDS:
+        raise ValueError(f"{what} {str(path)!r} is a checkpoint of an unknown detector kind {kind!r}; known kinds: "
+                         f"{', '.join(sorted(_KINDS))}")
+    try:
+        model = _KINDS[kind].from_checkpoint(ck)
+    except (KeyError, RuntimeError, TypeError) as e:
+        raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
+    return model, ck
+
+
+def save(model: DetectorModel, path: str | os.PathLike, meta: dict | None = None) -> None:
+    """Write ``model``'s checkpoint with its kind (``protocol.write_checkpoint``); ``ValueError`` for a model that
+    is not a registered kind's."""
+    kind_of(model)
+    write_checkpoint(model, path, meta)
+
+
+def train(req: TrainRequest) -> tuple[DetectorModel, dict, str]:
+    """``torchskin train``: the kind of ``req.method`` trains on ``req.data`` (its ``from_training``); returns the
+    model, its training summary and a one-line report. ``ValueError`` for an unknown method or a kind that does not
+    train from datasets."""
+    cls = kind_for_method(req.method, default=None)
+    fn = getattr(cls, "from_training", None)
+    if fn is None:
+        raise ValueError(f"detector kind {cls.kind!r} does not train from datasets")
+    return cast(tuple[DetectorModel, dict, str], fn(req))
+
+
+register(cast(type[DetectorModel], BoundaryModel))
+register(cast(type[DetectorModel], SkinClassifier))
+
+__all__ = ["LEGACY_KIND", "boxes_of", "get", "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint",
+           "methods", "register", "save", "train", "unregister"]
