@@ -5,7 +5,28 @@ stderr, status 2 for bad input and 1 for a failure, a traceback only with ``--de
 
 from __future__ import annotations
 
+import argparse
 import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The whole command line as one parser: every command of ``torchskin.commands.build_parser`` with the
+    onboard commands' own parsers (``torchskin.onboard_cli.detect_parser``, ``calibrate_parser``) in place of
+    their entries there. ``main`` does not parse with it (``detect`` and ``calibrate`` must not import torch);
+    it is what the documentation's CLI reference is generated from.
+
+    >>> sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    >>> "--clip-negative" in sub.choices["detect"].format_help()
+    True
+    """
+    from .commands import build_parser as commands_parser
+    from .onboard_cli import calibrate_parser, detect_parser
+
+    ap = commands_parser()
+    sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    for name, make in (("detect", detect_parser), ("calibrate", calibrate_parser)):
+        sub.choices[name] = make()
+    return ap
 
 
 def main(argv: list[str] | None = None) -> int:
