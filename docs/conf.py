@@ -24,6 +24,7 @@ extensions = [
     "sphinx.ext.autosummary",
     "sphinx.ext.napoleon",
     "sphinx.ext.mathjax",
+    "sphinx-mathjax-offline",  # MathJax 3 copied into _static: the equations render without a network
     "sphinx.ext.viewcode",
     "cli_reference",
 ]
@@ -37,16 +38,19 @@ autosummary_generate = True
 autosummary_ignore_module_all = True  # every public module gets a page (a package's __all__ may list only some)
 autodoc_default_options = {"members": True, "show-inheritance": True}
 autodoc_member_order = "bysource"
-autodoc_typehints = "description"
+autodoc_typehints = "signature"  # "description" would add a second Parameters list after each "Shape:" section
 autodoc_typehints_format = "short"
 napoleon_google_docstring = True
 napoleon_numpy_docstring = False
 napoleon_custom_sections = ["Shape"]  # the docstrings' "Shape:" sections, rendered like "Returns:"
+napoleon_use_rtype = False  # "Returns: NDGRI in [-1, 1]: ..." stays one line, not a return type
 nitpicky = False
+smartquotes = False  # "--option" stays two hyphens (the CLI reference's help texts are plain text)
 
 html_theme = "furo"
 html_title = f"torchskin {release}"
-html_static_path: list[str] = []
+html_static_path = ["_static"]
+html_css_files = ["custom.css"]
 
 #: Modules whose docstrings other branches rewrite at the same time (the detectors and CLI packages): their reST
 #: warnings are dropped here, by the name of the module they come from, and nowhere else. To be emptied after

@@ -64,7 +64,9 @@ class CliReference(SphinxDirective):
             section += nodes.paragraph(text=summary[0].upper() + summary[1:] + ".")
         if parser.description:
             section += nodes.paragraph(text=parser.description)
-        usage = parser.format_usage().strip()
+        formatter = argparse.HelpFormatter(parser.prog, width=88)  # the terminal's width would change the page
+        formatter.add_usage(parser.usage, parser._actions, parser._mutually_exclusive_groups)
+        usage = formatter.format_help().strip()
         section += nodes.literal_block(usage, usage, language="text")
         options = nodes.definition_list()
         sub = _subparsers(parser)
