@@ -50,9 +50,12 @@ def test_docs_build_without_warnings_and_document_every_module(site):
         assert (site / f"{page}.html").exists(), page
     # the figures are in the pages, not only in the folder
     physics, detectors = (site / "physics.html").read_text(), (site / "guide" / "detectors.html").read_text()
-    assert "surface_energy.png" in physics and "issa_fit.png" in physics
-    assert "comparison.png" in detectors and "thesis_frame.png" in detectors
-    assert "frame_costs.png" in (site / "benchmarks.html").read_text()
+    assert "_images/surface_energy.png" in physics and "_images/issa_fit.png" in physics
+    assert "_images/comparison.png" in detectors and "_images/thesis_frame.png" in detectors
+    assert "_images/frame_costs.png" in (site / "benchmarks.html").read_text()
+    pages = "".join(p.read_text() for p in site.rglob("*.html"))
+    figures = sorted(p.name for p in [*(ROOT / "docs").glob("*.png"), *(ROOT / "exports").glob("*.png")])
+    assert [f for f in figures if f"_images/{f}" not in pages] == []  # every committed figure is shown on a page
 
 
 @pytest.mark.slow
