@@ -3,7 +3,6 @@ it: a page for every module of the package (autosummary, recursive), and a comma
 every command and option of the parsers."""
 
 import argparse
-import importlib.util
 import pkgutil
 import subprocess
 import sys
@@ -15,11 +14,6 @@ import torchskin
 from torchskin.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-
-pytestmark = pytest.mark.skipif(importlib.util.find_spec("sphinx") is None or importlib.util.find_spec("furo") is None
-                                or importlib.util.find_spec("myst_parser") is None,
-                                reason="the docs extra is not installed (pip install -e '.[docs]')")
-
 
 def _walk(parser: argparse.ArgumentParser, name: str = "torchskin"):
     """(command name, its parser) for the parser and every subcommand below it."""
