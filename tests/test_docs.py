@@ -15,6 +15,7 @@ from torchskin.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 
+
 def _walk(parser: argparse.ArgumentParser, name: str = "torchskin"):
     """(command name, its parser) for the parser and every subcommand below it."""
     yield name, parser
