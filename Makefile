@@ -1,6 +1,6 @@
 # torchskin: `make demo` runs the main job, `make test` runs lint and the test suite.
-# Both create .venv first. TORCH selects the torch build: the default is the CPU wheel on this machine's
-# disk; on a GPU machine use e.g. `make setup TORCH=torch`.
+# Both create .venv first. TORCH selects the torch build: the default is a CPU build of torch 2.13.0; for a
+# CUDA build use e.g. `make setup TORCH=torch`. `make docs` builds the documentation into docs/_build/html.
 PYTHON ?= python3
 TORCH ?= torch==2.13.0
 VENV := .venv
@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint docs bench clean
 
 setup: $(STAMP)
 
@@ -70,8 +70,13 @@ test: lint
 	if [ $$rc -ne 0 ]; then exit $$rc; fi
 	ATEN_CPU_CAPABILITY=avx2 $(PY) -m pytest -q -p no:cacheprovider -m reproducibility -k "not ray_backend" tests/test_reproducibility.py
 
+# the documentation site (Sphinx + furo + MyST, pinned in the docs extra); a warning fails the build, as in
+# tests/test_docs.py, which make test runs
+docs: setup
+	$(VENV)/bin/sphinx-build -W --keep-going -b html docs docs/_build/html
+
 bench: setup
 	$(VENV)/bin/torchskin bench
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache .ruff_cache .mypy_cache docs/_build docs/api

@@ -1,10 +1,14 @@
-"""The README's command-line examples, run as written (in a scratch folder, `exports/` linked in) and compared
-with the output the README prints: the same lines, word for word, and every printed number equal to the real
-output within half a unit in the README's last shown digit (values that change from run to run, wall-clock
-times, are named in ``VARIABLE``); JSON objects: the README's keys and values. Examples that take minutes (the
-experiment at 512², the demo pipeline) are left to `make demo`; the list below names the ones run here. No
-output block may show tqdm progress lines (they stand in for the output they hide)."""
+"""The command-line examples of the README and of the documentation pages (``docs/**/*.md``), run as written (in
+a scratch folder, `exports/` linked in) and compared with the output the page prints: the same lines, word for
+word, and every printed number equal to the real output within half a unit in the page's last shown digit
+(values that change from run to run, wall-clock times, are named in ``VARIABLE``); JSON objects: the page's keys
+and values. Examples that take minutes (the experiment at 512², the demo pipeline) are left to `make demo`; the
+list below names the ones run here, and the demo pipeline's ``torchskin evaluate`` tables are compared with the
+committed ``exports/evaluation*.json`` they were written from instead, as are the README's headline tables. The
+``>>>`` examples of the pages run as doctests. No output block may show tqdm progress lines (they stand in for
+the output they hide)."""
 
+import doctest
 import json
 import re
 import shlex
@@ -16,7 +20,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-#: command prefixes run here (every README example starting with one of them, in README order)
+#: every page whose examples are checked: the README, then the documentation's Markdown pages
+PAGES = [README] + sorted(p for p in (ROOT / "docs").rglob("*.md") if "_build" not in p.parts and "api" not in p.parts)
+#: command prefixes run here (every example starting with one of them, page by page, in page order)
 RUN = ("torchskin spectra", "torchskin light", "torchskin render --out out/frame --json",
        "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin detect",
        "torchskin calibrate")
@@ -30,10 +36,10 @@ VARIABLE_KEYS = {"timing_s"}
 TQDM = re.compile(r"\d{1,3}%\||\[\d+:\d+(?::\d+)?<")
 
 
-def readme_examples() -> list[tuple[str, list[str]]]:
-    """(command, printed lines) for every `$ torchskin ...` line of the README's code blocks."""
+def readme_examples(page: Path = README) -> list[tuple[str, list[str]]]:
+    """(command, printed lines) for every `$ torchskin ...` line of a page's code blocks (default the README)."""
     out, cmd, printed, in_block = [], None, [], False
-    lines = README.read_text().splitlines()
+    lines = page.read_text().splitlines()
     i = 0
     while i < len(lines):
         ln = lines[i]
@@ -127,60 +133,162 @@ def readme_json(lines: list[str]):
 
 @pytest.mark.anny
 @pytest.mark.slow
-def test_readme_examples_run_and_print_what_the_readme_shows(tmp_path):
+def test_page_examples_run_and_print_what_the_page_shows(tmp_path):
     (tmp_path / "exports").symlink_to(ROOT / "exports")
-    last: dict[str, list[str]] = {}
+    runs: dict[tuple[str, ...], subprocess.CompletedProcess] = {}  # one run per distinct command line
     ran, wrong = 0, []
-    for cmd, printed in readme_examples():
-        if not cmd.startswith(RUN):
-            continue
-        argv = shlex.split(cmd.split(" | ")[0])[1:]
-        if "..." in argv:  # "torchskin detect ... --flag": the last full example of that command, then these flags
-            k = argv.index("...")
-            argv = last[argv[0]] + argv[k + 1:]
-        else:
-            last[argv[0]] = argv
-        r = subprocess.run([sys.executable, "-m", "torchskin.cli", *argv], cwd=tmp_path, capture_output=True,
-                           text=True, timeout=600)
-        got = (r.stdout if r.returncode == 0 else r.stderr).strip().splitlines()
-        if " | tail -1" in cmd:
-            got = got[-1:]
-        want = [ln for ln in printed if ln.strip() and not ln.startswith("(")]
-        assert "Traceback" not in r.stderr, (cmd, r.stderr)
-        if want and want[0].lstrip().startswith("{"):  # JSON: the README's keys and values
-            assert r.returncode == 0, (cmd, r.stderr)
-            wrong += [f"{cmd}: {e}" for e in compare_json(readme_json(want), json.loads(r.stdout))]
-        elif want:
-            assert len(got) == len(want), (cmd, got, want)
-            for g, w in zip(got, want):
-                pattern, shown = line_pattern(w.strip())
-                m = pattern.fullmatch(g.strip())
-                if m is None:
-                    wrong.append(f"{cmd}: README {w.strip()!r}, output {g.strip()!r}")
-                    continue
-                wrong += [f"{cmd}: README {s}, output {v} in {g.strip()!r}"
-                          for s, v in zip(shown, m.groups()) if not agrees(float(v), s)]
-            if any("error:" in w for w in want):
-                assert r.returncode == 2 and not r.stdout, (cmd, r.returncode)  # an error: exit 2, stderr only
-        else:
-            assert r.returncode == 0, (cmd, r.stderr)
-        ran += 1
+    for page in PAGES:
+        last: dict[str, list[str]] = {}
+        name = page.relative_to(ROOT)
+        for cmd, printed in readme_examples(page):
+            if not cmd.startswith(RUN):
+                continue
+            argv = shlex.split(cmd.split(" | ")[0])[1:]
+            if "..." in argv:  # "torchskin detect ... --flag": the page's last full example of that command, then these
+                k = argv.index("...")
+                argv = last[argv[0]] + argv[k + 1:]
+            else:
+                last[argv[0]] = argv
+            if tuple(argv) not in runs:
+                runs[tuple(argv)] = subprocess.run([sys.executable, "-m", "torchskin.cli", *argv], cwd=tmp_path,
+                                                   capture_output=True, text=True, timeout=600)
+            r = runs[tuple(argv)]
+            got = (r.stdout if r.returncode == 0 else r.stderr).strip().splitlines()
+            if " | tail -1" in cmd:
+                got = got[-1:]
+            want = [ln for ln in printed if ln.strip() and not ln.startswith("(")]
+            assert "Traceback" not in r.stderr, (name, cmd, r.stderr)
+            if want and want[0].lstrip().startswith("{"):  # JSON: the page's keys and values
+                assert r.returncode == 0, (name, cmd, r.stderr)
+                wrong += [f"{name}: {cmd}: {e}" for e in compare_json(readme_json(want), json.loads(r.stdout))]
+            elif want:
+                assert len(got) == len(want), (name, cmd, got, want)
+                for g, w in zip(got, want):
+                    pattern, shown = line_pattern(w.strip())
+                    m = pattern.fullmatch(g.strip())
+                    if m is None:
+                        wrong.append(f"{name}: {cmd}: page {w.strip()!r}, output {g.strip()!r}")
+                        continue
+                    wrong += [f"{name}: {cmd}: page {s}, output {v} in {g.strip()!r}"
+                              for s, v in zip(shown, m.groups()) if not agrees(float(v), s)]
+                if any("error:" in w for w in want):
+                    assert r.returncode == 2 and not r.stdout, (name, cmd, r.returncode)  # an error: exit 2, stderr only
+            else:
+                assert r.returncode == 0, (name, cmd, r.stderr)
+            ran += 1
     assert not wrong, "\n".join(wrong)
-    assert ran >= 10  # every listed example was found and run
+    assert ran >= 14  # every listed example was found and run (README and pages)
 
 
-def test_readme_output_blocks_hold_no_progress_bars():
-    """A progress bar is not output: where a README block shows one, it shows it instead of what the command
-    prints (a table, a summary line)."""
-    bars, in_block = [], False
-    for n, ln in enumerate(README.read_text().splitlines(), 1):
-        if ln.startswith("```"):
-            in_block = not in_block
-        elif in_block and TQDM.search(ln):
-            bars.append(f"README.md:{n}: {ln}")
+#: the demo pipeline's evaluate commands (docs/guide/detectors.md) and the committed results they printed
+DEMO_EVALUATIONS = {"torchskin evaluate --data out/pipeline/heldout": "evaluation.json",
+                    "torchskin evaluate --data out/pipeline/test": "evaluation_test.json"}
+
+
+def test_demo_evaluate_tables_are_the_committed_exports():
+    """The demo pipeline's printed ``torchskin evaluate`` tables are what ``evaluate.table`` prints for the
+    committed ``exports/evaluation*.json``: every row, every digit (a progress line or a stale figure fails)."""
+    from torchskin import evaluate
+
+    found = 0
+    for page in PAGES:
+        for cmd, printed in readme_examples(page):
+            prefix = next((p for p in DEMO_EVALUATIONS if cmd.startswith(p)), None)
+            if prefix is None:
+                continue
+            table = [ln.rstrip() for ln in printed[:next(i for i, ln in enumerate(printed) if ln.startswith("("))]]
+            result = json.loads((ROOT / "exports" / DEMO_EVALUATIONS[prefix]).read_text())
+            assert table == [ln.rstrip() for ln in evaluate.table(result).splitlines()[:-1]], (page, cmd)
+            found += 1
+    assert found == len(DEMO_EVALUATIONS)
+
+
+#: the README's headline tables: first header cell -> the export it reports; row label -> the figures (JSON paths)
+HEADLINE_TABLES = {"fresh test set": "evaluation_test.json", "held-out set": "evaluation.json"}
+HEADLINE_ROWS = {
+    "Pd, sunlit skin": ["overall.pd_sunlit"],
+    "Pd, sunlit skin without glint / glint-affected": ["overall.pd_sunlit_no_glint", "overall.pd_glint"],
+    "Pd, sunlit skin, mean over configurations": ["overall.pd_sunlit_mean_over_configs"],
+    "Pd, sunlit skin, sun zenith ≥ 60°, mean over configurations": ["sun_zenith_ge_60.pd_sunlit_mean_over_configs"],
+    "Pd, shadowed skin": ["overall.pd_shadow"],
+    "Pd, all skin of back-lit configurations": ["overall.pd_backlit"],
+    "Pfa, earthlib test spectra (budget 1e-3)": ["overall.pfa"],
+    "Pfa, scene non-skin pixels (budget 1e-4)": ["overall.pfa_scene"],
+    "decision-region area, mean per configuration": ["area.mean"],
+}
+
+
+def markdown_tables(text: str) -> list[list[list[str]]]:
+    """Every Markdown table of ``text`` as rows of cells (the header first, the rule row dropped)."""
+    tables, rows = [], []
+    for ln in text.splitlines() + [""]:
+        if ln.startswith("|"):
+            cells = [c.strip() for c in ln.strip().strip("|").split("|")]
+            if not all(set(c) <= set("-: ") for c in cells):
+                rows.append(cells)
+        elif rows:
+            tables.append(rows)
+            rows = []
+    return tables
+
+
+def test_readme_headline_tables_are_the_committed_exports():
+    checked = 0
+    for table in markdown_tables(README.read_text()):
+        export = HEADLINE_TABLES.get(table[0][0])
+        if export is None:
+            continue
+        models = {m["name"]: m for m in json.loads((ROOT / "exports" / export).read_text())["models"]}
+        names = [c.strip("`") for c in table[0][1:]]
+        assert set(names) <= set(models), (export, names)
+        assert [r[0] for r in table[1:]] == list(HEADLINE_ROWS), export  # every figure, in this order
+        for label, *cells in table[1:]:
+            for name, cell in zip(names, cells):
+                shown = [v.strip().strip("*") for v in cell.split("/")]
+                assert len(shown) == len(HEADLINE_ROWS[label]), (label, cell)
+                for path, text in zip(HEADLINE_ROWS[label], shown):
+                    value = models[name]
+                    for key in path.split("."):
+                        value = value[key]
+                    assert agrees(value, text), f"{export} {name} {label}: README {text}, export {value}"
+                    checked += 1
+        assert len(names) >= 3
+    assert checked >= 2 * 9 * 3  # both tables were found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("page", [p for p in PAGES if ">>> " in p.read_text()], ids=lambda p: p.name)
+def test_page_python_examples_run_as_doctests(page):
+    failed, attempted = doctest.testfile(str(page), module_relative=False, verbose=False,
+                                         optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert attempted > 0 and failed == 0, page
+
+
+def test_output_blocks_hold_no_progress_bars():
+    """A progress bar is not output: where a block of the README or of a documentation page shows one, it shows
+    it instead of what the command prints (a table, a summary line)."""
+    bars = []
+    for page in PAGES:
+        in_block = False
+        for n, ln in enumerate(page.read_text().splitlines(), 1):
+            if ln.startswith("```"):
+                in_block = not in_block
+            elif in_block and TQDM.search(ln):
+                bars.append(f"{page.relative_to(ROOT)}:{n}: {ln}")
     assert not bars, "\n".join(bars)
 
 
+def test_progress_bar_pattern_catches_a_tqdm_line():
+    assert TQDM.search("generate:  34%|███▍      | 3264/9600 [00:30<00:40, 157.55config/s]")
+    assert not TQDM.search("boundaries.pt                    0.722       0.733       0.645")
+
+
 @pytest.mark.parametrize("prefix", RUN)
-def test_every_listed_example_is_in_the_readme(prefix):
-    assert any(cmd.startswith(prefix) for cmd, _ in readme_examples()), prefix
+def test_every_listed_example_is_on_a_page(prefix):
+    assert any(cmd.startswith(prefix) for page in PAGES for cmd, _ in readme_examples(page)), prefix
+
+
+def test_readme_quickstart_shows_the_cli_from_spectra_to_the_onboard_detector():
+    cmds = [cmd for cmd, _ in readme_examples()]
+    for prefix in ("torchskin spectra", "torchskin render", "torchskin detect"):
+        assert any(c.startswith(prefix) for c in cmds), prefix

@@ -16,7 +16,7 @@ BACKLIT_MIN_DEG = 120.0
 
 
 def relative_azimuth_deg(azimuth_a_deg: A, azimuth_b_deg: A | float) -> A:
-    """The relative azimuth |φa − φb| folded to [0, 180] degrees: |(φa − φb + 180) mod 360 − 180|.
+    """The relative azimuth ``|φa − φb|`` folded to [0, 180] degrees: ``|(φa − φb + 180) mod 360 − 180|``.
 
     Args:
         azimuth_a_deg: an azimuth in degrees, e.g. the sun's (any real value; a float, numpy array or tensor).

@@ -319,7 +319,7 @@ def bench_materials(compile: bool = False, skins: int = 16, repeat: int = 5) -> 
                           "speedup": t_one / t_batch}}
 
 
-#: name -> callable(**options) returning a dict of results (later issues add entries)
+#: name -> ``callable(**options)`` returning a dict of results (later issues add entries)
 BENCHMARKS: dict[str, Callable[..., dict]] = {"km": bench_km, "render": bench_render, "fit": bench_fit,
                                                "dataset": bench_dataset, "detector_onnx": bench_detector_onnx,
                                                "materials": bench_materials}

@@ -4,9 +4,12 @@ Layers, top to bottom: stratum corneum, lucidum, granulosum, spinosum, basale (e
 upper blood net dermis, reticular dermis, deep blood net dermis (dermis); over a subcutaneous substrate.
 
 Per layer n (cm^-1):
-- absorption from the chromophore mixing equations 2.4.3-2.4.5,
+
+- absorption from the chromophore mixing equations 2.4.3-2.4.5::
+
     epidermis  a_n = v_n a_mel + c_n a_col + w_n a_wat + a_car,epi
     dermis     a_n = c_n a_col + (w_n + f_bw b_n) a_wat + b_n (γ a_ohb + (1-γ) a_dhb + a_car,bl + a_bil)
+
   with melanosomes (v_n) in the spinosum and basale only, blood b_n = blood_level * nominal fraction;
 - reduced scattering from a power law (eq 2.4.1), s_n = a_n (λ / 500 nm)^-b_n, the reticular dermis scaled by
   its collagen fraction;
@@ -17,8 +20,10 @@ Per layer n (cm^-1):
 - layer adding (eqs 2.4.12-2.4.13). For a stack whose reflectance differs from above and below the
   denominator needs the reflectance *from below* of the upper stack; ``add_layers`` carries both, which makes
   adding associative. The whole stack under the surface collapses to one R_sub per skin and wavelength, so
-  the front surface (R0 = Schlick(ρ0, θi)) enters in closed form:
+  the front surface (R0 = Schlick(ρ0, θi)) enters in closed form::
+
       R_total(R0) = R0 + (1-R0)² R_sub / (1 - R0 R_sub).
+
   Eq 3.1.1's diffuse term ρ_d is R_total itself in the thesis (``surface="thesis"``, the default) or the
   subsurface part R_total - R0 (``surface="conserving"``); see ``optics.skin_diffuse``.
 
@@ -437,8 +442,10 @@ def km_layer(K: torch.Tensor, S: torch.Tensor, d: torch.Tensor) -> tuple[torch.T
     """Reflectance and transmittance ``(r, τ)`` of one Kubelka-Munk layer of thickness ``d``.
 
     Kubelka's solution r = sinh(bSd)/(a sinh(bSd) + b cosh(bSd)), τ = b/(a sinh(bSd) + b cosh(bSd)) with
-    a = 1 + K/S, b = √(a²-1), rewritten with x = bSd = d√(K(K+2S)), u = e^-x, h = (1-u²)/x:
+    a = 1 + K/S, b = √(a²-1), rewritten with x = bSd = d√(K(K+2S)), u = e^-x, h = (1-u²)/x::
+
         r = S d h / ((S+K) d h + 1 + u²),   τ = 2u / ((S+K) d h + 1 + u²),
+
     which has no overflow for thick layers and the right limits for K → 0 (r = Sd/(1+Sd)) and S → 0
     (τ = e^-Kd).
     """

@@ -95,7 +95,7 @@ def available_tables() -> list[str]:
 def interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
     """Piecewise-linear interpolation of ``fp(xp)`` at ``x`` (``xp`` increasing), on ``x``'s device.
 
-    ``fp`` may carry leading batch axes: ``fp`` (..., K) gives (..., *x.shape). No range check here.
+    ``fp`` may carry leading batch axes: ``fp`` (..., K) gives ``(..., *x.shape)``. No range check here.
     """
     xp = xp.contiguous()
     idx = torch.searchsorted(xp, x.detach().contiguous(), right=True).clamp(1, xp.numel() - 1)
