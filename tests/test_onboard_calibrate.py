@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchskin.onboard import elm_apply, elm_fit, panel_signal
 from torchskin.cli.calibrate import parse_roi
+from torchskin.onboard import elm_apply, elm_fit, panel_signal
 from torchskin.render.elm import elm_coefficients
 
 GAIN = np.array([12000.0, 9000.0, 15000.0, 7000.0])

@@ -9,6 +9,7 @@ from .options import add_json
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    """Run ``torchskin bench`` (``torchskin.bench.run``): each benchmark's figures, or everything with ``--json``."""
     from .. import bench
 
     if args.only is not None and not [x for x in args.only.split(",") if x.strip()]:

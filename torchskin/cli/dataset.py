@@ -9,6 +9,7 @@ from .options import add_json
 
 
 def cmd_dataset_verify(args: argparse.Namespace) -> int:
+    """Run ``torchskin dataset verify``: status 0 when the shards match the manifest, 1 otherwise."""
     from ..dataset.generate import verify
 
     rep = verify(args.dir)

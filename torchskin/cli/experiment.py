@@ -10,6 +10,7 @@ from .options import add_device, add_frame, add_json, add_no_noise, add_out_fold
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
+    """Run ``torchskin experiment`` (``torchskin.experiment.run``) and summarise it per source angle."""
     from .. import experiment
     from ..devices import check_device
     from ..render.sensor import Sensor

@@ -15,6 +15,7 @@ if TYPE_CHECKING:
 
 
 def cmd_fit_brdf(args: argparse.Namespace) -> int:
+    """Run ``torchskin fit-brdf`` (``fit.fit_brdf``) and write the fitted lobe per band as JSON."""
     from .. import fit
     from ..io import write_text
     from ..optics import cosines_from_angles, rho0_to_n

@@ -10,6 +10,7 @@ from .options import add_json, add_out_file, check_number
 
 
 def cmd_fit_skin(args: argparse.Namespace) -> int:
+    """Run ``torchskin fit-skin`` (``fit.fit_skin``) and write the fitted parameters as CSV."""
     from .. import fit
 
     check_output_file(args.out, "--out", (".csv",))

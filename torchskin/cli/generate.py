@@ -13,6 +13,7 @@ COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": Fal
 
 
 def cmd_generate(args: argparse.Namespace) -> int:
+    """Run ``torchskin generate`` (``dataset.generate.generate``) after checking every input and output."""
     from ..dataset.config import load_config
     from ..dataset.generate import generate
     from ..devices import check_device

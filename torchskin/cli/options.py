@@ -13,12 +13,13 @@ use it); the builders that read a torch-side registry import it when called.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 from typing import Any
 
 #: what ``add_argument`` is called on: a parser or one of its (mutually exclusive) groups
-ArgumentTarget = argparse.ArgumentParser | argparse._ActionsContainer
+ArgumentTarget = argparse._ActionsContainer
 
 #: the largest frame ``render`` and ``experiment`` make unless ``--max-megapixels`` raises it
 MAX_MEGAPIXELS = 16.0
@@ -35,17 +36,14 @@ BANDS_HELP = ("band centres and optional FWHM in nm, e.g. 544,633,1080/20,1580/4
 #: the atmosphere options (``render``, ``light``) -> ``scene.Atmosphere`` fields
 ATMOSPHERE_OPTIONS = {"--aerosol": "aerosol_500nm", "--water": "precipitable_water_cm", "--ozone": "ozone_atm_cm",
                       "--pressure": "pressure_pa", "--day-of-year": "day_of_year"}
-#: each atmosphere option's type, default and what it is (the range comes from ``scene.ATMOSPHERE_RANGES``)
-_ATMOSPHERE = {"--aerosol": (float, 0.1, "aerosol optical depth at 500 nm"),
-               "--water": (float, 1.42, "precipitable water, cm"),
-               "--ozone": (float, 0.344, "ozone column, atm-cm"),
-               "--pressure": (float, 101325.0, "surface pressure, Pa"),
-               "--day-of-year": (int, 172, "day of year")}
+#: what each atmosphere option is (its default comes from ``scene.Atmosphere``, its range from
+#: ``scene.ATMOSPHERE_RANGES``)
+_ATMOSPHERE = {"--aerosol": "aerosol optical depth at 500 nm", "--water": "precipitable water, cm",
+               "--ozone": "ozone column, atm-cm", "--pressure": "surface pressure, Pa", "--day-of-year": "day of year"}
 #: a phrase for the light models the help text knows; a newly registered model is listed by name alone
 LIGHT_MODEL_NOTES = {"spectrl2": "clear-sky sun, sky and ground-reflected light from the atmosphere below, "
                                  "via pvlib",
                      "thesis": "a 5950 K blackbody sun and a grey sky of --sky"}
-DEFAULT_ILLUMINATION = "spectrl2"
 #: a phrase for the panel kinds the help text knows; a newly added kind is listed by name alone
 PANEL_NOTES = {"lambertian": "0.97 and 0.03", "spectralon": "Table 3 DHR", "spectralon-brdf": "Table 3 DHR with "
                "the Spectralon-like BRDF"}
@@ -121,6 +119,8 @@ def add_panels(p: ArgumentTarget, note: str = "") -> None:
 
 def add_illumination(p: ArgumentTarget) -> None:
     """``--illumination``: the light model (``light_models()``, default spectrl2)."""
+    from ..render.scene import DEFAULT_ILLUMINATION
+
     names = light_models()
     listed = "; ".join(f"{n} ({LIGHT_MODEL_NOTES[n]})" if n in LIGHT_MODEL_NOTES else n for n in names)
     p.add_argument("--illumination", choices=names, default=DEFAULT_ILLUMINATION, metavar="MODEL",
@@ -128,13 +128,16 @@ def add_illumination(p: ArgumentTarget) -> None:
 
 
 def add_atmosphere(p: ArgumentTarget) -> None:
-    """The spectrl2 atmosphere options (``ATMOSPHERE_OPTIONS``), with their ranges from
-    ``scene.ATMOSPHERE_RANGES``."""
-    from ..render.scene import ATMOSPHERE_RANGES
+    """The spectrl2 atmosphere options (``ATMOSPHERE_OPTIONS``), with the defaults of ``scene.Atmosphere`` and
+    the ranges of ``scene.ATMOSPHERE_RANGES``."""
+    from ..render.scene import ATMOSPHERE_RANGES, Atmosphere
 
-    for opt, (kind, default, what) in _ATMOSPHERE.items():
-        lo, hi = ATMOSPHERE_RANGES[ATMOSPHERE_OPTIONS[opt]]
-        p.add_argument(opt, type=kind, default=default,
+    defaults = {f.name: f.default for f in dataclasses.fields(Atmosphere)}
+    for opt, what in _ATMOSPHERE.items():
+        key = ATMOSPHERE_OPTIONS[opt]
+        lo, hi = ATMOSPHERE_RANGES[key]
+        default = defaults[key]
+        p.add_argument(opt, type=type(default), default=default,
                        help=f"spectrl2: {what}, {lo:g}-{hi:g} (default {default:g})")
 
 

@@ -54,6 +54,8 @@ def _scene_from_args(args: argparse.Namespace) -> Scene:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    """Run ``torchskin render``: every option checked before any work, then one frame rendered, calibrated
+    and written to ``--out`` (``render.outputs.write_outputs``)."""
     from ..devices import check_device
     from ..render.outputs import write_outputs
     from ..render.pipeline import render

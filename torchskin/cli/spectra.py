@@ -76,6 +76,8 @@ def _skins(args: argparse.Namespace) -> tuple[tissue.SkinParams, list[str]]:
 
 
 def cmd_spectra(args: argparse.Namespace) -> int:
+    """Run ``torchskin spectra``: a table (or ``--json``, ``--plot``) of the chosen skins' reflectance, NDGRI,
+    NDSI and whether the rules box holds them."""
     if args.plot:
         check_output_file(args.plot, "--plot", (".png",))
     if args.sample is not None and not (1 <= args.sample <= MAX_SAMPLE):
