@@ -69,9 +69,8 @@ def run(argv=None) -> int:
     import torch
 
     from torchskin import boundaries as Bd
-    from torchskin import classifier as Cl
     from torchskin import tissue
-    from torchskin.export import BoxDetector, ClassifierDetector
+    from torchskin.detectors import registry
     from torchskin.onboard import Boundaries, OnboardDetector
 
     out = Path(a.exports)
@@ -109,8 +108,7 @@ def run(argv=None) -> int:
     src = out / sel["detector"]
     check(det_meta.get("detector_model") == sel["detector"] and src.is_file(),
           f"detector.onnx made from {sel['detector']} (selection.json)")
-    ck = torch.load(src, map_location="cpu", weights_only=True)
-    reference = ClassifierDetector(Cl.load(src)) if ck.get("kind") == "classifier" else BoxDetector(Bd.load(src))
+    reference = registry.load(src)[0].reference_detector()  # the torch module its kind's detector.onnx computes
     rng = np.random.default_rng(0)
     # the Type I/II preset's diffuse-model reflectance in the index bands (normal incidence): a skin spectrum
     bands = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64)

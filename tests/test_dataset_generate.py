@@ -195,8 +195,8 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj, mon
     import torch
 
     import torchskin.dataset.generate as gen
-    from torchskin.boundaries import BAND_COLUMNS
     from torchskin.dataset.config import sample_group
+    from torchskin.detectors.features import BAND_COLUMNS
     from torchskin.render.raycast import Raycaster
 
     sensor = gen.group_sensor

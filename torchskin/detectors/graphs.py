@@ -50,9 +50,17 @@ DETECTOR_AXES = {"cube": {0: "B", 2: "H", 3: "W"}, "config": {0: "B"}, "mask": {
 
 def torch_detector_graph(module: nn.Module, k: int, meta: dict[str, str]) -> onnx.ModelProto:
     """The detector graph of a torch module ``module(cube (B, 4, H, W), config (B, k)) -> (mask, score)``: inputs
-    ``cube`` and ``config``, outputs ``mask`` and ``score``, batch and image axes dynamic."""
+    ``cube`` and ``config``, outputs ``mask`` and ``score``, batch and image axes dynamic. A module that ignores the
+    configuration still gets the ``config`` input (unused: the exporter drops it, the onboard runtime feeds it)."""
+    import onnx
+    from onnx import TensorProto, helper
+
     cube, cfg = torch.rand(2, 4, 3, 5), torch.zeros(2, k)
-    return torch_graph(module, (cube, cfg), ["cube", "config"], ["mask", "score"], DETECTOR_AXES, meta)
+    m = torch_graph(module, (cube, cfg), ["cube", "config"], ["mask", "score"], DETECTOR_AXES, meta)
+    if "config" not in {i.name for i in m.graph.input}:
+        m.graph.input.append(helper.make_tensor_value_info("config", TensorProto.FLOAT, ["B", k]))
+        onnx.checker.check_model(m)
+    return m
 
 
 __all__ = ["DETECTOR_AXES", "OPSET", "add_metadata", "torch_detector_graph", "torch_graph"]
