@@ -1,9 +1,6 @@
 """Sphinx configuration of the torchskin documentation (``make docs``; ``tests/test_docs.py`` builds it with
 warnings as errors)."""
 
-import logging
-import os
-import re
 import sys
 from pathlib import Path
 
@@ -51,29 +48,3 @@ html_theme = "furo"
 html_title = f"torchskin {release}"
 html_static_path = ["_static"]
 html_css_files = ["custom.css"]
-
-#: Modules whose docstrings other branches rewrite at the same time (the detectors and CLI packages): their reST
-#: warnings are dropped here, by the name of the module they come from, and nowhere else. To be emptied after
-#: the merge (then fix the docstrings that still warn).
-TEMPORARY_WARNING_FILTER_MODULES = [
-    "torchskin.boundaries", "torchskin.classifier", "torchskin.evaluate", "torchskin.export", "torchskin.modelcard",
-    "torchskin.commands", "torchskin.onboard_cli", "torchskin.cli", "torchskin.dataset.generate",
-]
-_FILTERED = re.compile(r"(docstring of |/)(" + "|".join(
-    re.escape(m) + "|" + re.escape(m.replace(".", "/")) + r"\.py" for m in TEMPORARY_WARNING_FILTER_MODULES)
-    + r")\b")
-
-
-class _TemporaryModuleWarningFilter(logging.Filter):
-    """Drops warnings located in ``TEMPORARY_WARNING_FILTER_MODULES``' files or docstrings."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not _FILTERED.search(str(getattr(record, "location", "") or ""))
-
-
-def setup(app):
-    if os.environ.get("TORCHSKIN_DOCS_NO_FILTER"):  # to list what the filter hides
-        return
-    for handler in logging.getLogger("sphinx").handlers:
-        if handler.level == logging.WARNING:
-            handler.filters.insert(0, _TemporaryModuleWarningFilter())

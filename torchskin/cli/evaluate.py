@@ -14,7 +14,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..dataset.files import manifest_sha256
-    from ..evaluate import boxes_plot, compare_plot, evaluate, plots, table
+    from ..evaluate import boxes_plot, compare_plot, evaluate, load_candidate, plots, table
     from ..io import write_text
 
     if args.plots:
@@ -29,7 +29,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         plots(res, args.plots)
         compare_plot(res, Path(args.plots) / "comparison.png")
         first = res["models"][0]
-        if first["kind"] == "boxes":
+        if load_candidate(first["path"]).boxes is not None:  # any box kind: its edges against the sun
             boxes_plot(args.data, first["path"], Path(args.plots) / "boxes.png")
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))

@@ -15,30 +15,31 @@ def _checkpoint(path: str, what: str) -> tuple[Any, dict[str, Any]]:
     """(model, training summary) of a boundary or classifier checkpoint; one-line errors for bad files."""
     from pathlib import Path
 
-    from ..evaluate import load_model
+    from ..detectors import registry
 
     check_input_file(path, what)  # missing, a folder or unreadable: says which
-    model, ck = load_model(path, what)
+    model, ck = registry.load(path, what)
     return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from ..classifier import SkinClassifier
+    from ..detectors import registry
     from ..export import export, write_model_cards
 
     check_output_folder(args.out, "--out")
     if args.metrics:
         check_input_file(args.metrics, "--metrics", (".json",))
     model, train = _checkpoint(args.model, "--model")
-    if isinstance(model, SkinClassifier):
-        raise ValueError(f"--model {args.model!r} is a classifier; boundaries.onnx needs a box model (pass the "
-                         "classifier as --detector)")
+    if registry.boxes_of(model) is None:
+        raise ValueError(f"--model {args.model!r} is a {registry.kind_of(model)} model; boundaries.onnx needs a box "
+                         "model (pass this one as --detector)")
     trains = {"boundaries": train}
     baseline = None
     if args.baseline:
         baseline, trains["baseline_box"] = _checkpoint(args.baseline, "--baseline")
-        if isinstance(baseline, SkinClassifier):
-            raise ValueError(f"--baseline {args.baseline!r} must be a box model (torchskin train --hidden 0)")
+        if registry.boxes_of(baseline) is None:
+            raise ValueError(f"--baseline {args.baseline!r} is a {registry.kind_of(baseline)} model; it must be a box "
+                             "model (torchskin train --hidden 0)")
     detector, trains["detector"] = (model, train) if not args.detector else _checkpoint(args.detector, "--detector")
     evaluation = None
     if args.metrics:

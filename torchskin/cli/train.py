@@ -13,35 +13,20 @@ from .options import add_json, add_out_file, add_seed, check_number
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .. import boundaries as Bd
+    from ..detectors import registry
+    from ..detectors.protocol import TrainRequest
 
     check_output_file(args.out, "--out", (".pt",))
     if args.steps < 1:
         raise ValueError(f"--steps must be >= 1 (0 would write an untrained model), got {args.steps}")
     check_number("--pfa-budget", args.pfa_budget, 0, 0.999, "a false-alarm probability")
     check_number("--scene-budget", args.scene_budget, 0, 0.999, "a false-alarm probability")
-    if args.method == "classifier":
-        return _train_classifier(args)
-    X, Y = Bd.load_skin_rows(args.data, sunlit_only=args.sunlit_only)
-    scene = None if args.no_scene else Bd.load_scene_rows(args.data)
-    opts = {"hidden": args.hidden, "steps": args.steps, "seed": args.seed}
-    domain = Bd.domain_from_manifest(args.data)
-    if args.method == "quantiles":
-        opts["q"] = args.q
-    else:
-        opts.update(margin=args.margin, width_cost=args.width_cost, spread_cost=args.spread_cost)
-    model, info = Bd.learn(X, Y, args.method, args.pfa_budget, domain=domain,
-                           ndvn_quantile=None if args.no_ndvn_rule else Bd.NDVN_QUANTILE, scene=scene,
-                           scene_budget=args.scene_budget, **opts)
-    info["options"].pop("domain", None)
-    info["light_classes"] = ["sunlit"] if args.sunlit_only else ["sunlit", "shadow"]
-    scene_text = "" if scene is None else (f"; scene non-skin {info['pfa_scene_train']:.2e} <= {args.scene_budget:g} "
-                                           f"of {info['scene_pixels']} training pixels")
-    return _save_trained(args, Bd.save, model, info, (
-        f"trained ({args.method}) on {info['rows']} {'sunlit ' if args.sunlit_only else ''}skin pixels, loss "
-        f"{info['loss']:.5f}; NDVN rule d1 {info['ndvn_min']:.3f}; false-alarm scale {info['scale']:.3f}: worst Pfa "
-        f"{info['pfa_train_worst']:.2e} <= {args.pfa_budget:g} on the earthlib train partition over "
-        f"{info['calibration_configs']} configurations{scene_text}"))
+    model, info, text = registry.train(TrainRequest(
+        args.data, args.method, pfa_budget=args.pfa_budget, scene_budget=args.scene_budget,
+        use_scene=not args.no_scene, sunlit_only=args.sunlit_only, hidden=args.hidden, steps=args.steps,
+        seed=args.seed, ndvn_rule=not args.no_ndvn_rule, q=args.q, margin=args.margin,
+        width_cost=args.width_cost, spread_cost=args.spread_cost))
+    return _save_trained(args, registry.save, model, info, text)
 
 
 def _save_trained(args: argparse.Namespace, save: Callable[..., None], model: Any, info: dict, text: str) -> int:
@@ -55,31 +40,16 @@ def _save_trained(args: argparse.Namespace, save: Callable[..., None], model: An
     return 0
 
 
-def _train_classifier(args: argparse.Namespace) -> int:
-    from .. import boundaries as Bd
-    from .. import classifier as Cl
-
-    X, R, label, sunlit = Cl.load_rows(args.data)
-    model, info = Cl.train_classifier(X, R, label, sunlit, hidden=max(args.hidden, 1), steps=args.steps,
-                                      seed=args.seed, domain=Bd.domain_from_manifest(args.data),
-                                      pfa_budget=args.pfa_budget,
-                                      scene_budget=None if args.no_scene else args.scene_budget,
-                                      sunlit_only=args.sunlit_only)
-    return _save_trained(args, Cl.save, model, info, (
-        f"trained (classifier) on {info['rows']} {'sunlit ' if args.sunlit_only else ''}skin pixels; threshold "
-        f"{info['threshold']:.3f} (logit) for Pfa <= {args.pfa_budget:g} on the earthlib train partition over "
-        f"{info['calibration_configs']} configurations; training skin kept {info['train_coverage']:.3f}, scene "
-        f"non-skin {info['pfa_scene_train']:.2e}"))
-
-
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """The ``torchskin train`` command."""
+    """The ``torchskin train`` command (``--method``: the registered kinds' methods)."""
+    from ..detectors import registry  # imports torch: train is not one of the torch-free commands
+
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset",
                         description="Learn configuration-dependent rules boxes (or a classifier) from a generated "
                                     "dataset, tuned to a false-alarm budget on the earthlib train spectra.")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     add_out_file(tp, "the checkpoint (.pt)")
-    tp.add_argument("--method", choices=("boxes", "quantiles", "classifier"), default="boxes",
+    tp.add_argument("--method", choices=registry.methods(), default="boxes",
                     help="boxes: most sunlit skin per configuration with the earthlib train spectra kept a margin "
                          "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss); "
                          "classifier: a configuration-conditioned MLP on scale-invariant band ratios "

@@ -11,17 +11,21 @@ from Type I to VI, stays above about -0.35, and the flat reflection only raises 
 for every configuration, set below the training skin's NDVN (``ndvn_rule``); with d1 = -1 the rule is inactive
 (the 2-index rules alone: ``ndvn_quantile=None``).
 
-The model is a small MLP on standardised features with an output that keeps b1 <= b2 and c1 <= c2:
+The model is a small MLP on standardised features with an output that keeps b1 <= b2 and c1 <= c2::
+
     (lo_g, w_g, lo_s, w_s) -> b1 = lo_g, b2 = lo_g + softplus(w_g), c1 = lo_s, c2 = lo_s + softplus(w_s).
+
 ``hidden=0`` gives a constant box (one box for every configuration: the refitted static baseline).
 
 Two trainers:
+
 - ``train_boxes`` (default): per configuration, the box that covers the most sunlit skin pixels while every
   earthlib *train* spectrum stays at least ``margin`` (index units, L-infinity) outside it, for the training
   configurations and for random configurations over the training domain; a small cost per unit of box width
   keeps the edges where the skin pixels are (soft, sigmoid edges during training; hard boxes afterwards). It
   starts from the data: the conditional quantile box (``fit_quantiles``) first, then the coverage loss.
 - ``train_quantiles``: the box edges as conditional quantiles of skin NDGRI and NDSI (pinball loss).
+
 Both are followed by ``tune_false_alarms`` (a hard guarantee on the train spectra). The model is exported
 to ONNX (``torchskin.export``: ``boundaries.onnx`` from ``boundaries_graph``, ``detector.onnx`` from
 ``BoundaryModel.detector_graph``, the five edge forms of ``BoxDetector``) and run onboard without torch
@@ -501,7 +505,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, setti
     """Learn the box that, per configuration, covers the most sunlit skin pixels ``Y`` (n, 2) given their
     configuration features ``X`` (n, k), while every ``confusers`` point (m, 2) (the earthlib *train* spectra)
     stays ``margin`` outside it, for ``domain_configs`` training configurations and as many random
-    configurations over the training domain per step:
+    configurations over the training domain per step::
 
         loss = -mean_i w_i soft_inside(box(x_i), y_i) + width_cost * mean_i w_i width(box(x_i))
                + fa_weight * mean_configs margin_violation(box(config), confusers)
@@ -843,7 +847,8 @@ def train_on_dataset(req: TrainRequest) -> tuple[BoundaryModel, dict, str]:
 
 # --------------------------------------------------------------------------------------------------- ONNX export
 #: the edge forms as a linear function of the box: W(box) = box @ EDGE_M + EDGE_C, reshaped to (5 edges, 4 bands)
-#: with bands (g, r, n, s) = (544, 633, 1080, 1580) nm and edges
+#: with bands (g, r, n, s) = (544, 633, 1080, 1580) nm and edges::
+#:
 #:   L1 = (g - r) - b1 (g + r),  L2 = b2 (g + r) - (g - r),  L3 = (n - s) - c1 (n + s),  L4 = c2 (n + s) - (n - s),
 #:   L5 = (g + r) - (n + s) - d1 (g + r + n + s)   (the visible/NIR rule NDVN >= d1)
 EDGE_C = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, -1.0), (0.0, 0.0, -1.0, 1.0),

@@ -61,7 +61,7 @@ class HasDomain(Protocol):
 
 def tuning_configs(model: HasDomain, X: torch.Tensor, grid: int = 10) -> torch.Tensor:
     """The configurations the false-alarm budget is enforced on: every distinct training configuration in
-    ``X`` and a ``grid``^k lattice over the model's training domain."""
+    ``X`` and a lattice of ``grid ** k`` points (k features) over the model's training domain."""
     uniq = distinct_configs(X)[0].float()
     axes = [torch.linspace(float(lo), float(hi), grid) for lo, hi in model.domain]
     lattice = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
