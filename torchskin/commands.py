@@ -400,14 +400,13 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
 
 def cmd_dataset_verify(args: argparse.Namespace) -> int:
-    from .dataset.generate import verify
+    from .dataset.generate import verify, verify_line, verify_summary
 
     rep = verify(args.dir)
     if args.json:
-        print(json.dumps(rep))
+        print(json.dumps(verify_summary(rep)))
     else:
-        print(("ok" if rep["ok"] else "PROBLEMS") + f": {rep['shards']} shards, {rep['rows']} rows; missing "
-              f"{rep['missing'] or 'none'}, corrupted {rep['corrupted'] or 'none'}, partial {rep['partial'] or 'none'}")
+        print(verify_line(rep))
     return 0 if rep["ok"] else 1
 
 

@@ -19,8 +19,9 @@ MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when 
 #: the renderer's revision for datasets: raised whenever the same config and seed render other bytes, so that
 #: ``generate --resume`` does not keep shards of another revision (2: anny bodies in float64, camera rays and
 #: facing tests and angles written out in a fixed order; 3: the light stage: SPECTRL2 sun, sky and ground-reflected
-#: light, sky views, RTLSR ground and confusers; 1 or missing: before)
-RENDER_REVISION = 3
+#: light, sky views, RTLSR ground and confusers; 4: ``elm_valid`` also asks for a physical empirical line,
+#: ``render.elm.elm_line_valid``; 1 or missing: before)
+RENDER_REVISION = 4
 
 
 def sha256_file(path: StrPath) -> str:

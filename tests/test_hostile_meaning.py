@@ -1,0 +1,185 @@
+"""Inputs and outputs checked for meaning, not only for form (issue 23): each test is a user's mistake, or a
+user trusting a flag, that used to succeed with a wrong answer."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchskin.dataset.config import resolve_config, sample_group
+from torchskin.render.elm import ELM_MAX_FULL_SCALE, ELM_MIN_SEPARATION_SIGMA, elm_line_valid, panel_median_noise_dn
+from torchskin.render.meshes import sphere_mesh, write_obj
+from torchskin.render.scene import PANEL_KINDS
+
+
+@pytest.fixture(scope="module")
+def subject_obj(tmp_path_factory):
+    v, f = sphere_mesh(0.35, 3)
+    p = tmp_path_factory.mktemp("mesh") / "head.obj"
+    write_obj(p, v + [0.0, 0.0, 0.9], f)
+    return p
+
+
+def _cfg(obj, sun_zenith, kind):
+    return resolve_config({"camera": {"width": 64, "height": 64, "range_m": [8.0, 8.0], "zenith_deg": [30.0, 30.0]},
+                           "sun": {"per_pose": 3, "zenith_deg": [sun_zenith, sun_zenith]},
+                           "skin": {"per_pose": 2}, "subject": {"meshes": [str(obj)]}, "panels": {"kinds": [kind]},
+                           "sampling": {"groups_per_shard": 1, "pixels_per_class": 32}, "confusers": {"count": [0, 0]}})
+
+
+def _frames(obj, sun_zenith, kind):
+    """(elm_valid, max |reflectance|) per configuration of one pose group, and whether the old rule (both panels
+    sunlit) called each of its suns valid."""
+    from torchskin.dataset.generate import group_rows, group_scene, panels_sunlit
+    from torchskin.render.raycast import Raycaster
+
+    group = sample_group(_cfg(obj, sun_zenith, kind), 0, 0)
+    rows = {k: np.concatenate([np.asarray(x) for x in v]) for k, v in
+            group_rows(group, 32).items() if k in ("elm_valid", "r544", "r633", "r1080", "r1580", "sun", "skin")}
+    cfg = rows["skin"] * len(group.suns) + rows["sun"]
+    refl = np.abs(np.stack([rows[k] for k in ("r544", "r633", "r1080", "r1580")], 1)).max(1)
+    valid = np.array([rows["elm_valid"][cfg == c].all() for c in range(cfg.max() + 1)])
+    assert all(len(set(rows["elm_valid"][cfg == c])) == 1 for c in range(cfg.max() + 1))  # one verdict per frame
+    peak = np.array([refl[cfg == c].max() for c in range(cfg.max() + 1)])
+    sc = group_scene(group)
+    dirs = np.stack([s.direction for s in sc.suns])
+    gb = Raycaster.from_scene(sc).gbuffer(sc.cameras, dirs)
+    sunlit = panels_sunlit(gb, list(sc.panels), torch.tensor(dirs, dtype=torch.float32)).numpy()
+    return valid, peak, sunlit
+
+
+@pytest.mark.parametrize("kind", PANEL_KINDS)
+def test_a_grazing_sun_frame_whose_panels_are_sunlit_is_not_called_valid(subject_obj, kind):
+    """A user trains on ``elm_valid`` rows. A sun 87° from the zenith grazes the level panels (cos 87° = 0.05)
+    while it lights the subject's sun-facing side head on: both panels are sunlit, yet the line through them
+    makes that side read many times its reflectance. Such frames must not be called valid, whatever the panels."""
+    valid, peak, sunlit = _frames(subject_obj, 87.0, kind)
+    assert sunlit.any()  # the old rule (panels sunlit) called some of these frames valid
+    assert peak.max() > 3.0  # and they read like that
+    assert not valid.any()
+
+
+@pytest.mark.parametrize("kind", PANEL_KINDS)
+def test_a_moderate_sun_frame_stays_valid(subject_obj, kind):
+    """The same scene under a sun 30° from the zenith: the line is physical, every frame valid, and no row
+    reads beyond ``ELM_MAX_FULL_SCALE``."""
+    valid, peak, sunlit = _frames(subject_obj, 30.0, kind)
+    assert sunlit.all() and valid.all()
+    assert peak.max() <= ELM_MAX_FULL_SCALE
+
+
+def test_the_rule_at_its_thresholds():
+    """Exactly ``ELM_MIN_SEPARATION_SIGMA`` σ apart is a line, a hair less is not; a full scale that reads
+    exactly ``ELM_MAX_FULL_SCALE`` fits, a hair more does not (exact binary numbers throughout)."""
+    assert ELM_MIN_SEPARATION_SIGMA == 20.0
+    refs = torch.tensor([[0.75, 0.25]], dtype=torch.float64)[..., None]
+    noise = torch.tensor([[36.0, 48.0]], dtype=torch.float64)[..., None]  # σ of the difference: 60 DN
+    at = torch.tensor([[1230.0, 30.0]], dtype=torch.float64)[..., None]  # 1200 DN = 20 x 60 DN
+    assert bool(elm_line_valid(at, refs, noise))
+    assert not bool(elm_line_valid(at + torch.tensor([0.0, 1e-6], dtype=torch.float64)[:, None], refs, noise))
+    quiet = torch.zeros_like(noise)
+    line = torch.tensor([[750.0, 250.0]], dtype=torch.float64)[..., None]  # a = 1000 DN per unit, b = 0
+    assert bool(elm_line_valid(line, refs, quiet, full_scale_dn=1500.0))  # reads 1.5
+    assert not bool(elm_line_valid(line, refs, quiet, full_scale_dn=1500.001))
+
+
+@pytest.mark.parametrize("signals", [[250.0, 750.0], [500.0, 500.0], [math.nan, 250.0], [math.inf, 250.0]],
+                         ids=["panels swapped", "no contrast", "nan", "inf"])
+def test_a_line_without_positive_finite_gain_is_not_valid(signals):
+    """The white panel read darker than the dark one (mislabelled panels), both read the same (both clipped or
+    both in shade), or a signal is not finite: no line, however quiet the sensor."""
+    refs = torch.tensor([[0.75, 0.25]], dtype=torch.float64)[..., None]
+    L = torch.tensor([signals], dtype=torch.float64)[..., None]
+    assert not bool(elm_line_valid(L, refs, torch.zeros_like(L)))
+
+
+def test_one_bad_band_invalidates_the_frame():
+    refs = torch.tensor([[[0.75] * 4, [0.25] * 4]], dtype=torch.float64)
+    L = torch.tensor([[[750.0, 750.0, 750.0, 251.0], [250.0] * 4]], dtype=torch.float64)
+    assert elm_line_valid(L, refs, torch.ones_like(L)).tolist() == [False]
+    L[0, 0, 3] = 750.0
+    assert elm_line_valid(L, refs, torch.ones_like(L)).tolist() == [True]
+
+
+def test_the_median_noise_is_the_sensors():
+    """``panel_median_noise_dn`` predicts the spread of a 256-pixel median drawn by the sensor model itself
+    (shot + read noise, ADC), within 10 %."""
+    from torchskin.bands import as_bands
+    from torchskin.render.sensor import Sensor, sensor_signal
+
+    sensor = Sensor(read_noise_e=50.0, atmosphere=False)
+    L = torch.full((400, 1, 256, 4), 0.01, dtype=torch.float64)  # 400 frames of a uniform panel
+    dn = sensor_signal(L, sensor, as_bands([544, 633, 1080, 1580]), focal_px=1000.0,
+                       generator=torch.Generator().manual_seed(3))
+    med = dn.median(dim=2).values  # (400, 1, 4)
+    want = panel_median_noise_dn(med.mean(0), 256, 50.0, 2**14 / sensor.full_well_e)
+    assert med.std(0) / want == pytest.approx(torch.ones(1, 4, dtype=torch.float64), rel=0.1)
+
+
+def test_a_billion_configurations_are_refused_before_anything_is_written(tmp_path, capsys):
+    """``generate --configs 1000000000`` would write ~8 TB: refused in one line naming --configs, exit 2, and the
+    output folder never made."""
+    from torchskin.cli import main
+
+    out = tmp_path / "huge"
+    assert main(["generate", "--configs", "1000000000", "--out", str(out), "--quiet"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "--configs" in err[0] and "GB free" in err[0], err
+    assert not out.exists()
+
+
+def test_the_disk_estimate_covers_what_generate_writes(subject_obj, tmp_path):
+    """The estimate is not below what a run writes (so that a run that fits is not cut short by a full disk),
+    nor wildly above it (so that a run that fits is not refused)."""
+    from torchskin.dataset.generate import estimate_bytes, generate
+
+    cfg = _cfg(subject_obj, 30.0, "lambertian")
+    for images in (False, True):
+        d = tmp_path / f"d{images}"
+        man = generate(cfg, 12, 0, d, quiet=True, images=images)
+        wrote = sum(s["bytes"] + s.get("images", {}).get("bytes", 0) for s in man["shards"])
+        est = estimate_bytes(cfg, 12, images)
+        assert wrote <= est <= 20 * wrote + 2**20
+
+
+def test_too_little_disk_is_refused_when_resuming(monkeypatch, tmp_path):
+    import shutil
+
+    from torchskin.dataset import generate as G
+
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**12, 10**12 - 1000, 1000))
+    with pytest.raises(ValueError, match="--configs: the dataset would take about"):
+        G.check_disk_space(tmp_path / "not" / "yet", 1001)
+    G.check_disk_space(tmp_path / "not" / "yet", 1000)
+    G.check_disk_space(tmp_path, 1500, reclaim=500)  # what --overwrite deletes first counts as free
+
+
+def test_verify_of_a_dataset_missing_most_of_its_shards_prints_one_short_line(tmp_path, capsys):
+    """An interrupted run of a billion configurations leaves a manifest that lists 20 million shards and holds a
+    few (here 300,000 for speed): ``dataset verify`` says how many are missing and where, in one short line (text and --json)."""
+    import json
+
+    from torchskin.cli import main
+    from torchskin.dataset.generate import MANIFEST
+
+    n = 300_000  # a billion configurations list 20 million
+    (tmp_path / MANIFEST).write_text(json.dumps({"n_shards": n, "shards": []}))
+    assert main(["dataset", "verify", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert len(out) < 300 and f"missing {n}: shard-00000.parquet..shard-{n - 1:05d}.parquet;" in out, out
+    assert main(["dataset", "verify", str(tmp_path), "--json"]) == 1
+    out = capsys.readouterr().out
+    rep = json.loads(out)
+    assert len(out) < 400 and rep["missing"] == n and rep["corrupted"] == 0 and not rep["ok"]
+
+
+def test_name_ranges_shows_runs_and_gaps():
+    from torchskin.dataset.generate import name_ranges
+
+    names = [f"shard-{k:05d}.parquet" for k in (0, 1, 2, 5, 7, 8)] + ["images/images-00003.npy", ".x.tmp"]
+    assert name_ranges(names, limit=10) == ("8: .x.tmp, images/images-00003.npy, shard-00000.parquet.."
+                                            "shard-00002.parquet, shard-00005.parquet, shard-00007.parquet.."
+                                            "shard-00008.parquet")
+    assert name_ranges(names, limit=2).endswith("... (3 more runs)")
+    assert name_ranges([]) == "none"
