@@ -183,3 +183,48 @@ def test_name_ranges_shows_runs_and_gaps():
                                             "shard-00008.parquet")
     assert name_ranges(names, limit=2).endswith("... (3 more runs)")
     assert name_ranges([]) == "none"
+
+
+def _closed_port():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # closed once the socket is: nothing listens there
+
+
+def test_a_ray_address_where_no_cluster_answers_fails_in_bounded_time(monkeypatch, tmp_path, capsys):
+    """``generate --backend ray --address`` with a typo in the port: one line naming --address within the
+    connect timeout (shortened here), exit 2, no output folder; Ray itself would retry for minutes."""
+    import time
+
+    pytest.importorskip("ray")
+    from torchskin.cli import main
+    from torchskin.dataset import generate as G
+
+    monkeypatch.setattr(G, "RAY_CONNECT_TIMEOUT_S", 2.0)
+    out = tmp_path / "d"
+    t0 = time.monotonic()
+    rc = main(["generate", "--configs", "48", "--out", str(out), "--quiet", "--backend", "ray",
+               "--address", f"127.0.0.1:{_closed_port()}"])
+    took = time.monotonic() - t0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and "--address" in err[0] and "within 2 s" in err[0], err
+    assert took < 10 and not out.exists()
+
+
+def test_a_listening_cluster_is_found_at_once_and_a_malformed_address_is_named():
+    import socket
+    import time
+
+    from torchskin.dataset.generate import wait_for_cluster
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        t0 = time.monotonic()
+        wait_for_cluster(f"ray://127.0.0.1:{s.getsockname()[1]}", timeout_s=5.0)
+        assert time.monotonic() - t0 < 1.0
+    for bad in ("head", "head:", "head:99999", ":6379"):
+        with pytest.raises(ValueError, match="--address must be host:port"):
+            wait_for_cluster(bad)

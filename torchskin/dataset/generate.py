@@ -654,7 +654,7 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
 
     ``backend="local"`` runs the shards in this process; ``backend="ray"`` runs one Ray task per shard on the
     cluster at ``address`` (a local cluster of ``workers`` CPUs when None; GPUs requested when ``device`` is
-    cuda). Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
+    cuda); a cluster that accepts no connection within ``RAY_CONNECT_TIMEOUT_S`` (30 s) is an error. Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
     shared filesystem. Both backends give the same bytes. ``images`` also stores every group's full
     reflectance cubes in ``images-NNNNN.npy`` shards (much larger, and slower: full frames are rendered).
     ``compile``: render with the compiled kernels (``render.kernels``; "auto": for runs of at least
@@ -703,6 +703,12 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
     for p in (_dataset_files(out) if out.is_dir() else []):
         if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
+    if backend == "ray" and address:  # before the folder is made: a cluster that is not there fails in bounded time
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
+            raise ValueError("the ray backend needs Ray: pip install 'torchskin[ray]'")
+        wait_for_cluster(address)
     created = not out.exists()
     had_manifest = (out / MANIFEST).exists()  # else a failure before the first shard leaves the folder as it was
     out.mkdir(parents=True, exist_ok=True)
@@ -753,6 +759,54 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
             _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, images, compile,
                      lambda k, e: (record(k, e), bar.update(per_shard(k))))
     return manifest()
+
+
+#: how long ``generate(backend="ray", address=...)`` waits for the cluster at ``address`` to accept a connection
+#: before it gives up (seconds): a cluster that is still starting gets this long, one that does not exist fails
+#: in one line instead of Ray's own minutes of retries
+RAY_CONNECT_TIMEOUT_S = 30.0
+
+
+def ray_endpoint(address: str) -> tuple[str, int] | None:
+    """(host, port) that a Ray ``address`` names: "host:port", "ray://host:port" (Ray Client) or "[v6]:port";
+    None for "auto" and "local" (Ray finds those itself). Raises ``ValueError`` naming ``--address`` otherwise.
+
+    >>> ray_endpoint("ray://head.example:10001"), ray_endpoint("10.0.0.2:6379"), ray_endpoint("auto")
+    (('head.example', 10001), ('10.0.0.2', 6379), None)
+    """
+    if address in ("auto", "local"):
+        return None
+    rest = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--address must be host:port, ray://host:port or auto, got {address!r}")
+    return host, int(port)
+
+
+def wait_for_cluster(address: str, timeout_s: float | None = None) -> None:
+    """Return once the Ray cluster at ``address`` accepts a TCP connection (``ray_endpoint``); raise
+    ``ValueError`` (one line naming ``--address``) when none does within ``timeout_s`` seconds (default
+    ``RAY_CONNECT_TIMEOUT_S``; retrying every second while the deadline allows)."""
+    import socket
+    import time
+
+    timeout_s = RAY_CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+    end = ray_endpoint(address)
+    if end is None:
+        return
+    deadline = time.monotonic() + timeout_s
+    why = "no answer"
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            with socket.create_connection(end, timeout=max(0.1, min(5.0, left))):
+                return
+        except OSError as e:  # refused, unreachable, unknown host, timed out
+            why = e.strerror or type(e).__name__
+        if time.monotonic() + 1.0 >= deadline:
+            raise ValueError(f"--address: no Ray cluster answered at {address!r} within {timeout_s:g} s ({why})")
+        time.sleep(1.0)
 
 
 def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, images, compile, on_done) -> None:
