@@ -228,3 +228,162 @@ def test_a_listening_cluster_is_found_at_once_and_a_malformed_address_is_named()
     for bad in ("head", "head:", "head:99999", ":6379"):
         with pytest.raises(ValueError, match="--address must be host:port"):
             wait_for_cluster(bad)
+
+
+# ------------------------------------------------------------------------------------------------ onboard
+from pathlib import Path  # noqa: E402
+
+DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
+
+
+def _skin_cube(h=20, w=20):
+    """A reflectance frame: a skin patch (rows 5-14, columns 5-14) on a grey background."""
+    cube = np.full((4, h, w), 0.2, dtype=np.float32)
+    cube[:, 5:15, 5:15] = np.array([0.25, 0.35, 0.55, 0.15], dtype=np.float32)[:, None, None]
+    return cube
+
+
+def _one_line(capsys, rc):
+    out, err = capsys.readouterr()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and out == "" and len(lines) == 1, (rc, out, err)
+    return lines[0]
+
+
+@pytest.mark.parametrize("scale,hint", [(13142 / 0.55, "digital numbers"), (100.0, "per cent")],
+                         ids=["digital numbers", "per cent"])
+def test_detect_on_a_cube_that_is_not_reflectance_is_refused_with_a_hint(tmp_path, capsys, scale, hint):
+    """``detect`` on ``signal.npy`` (DN up to 13,142) or on a cube in per cent used to exit 0 with skin pixels."""
+    from torchskin.cli import main
+
+    np.save(tmp_path / "c.npy", _skin_cube() * np.float32(scale))  # max 13,142 DN, resp. 55 %
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG]))
+    assert hint in line and "1.5" in line, line
+
+
+def test_detect_refuses_reflectance_far_below_zero_even_when_clipping(tmp_path, capsys):
+    """--clip-negative is for noise on dark pixels (about -0.001), not for a cube with an offset (-0.5)."""
+    from torchskin.cli import main
+
+    cube = _skin_cube() - np.float32(0.7)
+    np.save(tmp_path / "c.npy", cube)
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG,
+                                   "--clip-negative"]))
+    assert "far below 0" in line, line
+
+
+def test_the_detector_refuses_out_of_meaning_values_on_the_tiled_path_too():
+    """Frames larger than a tile run tile by tile (and in threads); the range check holds there as well."""
+    from torchskin.onboard import OnboardDetector
+
+    det = OnboardDetector(DET, threads=2, tile=1024)
+    cube = np.tile(_skin_cube(), (1, 4, 4))[None]  # 80 x 80: 7 tiles
+    out = det(cube, [40.0, 30.0, 60.0])
+    assert out["mask"].sum() > 0
+    cube[0, 2, 70, 70] = 1.6  # one value in the last tile
+    with pytest.raises(ValueError, match="far above 1"):
+        det(cube, [40.0, 30.0, 60.0])
+    cube[0, 2, 70, 70] = -0.05  # noise: clipped, accepted
+    assert "clipped_values" in det(cube, [40.0, 30.0, 60.0], negative="clip")
+
+
+@pytest.mark.parametrize("dtype", ["<f8", ">f8", "<f2", ">f4", "<f4"])
+def test_detect_reads_every_float_dtype_and_byte_order_alike(tmp_path, capsys, dtype):
+    """``detect`` used to refuse float64, float16 and big-endian float32 ("must be float32 ... got >f4") while
+    ``calibrate`` converted them: the same cube in any float dtype gives the same mask."""
+    import json
+
+    from torchskin.cli import main
+
+    np.save(tmp_path / "c.npy", _skin_cube().astype(dtype))
+    assert main(["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+
+
+@pytest.mark.parametrize("dtype", ["<f8", ">f4", "<f2", "<u2"])
+def test_calibrate_reads_every_dtype_alike(tmp_path, capsys, dtype):
+    from torchskin.cli import main
+
+    dn = np.full((4, 20, 20), 500.0, dtype=np.float64)
+    dn[:, :5, :5], dn[:, -5:, -5:] = 9700.0, 300.0  # panels 0.97 and 0.03 with gain 10000, offset 0
+    np.save(tmp_path / "dn.npy", dn.astype(dtype))
+    assert main(["calibrate", "--cube", str(tmp_path / "dn.npy"), "--panel", "0:5:0:5=0.97", "--panel",
+                 "15:20:15:20=0.03", "--out", str(tmp_path / "r.npy")]) == 0
+    capsys.readouterr()
+    r = np.load(tmp_path / "r.npy")
+    assert r.dtype == np.float32 and r[:, 10, 10] == pytest.approx([0.05] * 4, abs=1e-3)
+
+
+@pytest.mark.parametrize("second", ["0:5:0:5=0.5", "2:7:2:7=0.5"], ids=["same region", "overlapping"])
+def test_calibrate_refuses_the_same_or_overlapping_panel_regions(tmp_path, capsys, second):
+    """The same region given twice (= 0.97 and = 0.5) used to exit 0 with reflectance from -0.157 to 0.874."""
+    from torchskin.cli import main
+
+    dn = np.full((4, 20, 20), 500.0, dtype=np.float32)
+    np.save(tmp_path / "dn.npy", dn)
+    line = _one_line(capsys, main(["calibrate", "--cube", str(tmp_path / "dn.npy"), "--panel", "0:5:0:5=0.97",
+                                   "--panel", second, "--out", str(tmp_path / "r.npy")]))
+    assert "panel regions 0:5:0:5 and" in line and ("same region" in line or "overlap" in line), line
+    assert not (tmp_path / "r.npy").exists()
+
+
+def test_calibrate_reports_the_fit_residual(tmp_path, capsys):
+    """With three panels, one of them off the line (its reflectance mistyped), the residual says so."""
+    import json
+
+    from torchskin.cli import main
+
+    dn = np.full((4, 30, 30), 500.0, dtype=np.float32)
+    dn[:, :5, :5], dn[:, 10:15, 10:15], dn[:, -5:, -5:] = 9700.0, 5000.0, 300.0
+    np.save(tmp_path / "dn.npy", dn)
+    argv = ["calibrate", "--cube", str(tmp_path / "dn.npy"), "--panel", "0:5:0:5=0.97", "--panel",
+            "25:30:25:30=0.03", "--out", str(tmp_path / "r.npy")]
+    assert main([*argv, "--panel", "10:15:10:15=0.5", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["residual"] == pytest.approx([0.0] * 4, abs=1e-9)
+    assert main([*argv, "--panel", "10:15:10:15=0.3", "--json"]) == 0  # should have been 0.5
+    assert min(json.loads(capsys.readouterr().out)["residual"]) > 0.05
+    assert main([*argv, "--panel", "10:15:10:15=0.3"]) == 0
+    assert "residual 0." in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", ["detect", "calibrate"])
+def test_a_huge_cube_is_refused_from_its_header_before_it_is_read(tmp_path, capsys, command):
+    """A 4 x 20000 x 20000 float32 cube (6.4 GB) used to be loaded whole by ``detect``. The header says 400
+    megapixels, above render's cap of 16: refused before any data is read (here the file holds the header
+    only: reading its data would fail), naming --max-megapixels."""
+    from torchskin.cli import main
+
+    p = tmp_path / "big.npy"
+    with open(p, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False,
+                                                  "shape": (4, 20000, 20000)})
+    argv = ["--cube", str(p), *(CFG if command == "detect" else ["--panel", "0:5:0:5=0.97", "--panel",
+                                                                 "9:12:9:12=0.03"])]
+    extra = ["--model", DET] if command == "detect" else ["--out", str(tmp_path / "r.npy")]
+    line = _one_line(capsys, main([command, *extra, *argv]))
+    assert "400.0 megapixels" in line and "--max-megapixels" in line, line
+
+
+def test_max_megapixels_raises_the_cap_as_for_render(tmp_path, capsys):
+    import json
+
+    from torchskin.cli import main
+
+    np.save(tmp_path / "c.npy", _skin_cube())  # 400 pixels
+    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG, "--json"]
+    assert "--max-megapixels" in _one_line(capsys, main([*argv, "--max-megapixels", "0.0001"]))
+    assert main([*argv, "--max-megapixels", "0.0004"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+
+
+def test_the_onboard_path_still_imports_no_torch(tmp_path):
+    import subprocess
+    import sys
+
+    np.save(tmp_path / "c.npy", _skin_cube().astype(">f8"))
+    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG]
+    code = (f"import sys; from torchskin.cli import main; rc = main({argv!r}); "
+            "assert 'torch' not in sys.modules, 'torch imported'; sys.exit(rc)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr

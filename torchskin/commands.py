@@ -15,6 +15,7 @@ from . import __version__, tissue
 from .bands import DEFAULT_BANDS, band_sampling, parse_bands
 from .detect import DEFAULT_BOX, indices, rules_detector
 from .errors import Parser, check_input_file, check_output_file, check_output_folder
+from .io import MAX_MEGAPIXELS
 from .optics import DEFAULT_SURFACE, SURFACE_MODELS
 
 SURFACE_HELP = ("skin surface model of eq 3.1.1's diffuse term: thesis (default; rho_d includes the front surface, "
@@ -193,10 +194,9 @@ def _check_atmosphere(args) -> None:
                          f"horizon), got {args.source_zenith:g}")
 
 
-#: the largest frame `render` and `experiment` make unless --max-megapixels raises it, and the largest --sample
-MAX_MEGAPIXELS = 16.0
 #: ``generate --compile`` choices -> ``dataset.generate.generate(compile=...)``
 COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": False}
+#: the largest --sample (the frame cap, MAX_MEGAPIXELS, is io's: render, experiment, detect and calibrate share it)
 MAX_SAMPLE = 10_000_000
 
 

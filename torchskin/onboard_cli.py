@@ -12,8 +12,8 @@ import os
 import numpy as np
 
 from .errors import Parser, check_input_file, check_output_file, one_line
-from .io import save_npy, write_png, write_text
-from .onboard import OnboardDetector, elm_apply, elm_fit
+from .io import MAX_MEGAPIXELS, save_npy, write_png, write_text
+from .onboard import OnboardDetector, elm_apply, elm_fit, load_cube
 
 #: the ``torchskin detect`` option (without ``--``, ``_`` for ``-``) that gives each configuration feature
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
@@ -52,25 +52,6 @@ def parse_panel(text: str) -> tuple[tuple[int, int, int, int], float | list[floa
     return parse_roi(roi), vals[0] if len(vals) == 1 else vals
 
 
-def load_cube(path: str | os.PathLike, option: str = "--cube") -> np.ndarray:
-    """A numeric, non-empty, finite array from a ``.npy`` file (no pickles, no ``.npz`` archives), with a
-    one-line ``ValueError`` naming ``option`` and the file otherwise."""
-    p = check_input_file(path, option, (".npy",))
-    try:
-        x = np.load(p, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as e:
-        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
-    if not isinstance(x, np.ndarray):
-        raise ValueError(f"{option} {str(p)!r} is not a single .npy array")
-    if not (np.issubdtype(x.dtype, np.floating) or np.issubdtype(x.dtype, np.integer)):
-        raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {x.dtype}")
-    if x.size == 0:
-        raise ValueError(f"{option} {str(p)!r} is empty (shape {x.shape})")
-    if np.issubdtype(x.dtype, np.floating) and not np.isfinite(x).all():
-        raise ValueError(f"{option} {str(p)!r} holds NaN or infinite values")
-    return x
-
-
 def read_coefficients(path: str) -> tuple[np.ndarray, np.ndarray]:
     """(gain, offset) from an ELM coefficients JSON (``--save-coefficients``), one-line errors otherwise."""
     coef_path = check_input_file(path, "--coefficients", (".json",))
@@ -99,6 +80,8 @@ def calibrate_parser() -> Parser:
     ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
     ap.add_argument("--out", required=True, help="reflectance cube .npy (float32)")
     ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
+    ap.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
+                    help=f"refuse frames larger than this (default {MAX_MEGAPIXELS:g})")
     ap.add_argument("--json", action="store_true")
     return ap
 
@@ -112,7 +95,7 @@ def cli_calibrate(argv: list[str]) -> int:
     out = check_output_file(args.out, "--out", (".npy",))
     save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
         if args.save_coefficients else None
-    cube = load_cube(args.cube, "--cube")
+    cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if args.coefficients:
         gain, offset = read_coefficients(args.coefficients)
         fit = None
@@ -141,7 +124,8 @@ def cli_calibrate(argv: list[str]) -> int:
     else:
         print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
               f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
-              + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
+              + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
+              + ("" if fit is None else "; residual " + ", ".join(f"{v:.3g}" for v in fit["residual"])))
     return 0
 
 
@@ -163,6 +147,8 @@ def detect_parser() -> Parser:
                     help="pixels whose mean reflectance over the bands is not above this are never skin (their "
                          "indices are noise); default: the floor the model was evaluated with (its metadata "
                          "min_reflectance; 0 for models without it)")
+    ap.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
+                    help=f"refuse frames larger than this (default {MAX_MEGAPIXELS:g})")
     ap.add_argument("--json", action="store_true")
     return ap
 
@@ -187,7 +173,7 @@ def cli_detect(argv: list[str]) -> int:
     args = detect_parser().parse_args(argv)
     mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
     det = OnboardDetector(check_input_file(args.model, "--model", (".onnx",)))
-    cube = load_cube(args.cube, "--cube")
+    cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if cube.ndim == 3:
         cube = cube[None]
     values = configuration_values(args, det.features)
