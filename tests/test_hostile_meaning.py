@@ -387,3 +387,23 @@ def test_the_onboard_path_still_imports_no_torch(tmp_path):
             "assert 'torch' not in sys.modules, 'torch imported'; sys.exit(rc)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+def test_render_calls_a_grazing_sun_frame_invalid_as_the_dataset_does(tmp_path, capsys):
+    """``render`` with a sun 87° from the zenith, off to the side of a camera 30° from the zenith: the panels
+    are sunlit, but the line through them is not the scene's; render.json says elm_valid false (as the dataset generator would) and the warning says why."""
+    import json
+
+    from torchskin.cli import main
+
+    out = tmp_path / "r"
+    argv = ["render", "--out", str(out), "--width", "48", "--height", "48", "--json", "--camera-zenith", "30",
+            "--source-azimuth", "90"]
+    assert main([*argv, "--source-zenith", "87"]) == 0
+    cap = capsys.readouterr()
+    doc = json.loads((out / "render.json").read_text())["summary"]
+    assert min(doc["panel_sunlit_fraction"]) >= 0.5 and not doc["elm_line_valid"] and not doc["elm_valid"]
+    assert "not physical" in cap.err and "not sunlit" not in cap.err
+    assert main([*argv, "--source-zenith", "30"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["elm_valid"] and "warning" not in cap.err
