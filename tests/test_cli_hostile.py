@@ -336,10 +336,12 @@ def test_render_elm_validity_is_reported(tmp_path, capsys):
 
 @pytest.mark.anny
 @pytest.mark.slow
-@pytest.mark.parametrize("view", [["--camera-azimuth", "90"], ["--camera-zenith", "0"]], ids=["side", "overhead"])
+@pytest.mark.parametrize("view", [["--camera-azimuth", "90", "--source-azimuth", "110"], ["--camera-zenith", "0"]],
+                         ids=["side", "overhead"])
 def test_render_side_and_overhead_views_calibrate_and_detect(tmp_path, capsys, view):
-    """The panels face the camera wherever it is: a side view (camera azimuth 90°) and an overhead camera both
-    give a valid ELM; `calibrate` through the panel regions in render.json reproduces the renderer's
+    """The panels face the camera wherever it is: a side view (camera azimuth 90°, the sun turned with it: with
+    the default sun at azimuth 20° the panels facing that camera are lit at half the subject's irradiance and the
+    frame reads up to 2.2, not a physical line) and an overhead camera both give a valid ELM; `calibrate` through the panel regions in render.json reproduces the renderer's
     reflectance and `detect` runs the shipped detector on it."""
     out = tmp_path / "r"
     assert main(["render", "--out", str(out), "--width", "128", "--height", "128", *view, "--json"]) == 0

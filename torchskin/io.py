@@ -1,4 +1,6 @@
-"""Crash-safe file writing: write to a temporary name in the target folder, fsync, then rename."""
+"""Crash-safe file writing (write to a temporary name in the target folder, fsync, then rename) and the one
+reading of ``.npy`` headers and the dtype rule of the cubes commands take (``as_float32``; the reader is
+``onboard.load_cube``). numpy only."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    import numpy as np
     from numpy.typing import ArrayLike
 
 #: a file path as the writers take it: a ``str`` or any ``os.PathLike[str]`` (``pathlib.Path``)
@@ -153,3 +156,46 @@ def write_png(path: StrPath, image: ArrayLike) -> None:
     colour = 2 if a.ndim == 3 else 0
     write_bytes(path, b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, colour, 0, 0, 0))
                 + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+# ------------------------------------------------------------------------------------------------ reading cubes
+#: the largest frame (height x width, megapixels) a command makes or reads unless ``--max-megapixels`` raises it:
+#: ``render`` and ``experiment`` check their resolution against it, ``detect`` and ``calibrate`` a cube's header
+#: (``onboard.load_cube``) before they read its data
+MAX_MEGAPIXELS = 16.0
+
+
+def as_float32(x: ArrayLike) -> np.ndarray:
+    """``x`` as native-byte-order float32, the one dtype the onboard runtime computes in: float64, float16,
+    float32 of either byte order and integers (digital numbers, exact up to 2^24) convert alike; an array that
+    already is native float32 comes back as it is (a memory map stays one). Raises ``ValueError`` for
+    anything that does not hold real numbers (bool, complex, strings, objects).
+
+    >>> import numpy as np
+    >>> as_float32(np.array([1.5, 2.0], dtype=">f8")).dtype.str, as_float32(np.arange(3, dtype=np.uint16)).tolist()
+    ('<f4', [0.0, 1.0, 2.0])
+    """
+    import numpy as np
+
+    a = np.asarray(x)
+    if a.dtype.kind not in "fiu":
+        raise ValueError(f"must hold real numbers, got dtype {a.dtype}")
+    if a.dtype == np.dtype(np.float32) and a.dtype.isnative:
+        return a
+    return a.astype(np.float32)
+
+
+def npy_header(path: StrPath) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) of a ``.npy`` file from its header alone (``numpy.lib.format``), reading none of its data.
+    Raises ``ValueError`` when the file is not a ``.npy`` array."""
+    import numpy as np
+
+    with open(path, "rb") as fh:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version in ((2, 0), (3, 0)):  # 3.0 differs only in the header's text encoding
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise ValueError(f"unsupported .npy format version {version}")
+    return tuple(shape), dtype

@@ -7,7 +7,10 @@
 ``score`` is the smallest margin to a box edge in index units weighted by the band-pair sum (positive inside;
 see ``torchskin.export.BoxDetector``).
 
-Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance raise ``ValueError``;
+Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance, and values far outside
+[0, 1.2] (below ``REFLECTANCE_MIN``, or above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE`` of the
+values: digital numbers, per cent; a glint is allowed) raise ``ValueError``;
+float64, float16 and big-endian cubes are converted to float32 (``io.as_float32``);
 configurations outside the training domain are flagged per frame in ``out_of_domain`` (never silently used).
 Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative reflectance from sensor noise:
 ``det(cube, config, negative="clip")`` sets those values to 0 instead and counts them per frame in
@@ -20,6 +23,7 @@ The ELM of camera frames (``panel_signal``, ``elm_fit``, ``elm_apply``) is numpy
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 from collections.abc import Callable, Sequence
@@ -28,8 +32,47 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .io import MAX_MEGAPIXELS, StrPath, as_float32, npy_header
+
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor
+
+#: reflectance above this in more than ``REFLECTANCE_MAX_SHARE`` of a cube's values is not calibrated reflectance:
+#: the detector refuses the cube. The ELM maps the white panel (0.97-0.99) near the top of the sensor's range; a
+#: calibrated frame reads more only where a surface receives more light than the panels (a surface facing a low
+#: sun that grazes level panels, ``render.elm.ELM_MAX_FULL_SCALE``) or in a specular glint (water, glass, a
+#: car), which is why a few such values are allowed. Digital numbers (up to 2^bits) and per cent (up to 100) put
+#: nearly every value above it
+REFLECTANCE_MAX = 1.5
+#: the share of a cube's values that may read above ``REFLECTANCE_MAX`` (glints, sun-facing surfaces)
+REFLECTANCE_MAX_SHARE = 0.01
+#: reflectance below this anywhere in a frame is refused too: the ELM's noise on a black pixel is σ_DN / gain, about
+#: 1e-4 with the white panel near full scale and 1e-3 with it at 1/16 of it (read noise 20-80 e-, 14-bit ADC:
+#: ``render.elm.panel_median_noise_dn``), so -0.2 is hundreds of σ away: an offset or a line that is wrong, not noise
+#: (``negative="clip"`` clips only values above this)
+REFLECTANCE_MIN = -0.2
+
+
+def check_reflectance_range(low: float, high: float, above: float = 1.0) -> None:
+    """``ValueError`` with a hint when a cube's reflectance lies out of meaning: its smallest value ``low`` below
+    ``REFLECTANCE_MIN``, or its largest ``high`` above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE``
+    of its values (``above``: that share; 1 when not counted). Values far outside [0, 1.2] are not calibrated
+    reflectance.
+
+    >>> check_reflectance_range(0.0, 4.0, above=0.0005)  # a glint: fine
+    >>> check_reflectance_range(0.0, 97.0, above=0.9)
+    Traceback (most recent call last):
+    ...
+    ValueError: cube reads reflectance above 1.5 in 90.0 % of its values (up to 97; refused above 1 %): is this uncalibrated signal (digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?
+    """
+    if high > REFLECTANCE_MAX and above > REFLECTANCE_MAX_SHARE:
+        raise ValueError(f"cube reads reflectance above {REFLECTANCE_MAX:g} in {100 * above:.1f} % of its values (up "
+                         f"to {high:.4g}; refused above {100 * REFLECTANCE_MAX_SHARE:g} %): is this uncalibrated signal "
+                         "(digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?")
+    if low < REFLECTANCE_MIN:
+        raise ValueError(f"cube reads reflectance down to {low:.4g}, far below 0 (refused below "
+                         f"{REFLECTANCE_MIN:g}; sensor noise reaches about -0.001): is this uncalibrated signal "
+                         "with an offset, or calibrated with swapped panels?")
 
 
 class _Model:
@@ -182,9 +225,10 @@ class OnboardDetector(_Model):
 
     def _run_tiles(self, flat: np.ndarray, c: np.ndarray, mask: np.ndarray, score: np.ndarray,
                    take: Callable[[], tuple[int, int, int] | None], slot: int = 0, clipped: np.ndarray | None = None,
-                   floor: float = 0.0) -> float:
+                   floor: float = 0.0) -> tuple[float, float, int]:
         """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffer
-        ``slot``; return the smallest reflectance seen (NaN if any). ``clipped`` (per-frame counts): set
+        ``slot``; return the smallest and largest reflectance seen before clipping (NaN if any) and how many values
+        exceed ``REFLECTANCE_MAX``. ``clipped`` (per-frame counts): set
         negative values to 0 and count them. ``floor``: pixels whose band sum is not above it are not skin.
         A box graph runs split (``_split_box_graph``): its edge matrices once per frame, its per-pixel head per
         tile."""
@@ -204,7 +248,7 @@ class OnboardDetector(_Model):
         # than into the same memory viewed through a (1, 4, 1, tile) array's [0, :, 0, :]
         io.bind_cpu_input("cube", buf.reshape(1, 4, 1, self.tile))  # the tile buffer is bound once and refilled
         sums, brights = np.empty(self.tile, dtype=np.float32), np.empty(self.tile, dtype=bool)
-        low, frame = np.inf, -1
+        low, high, over, frame = np.inf, -np.inf, 0, -1
         for b, lo, hi in iter(take, None):
             n = hi - lo
             if n != self.tile:  # the ragged last tile of a frame
@@ -213,10 +257,14 @@ class OnboardDetector(_Model):
             else:
                 t = buf
             t[...] = flat[b, :, lo:hi]
+            low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
+            top = t.max()
+            high = np.maximum(high, top)
+            if top > REFLECTANCE_MAX:  # counted only then: a calibrated tile pays for the maximum alone
+                over += int(np.count_nonzero(t > REFLECTANCE_MAX))
             if clipped is not None:
                 clipped[b] += np.count_nonzero(t < 0)
                 np.maximum(t, 0, out=t)  # NaN stays NaN
-            low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
             if b != frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
                 if per_frame is not None:  # kept referenced while bound: the binding does not copy them
                     edges = per_frame.run(None, {"config": c[b:b + 1]})
@@ -240,7 +288,7 @@ class OnboardDetector(_Model):
                 np.logical_and(mask[b, lo:hi], bright, out=mask[b, lo:hi])
             if t is not buf:
                 io.bind_cpu_input("cube", buf.reshape(1, 4, 1, self.tile))
-        return low
+        return low, high, over
 
     def pixels(self, reflectance: ArrayLike, config: ArrayLike, chunk: int = 65536) -> dict:
         """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, 4) and
@@ -263,10 +311,14 @@ class OnboardDetector(_Model):
         return {"mask": mask, "score": score}
 
     @staticmethod
-    def _check_low(low: float) -> None:
-        if np.isnan(low):
+    def _check_low(low: float, high: float = 0.0, clip: bool = False, above: float = 1.0) -> None:
+        """``ValueError`` for a cube whose smallest and largest values (before clipping) are ``low`` and
+        ``high``, with a share ``above`` of its values above ``REFLECTANCE_MAX``: NaN, out of meaning
+        (``check_reflectance_range``), or negative unless ``clip``."""
+        if not (np.isfinite(low) and np.isfinite(high)):
             raise ValueError("cube holds NaN or infinite reflectance")
-        if low < 0:
+        check_reflectance_range(low, high, above)
+        if low < 0 and not clip:
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
 
@@ -278,11 +330,12 @@ class OnboardDetector(_Model):
         if x.shape[1] != len(self.bands_nm or [0] * 4):
             raise ValueError(f"cube must have {len(self.bands_nm)} bands ({self.bands_nm} nm) on axis 1, "
                              f"got {x.shape[1]}")
-        if x.dtype != np.float32:
-            raise ValueError(f"cube must be float32 reflectance, got {x.dtype}")
         if x.size == 0:
             raise ValueError(f"cube is empty: shape {x.shape}")
-        return x
+        try:
+            return as_float32(x)  # float64, float16, either byte order, integers: converted alike
+        except ValueError as e:
+            raise ValueError(f"cube {e}") from None
 
     @staticmethod
     def _check_out(out: tuple[np.ndarray, np.ndarray], shape: tuple[int, int, int]) -> None:
@@ -309,8 +362,9 @@ class OnboardDetector(_Model):
         """Detect skin in ELM reflectance frames.
 
         Args:
-            cube: float32 reflectance, bands (544, 633, 1080, 1580 nm: the model's ``bands_nm``) on axis 1;
-                finite, and non-negative unless ``negative="clip"``.
+            cube: reflectance (float32; other float and integer dtypes are converted), bands (544, 633, 1080,
+                1580 nm: the model's ``bands_nm``) on axis 1; finite, within [``REFLECTANCE_MIN``,
+                ``REFLECTANCE_MAX``], and non-negative unless ``negative="clip"``.
             config: each frame's configuration features in the model's order and units (``features``).
             out: optional preallocated (mask, score) arrays, bool and float32, C-contiguous, that receive the
                 result (an onboard loop reuses them; their content is undefined if the call raises).
@@ -347,10 +401,12 @@ class OnboardDetector(_Model):
         extra = {} if clipped is None else {"clipped_values": clipped}
         floor = x.shape[1] * float(min_reflectance)  # on the band sum
         if B * n <= self.tile:  # small frames: one call
+            top = x.max()
+            share = np.count_nonzero(x > REFLECTANCE_MAX) / x.size if top > REFLECTANCE_MAX else 0.0
+            self._check_low(x.min(), top, clipped is not None, share)
             if clipped is not None:
                 clipped += np.count_nonzero(x < 0, axis=(1, 2, 3))
                 x = np.maximum(x, 0)
-            self._check_low(x.min())
             mask, score = self.session.run(None, {"cube": np.ascontiguousarray(x), "config": c})
             if not np.isfinite(score.min()):
                 self._check_low(np.nan)
@@ -380,13 +436,14 @@ class OnboardDetector(_Model):
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="torchskin-detect")
         futures = [cast("ThreadPoolExecutor", self._pool).submit(self._run_tiles, flat, c, mask, score, take, i, counts[i], floor)
                    for i in range(1, k)]
-        lows = []
+        ranges = []
         try:  # the calling thread is worker 0
-            lows.append(self._run_tiles(flat, c, mask, score, take, 0, counts[0], floor))
+            ranges.append(self._run_tiles(flat, c, mask, score, take, 0, counts[0], floor))
         finally:  # never return (or raise) while a worker still writes into the outputs
-            lows += [f.result() for f in futures]
-        low = np.min(lows)  # NaN propagates
-        self._check_low(low)  # the outputs are discarded: no mask comes back from an invalid cube
+            ranges += [f.result() for f in futures]
+        lows, highs, overs = zip(*ranges)
+        # NaN propagates; the outputs are discarded: no mask comes back from an invalid cube
+        self._check_low(np.min(lows), np.max(highs), clipped is not None, sum(overs) / x.size)
         if clipped is not None:
             clipped += np.sum(cast(list[np.ndarray], counts), axis=0)
         if out is not None:
@@ -417,17 +474,40 @@ def panel_signal(frame: ArrayLike, roi: Sequence[int], erode: int = 1) -> np.nda
     return np.median(v, axis=1)
 
 
+def check_panel_regions(rois: Sequence[Sequence[int]]) -> None:
+    """``ValueError`` when two panel regions (y0, y1, x0, x1) are the same or overlap: two panels cannot share a
+    pixel, so one of them is mistyped, and the line through them would be fitted to one panel's signal twice.
+
+    >>> check_panel_regions([(0, 4, 0, 4), (0, 4, 4, 8)])  # side by side: fine
+    >>> check_panel_regions([(0, 4, 0, 4), (2, 6, 2, 6)])
+    Traceback (most recent call last):
+    ...
+    ValueError: panel regions 0:4:0:4 and 2:6:2:6 overlap (4 pixels): each panel needs its own region
+    """
+    boxes = [tuple(int(v) for v in r) for r in rois]
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            (a0, a1, b0, b1), (c0, c1, d0, d1) = boxes[i], boxes[j]
+            n = max(0, min(a1, c1) - max(a0, c0)) * max(0, min(b1, d1) - max(b0, d0))
+            if n:
+                what = "are the same region" if boxes[i] == boxes[j] else f"overlap ({n} pixels)"
+                raise ValueError(f"panel regions {':'.join(map(str, boxes[i]))} and {':'.join(map(str, boxes[j]))} "
+                                 f"{what}: each panel needs its own region")
+
+
 def elm_fit(frame: ArrayLike, panels: Sequence[tuple[Sequence[int], ArrayLike]], erode: int = 1) -> dict:
     """Empirical line L = gain·ρ + offset per band (eqs 2.5.5-2.5.6) from reference panels in ``frame``
     (bands, H, W): ``panels`` is a sequence of (roi, reflectance), the reflectance a scalar or one value per
-    band in (0, 1]. Two panels give the exact line through them; more give the least-squares line, whose RMS
-    residual (reflectance units) is reported per band."""
+    band in (0, 1]; the panels' regions must not overlap (``check_panel_regions``). Two panels give the exact
+    line through them; more give the least-squares line. ``residual``: per band, the RMS over the panels of the
+    fitted minus the known reflectance ((L - offset) / gain - ρ; 0 for two panels)."""
     f = np.asarray(frame)
     if f.ndim != 3:
         raise ValueError(f"frame must be (bands, H, W), got shape {f.shape}")
     if len(panels) < 2:
         raise ValueError(f"ELM needs at least 2 reference panels, got {len(panels)}")
     nb = f.shape[0]
+    check_panel_regions([roi for roi, _ in panels])
     refs, sig = [], []
     for roi, rho in panels:
         r = np.broadcast_to(np.asarray(rho, dtype=np.float64), (nb,)) if np.ndim(rho) == 0 else np.asarray(rho, np.float64)
@@ -464,3 +544,45 @@ def elm_apply(cube: ArrayLike, gain: ArrayLike, offset: ArrayLike) -> np.ndarray
         raise ValueError("gain must be finite and > 0 and offset finite in every band")
     inv = (1.0 / g)[:, None, None]
     return ((x - o[:, None, None]) * inv).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ reading cubes
+#: ``load_cube`` checks a cube for NaN and infinities this many values at a time (bounded temporaries)
+_FINITE_CHUNK = 1 << 22
+
+
+def load_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX_MEGAPIXELS) -> np.ndarray:
+    """The cube a command reads (``detect``, ``calibrate``): a ``.npy`` file (no pickles, no ``.npz``) of real
+    numbers, (bands, H, W) or (frames, bands, H, W), non-empty and finite, returned as native float32
+    (``io.as_float32``: float64, float16, big-endian and integer files convert alike). Its frame size (H x W)
+    must be at most ``max_megapixels`` (``io.MAX_MEGAPIXELS``, what ``--max-megapixels`` raises), checked from the
+    header before any data is read; a native float32 file is memory-mapped rather than read whole. Every
+    problem is a one-line ``ValueError`` naming ``option`` and the file."""
+    from .errors import check_input_file, one_line
+
+    p = check_input_file(path, option, (".npy",))
+    if not (np.isfinite(max_megapixels) and max_megapixels > 0):
+        raise ValueError(f"--max-megapixels must be a positive number, got {max_megapixels}")
+    try:
+        shape, dtype = npy_header(p)
+    except (OSError, ValueError, EOFError, SyntaxError) as e:
+        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
+    if dtype.hasobject or dtype.kind not in "fiu":
+        raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {dtype}")
+    if math.prod(shape) == 0:
+        raise ValueError(f"{option} {str(p)!r} is empty (shape {shape})")
+    if len(shape) >= 2:
+        mp = shape[-1] * shape[-2] / 1e6
+        if mp > max_megapixels:
+            raise ValueError(f"{option} {str(p)!r} frames are {shape[-2]} x {shape[-1]} = {mp:.1f} megapixels, above "
+                             f"the cap of {max_megapixels:g} (--max-megapixels raises it)")
+    try:
+        x = np.load(p, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
+    x = as_float32(x)
+    flat = x.reshape(-1)
+    for lo in range(0, flat.size, _FINITE_CHUNK):  # chunks: no temporary the size of the cube
+        if not np.isfinite(flat[lo:lo + _FINITE_CHUNK]).all():
+            raise ValueError(f"{option} {str(p)!r} holds NaN or infinite values")
+    return x

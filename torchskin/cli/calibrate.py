@@ -13,7 +13,7 @@ from ..errors import Parser, check_input_file, check_output_file, one_line
 from ..io import save_npy, write_text
 from ..onboard import elm_apply, elm_fit
 from .cubes import load_cube
-from .options import add_json, add_out_file
+from .options import add_json, add_max_megapixels, add_out_file
 
 PROG = "torchskin calibrate"
 DESCRIPTION = ("Signals (DN or radiance) to reflectance with the empirical line through reference panels in the "
@@ -74,6 +74,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
     add_out_file(ap, "the reflectance cube, .npy (float32)")
     ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
+    add_max_megapixels(ap)
     add_json(ap)
 
 
@@ -105,7 +106,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     out = check_output_file(args.out, "--out", (".npy",))
     save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
         if args.save_coefficients else None
-    cube = load_cube(args.cube, "--cube")
+    cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if args.coefficients:
         gain, offset = read_coefficients(args.coefficients)
         fit = None
@@ -134,5 +135,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
               f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
-              + "; offset " + ", ".join(f"{v:.5g}" for v in offset))
+              + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
+              + ("" if fit is None else "; residual " + ", ".join(f"{v:.3g}" for v in fit["residual"])))
     return 0

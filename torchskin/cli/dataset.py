@@ -10,14 +10,10 @@ from .options import add_json
 
 def cmd_dataset_verify(args: argparse.Namespace) -> int:
     """Run ``torchskin dataset verify``: status 0 when the shards match the manifest, 1 otherwise."""
-    from ..dataset.generate import verify
+    from ..dataset.generate import verify, verify_line, verify_summary
 
     rep = verify(args.dir)
-    if args.json:
-        print(json.dumps(rep))
-    else:
-        print(("ok" if rep["ok"] else "PROBLEMS") + f": {rep['shards']} shards, {rep['rows']} rows; missing "
-              f"{rep['missing'] or 'none'}, corrupted {rep['corrupted'] or 'none'}, partial {rep['partial'] or 'none'}")
+    print(json.dumps(verify_summary(rep)) if args.json else verify_line(rep))  # counts and ranges, never a list
     return 0 if rep["ok"] else 1
 
 

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import Parser, check_input_file, check_output_file
 from ..onboard import OnboardDetector
 from .cubes import load_cube, write_mask_png
-from .options import add_json, add_out_file
+from .options import add_json, add_max_megapixels, add_out_file
 
 PROG = "torchskin detect"
 DESCRIPTION = "Skin mask of a reflectance cube with the exported detector (numpy + onnxruntime, no torch)."
@@ -38,6 +38,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
                     help="pixels whose mean reflectance over the bands is not above this are never skin (their "
                          "indices are noise); default: the floor the model was evaluated with (its metadata "
                          "min_reflectance; 0 for models without it)")
+    add_max_megapixels(ap)
     add_json(ap)
 
 
@@ -80,7 +81,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     """Run ``torchskin detect`` on parsed options."""
     mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
     det = OnboardDetector(check_input_file(args.model, "--model", (".onnx",)))
-    cube = load_cube(args.cube, "--cube")
+    cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if cube.ndim == 3:
         cube = cube[None]
     values = configuration_values(args, det.features)

@@ -18,11 +18,11 @@ import math
 import os
 from typing import Any
 
+from ..io import MAX_MEGAPIXELS
+
 #: what ``add_argument`` is called on: a parser or one of its (mutually exclusive) groups
 ArgumentTarget = argparse._ActionsContainer
 
-#: the largest frame ``render`` and ``experiment`` make unless ``--max-megapixels`` raises it
-MAX_MEGAPIXELS = 16.0
 
 JSON_HELP = "print one JSON object (no progress output)"
 DEVICE_HELP = "torch device for shading (cpu, cuda, cuda:N, mps; default cpu)"
@@ -157,8 +157,14 @@ def add_frame(p: ArgumentTarget) -> None:
     """``--width``, ``--height`` and ``--max-megapixels`` (checked by ``check_frame``)."""
     p.add_argument("--width", type=int, default=512, help="frame width in pixels (default 512)")
     p.add_argument("--height", type=int, default=512, help="frame height in pixels (default 512)")
+    add_max_megapixels(p)
+
+
+def add_max_megapixels(p: ArgumentTarget) -> None:
+    """``--max-megapixels``: the frame cap (``io.MAX_MEGAPIXELS``) that ``render`` and ``experiment`` make and
+    ``detect`` and ``calibrate`` read within."""
     p.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
-                   help=f"refuse frames larger than this (default {MAX_MEGAPIXELS:g}; memory is checked too)")
+                   help=f"refuse frames larger than this many megapixels (default {MAX_MEGAPIXELS:g})")
 
 
 def add_no_noise(p: ArgumentTarget) -> None:
@@ -232,7 +238,7 @@ def check_frame(args: argparse.Namespace, bands: int, suns: int = 1) -> None:
 
 
 __all__ = ["ATMOSPHERE_OPTIONS", "BANDS_HELP", "DEVICE_HELP", "JSON_HELP", "MAX_MEGAPIXELS", "SURFACE_HELP", "add_atmosphere",
-           "add_bands", "add_device", "add_frame", "add_illumination", "add_json", "add_no_noise", "add_out_file",
+           "add_bands", "add_device", "add_frame", "add_illumination", "add_json", "add_max_megapixels", "add_no_noise", "add_out_file",
            "add_out_folder", "add_panels", "add_seed", "add_sky", "add_surface", "atmosphere_from_args",
            "check_angle", "check_atmosphere", "check_frame", "check_number", "light_models", "panel_kinds",
            "surface_models"]

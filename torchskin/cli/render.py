@@ -57,7 +57,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     """Run ``torchskin render``: every option checked before any work, then one frame rendered, calibrated
     and written to ``--out`` (``render.outputs.write_outputs``)."""
     from ..devices import check_device
-    from ..render.outputs import write_outputs
+    from ..render.outputs import elm_warning, write_outputs
     from ..render.pipeline import render
     from ..render.sensor import Sensor
 
@@ -83,12 +83,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         path = path_terms(sc.suns[0].atmosphere, scene_light(sc, torch.float64).sky[0].tolist(), sc.bands, args.range)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed, **path)
     res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile)
-    info = write_outputs(res, sc.to_dict(), args.out)
-    if not info["elm_valid"]:
-        print(f"torchskin render: warning: the reference panels are not sunlit (sunlit share of their interiors "
-              f"{', '.join(f'{v:.2f}' for v in info['panel_sunlit_fraction'])}; the sun is behind or below them, or "
-              "the subject shadows them): the empirical line is set by sky light and the reflectance is not "
-              "physical (elm_valid false)", file=sys.stderr)
+    info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor)
+    warning = elm_warning(info)
+    if warning:
+        print(f"torchskin render: warning: {warning}", file=sys.stderr)
     if args.json:
         print(json.dumps({"timing_s": res.timing, "skin_pixels": info["skin_pixels"],
                           "detected_fraction": info["detected_fraction"], "panels": res.panels,

@@ -31,7 +31,7 @@ from ..bands import INDEX_BANDS_NM
 from ..detectors.features import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
-from ..render.elm import ELM_MIN_SUNLIT, panel_pixels, panel_subset
+from ..render.elm import ELM_MIN_SUNLIT, elm_line_valid, panel_median_noise_dn, panel_pixels, panel_subset
 from ..render.kernels import cos_to
 from ..render.light import LightTables, path_terms
 from ..render.meshes import anny_batch
@@ -117,8 +117,10 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "direct_share_544": ("float32", "share of the pixel's irradiance at 544 nm that is direct (sun and circumsolar)",
                          ""),
     "direct_share_1580": ("float32", "share of the pixel's irradiance at 1580 nm that is direct", ""),
-    "elm_valid": ("bool", "both reference panels sunlit (>= half of each interior): the frame's ELM is physical; "
-                  "training and evaluation use only these frames", ""),
+    "elm_valid": ("bool", "the frame's ELM is physical: both reference panels sunlit (>= half of each interior), "
+                  "their signals >= 20 sigma of the medians' noise apart in every band and a positive finite gain "
+                  "(render.elm.elm_line_valid); training and evaluation use "
+                  "only these frames", ""),
     "r544": ("float32", "ELM reflectance at 544 nm", ""),
     "r633": ("float32", "ELM reflectance at 633 nm", ""),
     "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
@@ -298,12 +300,34 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     res = render_pixels(scene, torch.from_numpy(picks), device=device, sensor=sensor, gbuffer=gb, skins=skins,
                         panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS, light=light)
     sub = res.gbuffer  # the rendered pixels' G-buffer, shadows cast; rows skin-major, the first n_suns: skin 0
-    elm_valid = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
-                              list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
+    sunlit = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
+                           list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
     n_cfg = n_suns * n_skins
+    elm_valid = sunlit.numpy()[np.arange(n_cfg) % n_suns] & line_valid(res, sensor)  # per configuration
     rows = configuration_rows(group, res, np.tile(picks, n_cfg), np.tile(np.arange(2 * m), n_cfg), gb, sun_dirs,
-                              labels, elm_valid.numpy(), light, sensor)
+                              labels, elm_valid, light, sensor)
     return {k: [v] for k, v in rows.items()}
+
+
+def line_valid(res: RenderResult, sensor: Sensor, max_full_scale: float | None = None) -> np.ndarray:
+    """Per configuration (the render's leading axis, (S·K,)), whether the empirical line through the reference
+    panels' medians is physical (``elm.elm_line_valid``): the panels separated by ``ELM_MIN_SEPARATION_SIGMA``
+    σ of the medians' noise in every band (``elm.panel_median_noise_dn``, from the sensor's shot, read and ADC
+    noise and each panel's sample size) and a finite positive gain. With ``max_full_scale`` (e.g.
+    ``elm.ELM_MAX_FULL_SCALE``), also the automatic exposure's full scale (``auto_fill`` of the full well, the
+    frame's brightest pixel) reading at most that through the line. Datasets do not apply that bound yet
+    (None): it would drop ~31 % of the configurations of a default dataset, mostly at a low sun, and changes
+    what the shipped detector is trained on; it waits for the exports' next regeneration."""
+    names = list(res.panels)
+    pv = torch.tensor([res.panels[p]["signal"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
+    refs = torch.tensor([res.panels[p]["reference"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
+    n = torch.tensor([float(len(per_cam[0])) for per_cam in res.panel_pixels], dtype=torch.float64)[:, None]
+    dn_per_e = 2.0 ** int(sensor.adc_bits) / sensor.full_well_e
+    noise = panel_median_noise_dn(pv, n, sensor.read_noise_e, dn_per_e, sensor.quantize, sensor.noise)
+    if max_full_scale is None:
+        return elm_line_valid(pv, refs, noise).numpy()
+    full_scale = sensor.auto_fill * 2.0 ** int(sensor.adc_bits) if sensor.integration_time_s == "auto" else None
+    return elm_line_valid(pv, refs, noise, full_scale, max_full_scale=max_full_scale).numpy()
 
 
 def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
@@ -312,7 +336,7 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
     rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
     found at ``pos`` (same slice) of the pixel render ``res``'s row c (rendered with ``irradiance``);
-    ``elm_valid`` (S,) per sun; ``light``: the scene's light tables (S rows, float64); ``sensor``: the group's
+    ``elm_valid`` (S·K,) per configuration; ``light``: the scene's light tables (S rows, float64); ``sensor``: the group's
     (``group_sensor``)."""
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     n_cfg = n_suns * n_skins
@@ -355,7 +379,7 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "label": np.tile(np.repeat(np.array([True, False]), per // 2), n_cfg), "theta_i_deg": ti.numpy(),
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
                  "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
-                 "elm_valid": elm_valid[si], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
+                 "elm_valid": elm_valid[cfg], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
                  "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
     shadow = rows["shadow"]
@@ -515,6 +539,94 @@ def verify(out_dir: str | os.PathLike) -> dict:
             "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
 
 
+def name_ranges(names: Sequence[str], limit: int = 4) -> str:
+    """A short text for a possibly huge list of shard file names: the count and the runs of consecutive indices,
+    at most ``limit`` runs then how many more, e.g. ``"5: shard-00002.parquet..shard-00005.parquet,
+    images/images-00009.npy"``; ``"none"`` for an empty list. Names without an index are listed as they are."""
+    import re
+
+    if not names:
+        return "none"
+    keyed = []
+    for name in names:
+        m = re.fullmatch(r"(.*?)(\d+)(\.[A-Za-z0-9]+)?", name)
+        keyed.append((name, "", -1, "") if m is None else (m[1], m[3] or "", int(m[2]), m[2]))
+    keyed.sort(key=lambda t: (t[0], t[1], t[2]))
+    runs: list[list] = []  # [prefix, suffix, first, last, first text, last text]
+    for head, tail, idx, digits in keyed:
+        r = runs[-1] if runs else None
+        if idx >= 0 and r is not None and r[0] == head and r[1] == tail and r[3] + 1 == idx:
+            r[3], r[5] = idx, digits
+        else:
+            runs.append([head, tail, idx, idx, digits, digits])
+    text = [r[0] if r[2] < 0 else f"{r[0]}{r[4]}{r[1]}" + (f"..{r[0]}{r[5]}{r[1]}" if r[3] > r[2] else "")
+            for r in runs[:limit]]
+    more = f", ... ({len(runs) - limit} more runs)" if len(runs) > limit else ""
+    return f"{len(names)}: " + ", ".join(text) + more
+
+
+def verify_summary(report: dict) -> dict:
+    """``verify``'s report with its lists of names (missing, corrupted, partial) replaced by counts and ranges
+    (``name_ranges``), so that a dataset of millions of shards reports in one short line (``dataset verify``)."""
+    out = {k: v for k, v in report.items() if k not in ("missing", "corrupted", "partial")}
+    for k in ("missing", "corrupted", "partial"):
+        out[k] = len(report[k])
+        out[f"{k}_ranges"] = name_ranges(report[k])
+    return out
+
+
+def verify_line(report: dict) -> str:
+    """``verify``'s report as one line of text: ok or PROBLEMS, shards, rows, and the missing, corrupted and
+    partial files as counts and ranges (``name_ranges``)."""
+    return (("ok" if report["ok"] else "PROBLEMS") + f": {report['shards']} shards, {report['rows']} rows; missing "
+            f"{name_ranges(report['missing'])}; corrupted {name_ranges(report['corrupted'])}; partial "
+            f"{name_ranges(report['partial'])}")
+
+
+#: the measured size of a row in a Parquet shard (zstd): 26-27 bytes on the default config, rounded up; with the
+#: shards' fixed overhead, what ``estimate_bytes`` counts per row
+ROW_BYTES = 32
+#: bytes a shard takes whatever its rows (Parquet footer and metadata), and the manifest's entry for it
+SHARD_OVERHEAD_BYTES = 64 * 1024
+
+
+def estimate_bytes(cfg: dict, n_configs: int, images: bool = False, shards: Sequence[int] | None = None) -> int:
+    """The bytes ``generate`` will write for ``n_configs`` configurations of ``cfg`` (or only for the shard indices
+    ``shards``): ``ROW_BYTES`` per row, 2 x ``pixels_per_class`` rows a configuration at most, plus
+    ``SHARD_OVERHEAD_BYTES`` a shard; with ``images`` the float16 cubes (skins x suns x 4 bands x H x W x 2 bytes
+    a pose group), which are stored uncompressed.
+
+    >>> from torchskin.dataset.config import default_config
+    >>> estimate_bytes(default_config(), 48) // 2**20  # 48 configurations: one pose group, 256 rows each
+    0
+    >>> estimate_bytes(default_config(), 10**9) // 10**12  # terabytes
+    8
+    """
+    n_groups, n_shards = plan(cfg, n_configs)
+    ks = range(n_shards) if shards is None else shards
+    groups = sum(len(shard_groups(cfg, k, n_groups)) for k in ks)
+    per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
+    rows = groups * per_group * 2 * cfg["sampling"]["pixels_per_class"]
+    total = rows * ROW_BYTES + len(ks) * SHARD_OVERHEAD_BYTES
+    if images:
+        total += groups * per_group * len(INDEX_BANDS) * cfg["camera"]["width"] * cfg["camera"]["height"] * 2
+    return total
+
+
+def check_disk_space(out_dir: str | os.PathLike, need: int, reclaim: int = 0) -> None:
+    """Raise ``ValueError`` (one line) when ``need`` bytes exceed the free space of the filesystem that holds
+    ``out_dir`` (its nearest existing folder) plus ``reclaim`` bytes that will be deleted first."""
+    import shutil
+
+    p = Path(out_dir).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    free = shutil.disk_usage(p).free + reclaim
+    if need > free:
+        raise ValueError(f"--configs: the dataset would take about {need / 1e9:.3g} GB, but {str(p)!r} has "
+                         f"{free / 1e9:.3g} GB free: ask for fewer configurations or another --out")
+
+
 def _ray_shard(cfg, seed, k, n_groups, out_dir, device, images, compile):
     return generate_shard(cfg, seed, k, n_groups, Path(out_dir), device, images, compile)
 
@@ -547,7 +659,7 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
 
     ``backend="local"`` runs the shards in this process; ``backend="ray"`` runs one Ray task per shard on the
     cluster at ``address`` (a local cluster of ``workers`` CPUs when None; GPUs requested when ``device`` is
-    cuda). Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
+    cuda); a cluster that accepts no connection within ``RAY_CONNECT_TIMEOUT_S`` (30 s) is an error. Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
     shared filesystem. Both backends give the same bytes. ``images`` also stores every group's full
     reflectance cubes in ``images-NNNNN.npy`` shards (much larger, and slower: full frames are rendered).
     ``compile``: render with the compiled kernels (``render.kernels``; "auto": for runs of at least
@@ -563,6 +675,9 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
     existing = [p for p in out.iterdir()] if out.is_dir() else []
     if existing and not (resume or overwrite):
         raise ValueError(f"output folder {str(out)!r} is not empty: pass --resume to continue or --overwrite")
+    reclaim = sum(p.stat().st_size for p in _dataset_files(out)) if existing and overwrite and not resume else 0
+    if not resume:  # a resumed run checks once it knows which shards are still to write
+        check_disk_space(out, estimate_bytes(cfg, n_configs, images), reclaim)
     done: dict[int, dict] = {}
     if existing and overwrite and not resume:
         for p in _dataset_files(out):
@@ -588,9 +703,17 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
         for s in old["shards"]:
             if all(_intact(out, e) for e in (s, s.get("images")) if e):
                 done[int(s["name"][6:11])] = s
+    if resume:
+        check_disk_space(out, estimate_bytes(cfg, n_configs, images, [k for k in range(n_shards) if k not in done]))
     for p in (_dataset_files(out) if out.is_dir() else []):
         if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
+    if backend == "ray" and address:  # before the folder is made: a cluster that is not there fails in bounded time
+        import importlib.util
+
+        if importlib.util.find_spec("ray") is None:
+            raise ValueError("the ray backend needs Ray: pip install 'torchskin[ray]'")
+        wait_for_cluster(address)
     created = not out.exists()
     had_manifest = (out / MANIFEST).exists()  # else a failure before the first shard leaves the folder as it was
     out.mkdir(parents=True, exist_ok=True)
@@ -641,6 +764,54 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
             _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, images, compile,
                      lambda k, e: (record(k, e), bar.update(per_shard(k))))
     return manifest()
+
+
+#: how long ``generate(backend="ray", address=...)`` waits for the cluster at ``address`` to accept a connection
+#: before it gives up (seconds): a cluster that is still starting gets this long, one that does not exist fails
+#: in one line instead of Ray's own minutes of retries
+RAY_CONNECT_TIMEOUT_S = 30.0
+
+
+def ray_endpoint(address: str) -> tuple[str, int] | None:
+    """(host, port) that a Ray ``address`` names: "host:port", "ray://host:port" (Ray Client) or "[v6]:port";
+    None for "auto" and "local" (Ray finds those itself). Raises ``ValueError`` naming ``--address`` otherwise.
+
+    >>> ray_endpoint("ray://head.example:10001"), ray_endpoint("10.0.0.2:6379"), ray_endpoint("auto")
+    (('head.example', 10001), ('10.0.0.2', 6379), None)
+    """
+    if address in ("auto", "local"):
+        return None
+    rest = address.split("://", 1)[1] if "://" in address else address
+    host, sep, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--address must be host:port, ray://host:port or auto, got {address!r}")
+    return host, int(port)
+
+
+def wait_for_cluster(address: str, timeout_s: float | None = None) -> None:
+    """Return once the Ray cluster at ``address`` accepts a TCP connection (``ray_endpoint``); raise
+    ``ValueError`` (one line naming ``--address``) when none does within ``timeout_s`` seconds (default
+    ``RAY_CONNECT_TIMEOUT_S``; retrying every second while the deadline allows)."""
+    import socket
+    import time
+
+    timeout_s = RAY_CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+    end = ray_endpoint(address)
+    if end is None:
+        return
+    deadline = time.monotonic() + timeout_s
+    why = "no answer"
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            with socket.create_connection(end, timeout=max(0.1, min(5.0, left))):
+                return
+        except OSError as e:  # refused, unreachable, unknown host, timed out
+            why = e.strerror or type(e).__name__
+        if time.monotonic() + 1.0 >= deadline:
+            raise ValueError(f"--address: no Ray cluster answered at {address!r} within {timeout_s:g} s ({why})")
+        time.sleep(1.0)
 
 
 def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, images, compile, on_done) -> None:

@@ -27,6 +27,18 @@ from .shade import gather_params, pixel_cosines
 #: a frame's ELM is physical when at least this share of every reference panel's interior is sunlit (the rule
 #: of the dataset generator's ``elm_valid``)
 ELM_MIN_SUNLIT = 0.5
+#: the empirical line is a line when, in every band, its two panels' signals differ by at least this many standard
+#: deviations of that difference (the noise of the two sampled medians, ``panel_median_noise_dn``). The gain's
+#: relative error is then at most 1/20 = 5 % (1σ): a reflectance of 1 reads 1 ± 0.05; and a pair of panels with no
+#: real contrast (the same light on both, or both clipped) reaches 20σ by noise with odds below 1e-80
+ELM_MIN_SEPARATION_SIGMA = 20.0
+#: the empirical line fits the frame when the frame's full-scale signal (its brightest pixel: what automatic
+#: exposure maps to ``Sensor.auto_fill`` of the full well) reads at most this reflectance through it. Brighter
+#: means the panels received less light than the scene's brightest surfaces (a low sun grazing level panels, or
+#: panels turned from the sun while the subject faces it): the line then maps sunlit surfaces to several times
+#: their reflectance. Applied only where asked for (``max_full_scale`` of ``dataset.generate.line_valid`` and
+#: ``render.outputs.line_valid``): datasets do not apply it yet
+ELM_MAX_FULL_SCALE = 1.5
 
 
 def elm_coefficients(L1: TensorLike, L2: TensorLike, ref1: TensorLike,
@@ -157,3 +169,58 @@ def panel_sunlit_fraction(lit: torch.Tensor, pixels: list[list[torch.Tensor]], c
     mask ``lit`` (H, W) of camera ``camera``."""
     flat = lit.reshape(-1)
     return [float(flat.index_select(0, per_cam[camera]).float().mean()) for per_cam in pixels]
+
+
+def panel_median_noise_dn(panel_signal: torch.Tensor, pixels: TensorLike, read_noise_e: float, dn_per_e: float,
+                          quantize: bool = True, noise: bool = True) -> torch.Tensor:
+    """Standard deviation (DN) of a panel's median signal from the sensor noise model (``sensor.sensor_signal``):
+    per pixel σ² = N_e + σ_read² electrons (shot and read noise) plus the ADC's 1/12 DN² with ``quantize``; the
+    median of ``pixels`` such pixels has σ·sqrt(π/2)/sqrt(pixels) (the median's asymptotic efficiency for Gaussian
+    noise); ``noise=False`` (a sensor without shot and read noise): the ADC's alone. ``panel_signal``: the medians (DN, any shape); ``pixels``: how many pixels each median took
+    (broadcasting against ``panel_signal``); ``dn_per_e``: the ADC gain, 2^adc_bits / full_well_e.
+
+    >>> s = panel_median_noise_dn(torch.tensor([10000.0]), 256, read_noise_e=50.0, dn_per_e=2**14 / 2e6)  # 9.1 DN a pixel
+    >>> round(float(s), 3)
+    0.71
+    """
+    L = as_tensor(panel_signal)
+    n = as_tensor(pixels, like=L)
+    electrons = L.clamp_min(0) / dn_per_e
+    var_dn = (electrons + read_noise_e**2) * dn_per_e**2 * float(noise) + (1.0 / 12.0 if quantize else 0.0)
+    return torch.sqrt(var_dn * (math.pi / 2) / n.clamp_min(1))
+
+
+def elm_line_valid(panel_signal: torch.Tensor, references: torch.Tensor, noise_dn: torch.Tensor,
+                   full_scale_dn: TensorLike | None = None, min_sigma: float = ELM_MIN_SEPARATION_SIGMA,
+                   max_full_scale: float = ELM_MAX_FULL_SCALE) -> torch.Tensor:
+    """Whether the empirical line through the first two panels is physical, per frame: ``panel_signal``,
+    ``references`` and ``noise_dn`` (the medians' σ, ``panel_median_noise_dn``) of shape (..., P, B) give a
+    boolean (...). In every band:
+
+    - the panels' signals are separated by at least ``min_sigma`` σ of their difference,
+      |L2 - L1| >= min_sigma · sqrt(σ1² + σ2²) (``ELM_MIN_SEPARATION_SIGMA``);
+    - the gain a = (L2 - L1) / (ρ2 - ρ1) is finite and positive (a brighter panel reads brighter), and the
+      offset finite;
+    - with ``full_scale_dn`` (the frame's brightest signal, broadcasting against (..., B)), that signal reads at
+      most ``max_full_scale`` through the line (``ELM_MAX_FULL_SCALE``: the panels saw the scene's light).
+
+    >>> L = torch.tensor([[970.0, 30.0]])[..., None]  # one frame, panels 0.97 and 0.03, one band
+    >>> refs = torch.tensor([[0.97, 0.03]])[..., None]
+    >>> bool(elm_line_valid(L, refs, torch.full_like(L, 1.0)))  # 940 DN apart, σ of the difference 1.41 DN
+    True
+    >>> bool(elm_line_valid(L, refs, torch.full_like(L, 40.0)))  # 940 DN < 20 x 56.6 DN
+    False
+    >>> bool(elm_line_valid(L, refs, torch.full_like(L, 1.0), full_scale_dn=13107.0))  # full scale reads 13.1
+    False
+    """
+    L1, L2 = panel_signal[..., 0, :], panel_signal[..., 1, :]
+    r1, r2 = references[..., 0, :], references[..., 1, :]
+    sigma = torch.sqrt(noise_dn[..., 0, :] ** 2 + noise_dn[..., 1, :] ** 2)
+    dref = r2 - r1
+    a = (L2 - L1) / dref
+    b = (L1 * r2 - L2 * r1) / dref
+    ok = ((L2 - L1).abs() >= min_sigma * sigma) & torch.isfinite(a) & (a > 0) & torch.isfinite(b)
+    if full_scale_dn is not None:
+        fs = as_tensor(full_scale_dn, like=a)
+        ok &= (fs - b) / a.clamp_min(torch.finfo(a.dtype).tiny) <= max_full_scale
+    return ok.all(dim=-1)

@@ -12,9 +12,10 @@ import numpy as np
 
 from ..detect import has_index_bands
 from ..io import save_npy, write_text
-from .elm import ELM_MIN_SUNLIT, panel_regions, panel_sunlit_fraction
+from .elm import ELM_MIN_SUNLIT, elm_line_valid, panel_median_noise_dn, panel_regions, panel_sunlit_fraction
 from .pipeline import RenderResult
 from .scene import Scene
+from .sensor import Sensor
 
 
 def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int = 4) -> list[dict]:
@@ -35,10 +36,38 @@ def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int 
     return sorted(out, key=lambda d: -d["area"])
 
 
-def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
+def line_valid(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None,
+               max_full_scale: float | None = None) -> bool:
+    """Whether the empirical line of frame (sun ``s``, camera ``c``) is physical (``elm.elm_line_valid``): its
+    panels ``ELM_MIN_SEPARATION_SIGMA`` σ of their medians' noise apart in every band (``sensor``'s noise model;
+    without a sensor, or without noise, the ADC's or none) and a finite positive gain; with ``max_full_scale``
+    (e.g. ``elm.ELM_MAX_FULL_SCALE``) also the frame's brightest signal in each band reading at most that (off
+    by default, as in the datasets: ``dataset.generate.line_valid``). True for a frame without two panels."""
+    import torch
+
+    names = list(result.panels)
+    if len(names) < 2:
+        return True
+    pv = torch.tensor([result.panels[p]["signal"][s][c] for p in names[:2]], dtype=torch.float64)
+    refs = torch.tensor([result.panels[p]["reference"][s][c] for p in names[:2]], dtype=torch.float64)
+    if sensor is None:
+        noise = torch.zeros_like(pv)
+    else:
+        n = torch.tensor([[float(len(result.panel_pixels[k][c]))] for k in range(2)], dtype=torch.float64)
+        noise = panel_median_noise_dn(pv, n, sensor.read_noise_e, 2.0 ** int(sensor.adc_bits) / sensor.full_well_e,
+                                      sensor.quantize, sensor.noise)
+    if max_full_scale is None:
+        return bool(elm_line_valid(pv, refs, noise))
+    sig = result.signal[s, c]
+    full = sig.reshape(-1, sig.shape[-1]).amax(0).double().cpu()
+    return bool(elm_line_valid(pv, refs, noise, full, max_full_scale=max_full_scale))
+
+
+def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None) -> dict:
     """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``; whether the
-    frame's ELM is physical (``elm_valid``: every reference panel at least ``ELM_MIN_SUNLIT`` sunlit; without
-    sunlit panels the empirical line is set by sky light and reflectance can exceed 1)."""
+    frame's ELM is physical (``elm_valid``: every reference panel at least ``ELM_MIN_SUNLIT`` sunlit, and the
+    line through them physical, ``line_valid`` with ``sensor``'s noise; without sunlit panels the empirical line
+    is set by sky light, and with panels lit less than the scene reflectance can exceed 1)."""
     skin = result.skin[c]
     lit = skin & result.lit[s, c]
     det = result.mask[s, c]
@@ -51,19 +80,35 @@ def summary(result: RenderResult, s: int = 0, c: int = 0) -> dict:
         "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
         "false_alarm_pixels": int((det & ~skin).sum()),
         "rules_detector": has_index_bands(result.bands),  # false: the bands lack 544/633/1080/1580 nm
-        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit),
+        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit) and line_valid(result, s, c, sensor),
+        "elm_line_valid": line_valid(result, s, c, sensor),
         "panel_sunlit_fraction": sunlit,
     }
 
 
-def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0) -> dict:
+def elm_warning(info: dict) -> str | None:
+    """Why a frame's ELM is not physical, in one sentence, from its ``summary`` (None when it is)."""
+    if info["elm_valid"]:
+        return None
+    if min(info["panel_sunlit_fraction"], default=1.0) < ELM_MIN_SUNLIT:
+        return ("the reference panels are not sunlit (sunlit share of their interiors "
+                f"{', '.join(f'{v:.2f}' for v in info['panel_sunlit_fraction'])}; the sun is behind or below them, or "
+                "the subject shadows them): the empirical line is set by sky light and the reflectance is not "
+                "physical (elm_valid false)")
+    return ("the empirical line through the reference panels is not physical: they are too close in signal for "
+            "the sensor noise, or its gain is not positive (elm_valid false)")
+
+
+def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
+                  sensor: Sensor | None = None) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
     sensor signal cube before ELM (``signal.npy``, digital numbers), the rules detector's mask, ``mask.png``: an
     RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
     detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
     everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
     ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``; timing, panels with their pixel regions,
-    detections) in ``out_dir``, for sun ``s`` and camera ``c``. Returns the summary."""
+    detections) in ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
+    model judges the empirical line, ``summary``). Returns the summary."""
     if isinstance(scene, Scene):
         scene = scene.to_dict()
     if not isinstance(scene, dict):
@@ -80,7 +125,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
     mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
                f"rules detector mask ({result.mask.shape[-1]} x {result.mask.shape[-2]} px)")
-    info = summary(result, s, c)
+    info = summary(result, s, c, sensor)
     dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
     H, W = result.mask.shape[-2:]
     regions = panel_regions(result.panel_pixels, list(result.panels), H, W, camera=c)
