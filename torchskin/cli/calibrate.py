@@ -136,5 +136,5 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
               f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
               + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
-              + ("" if fit is None else "; residual " + ", ".join(f"{v:.3g}" for v in fit["residual"])))
+              + ("" if fit is None else "; residual " + ", ".join(f"{v:.4f}" for v in fit["residual"])))
     return 0

@@ -198,7 +198,7 @@ def elm_line_valid(panel_signal: torch.Tensor, references: torch.Tensor, noise_d
     boolean (...). In every band:
 
     - the panels' signals are separated by at least ``min_sigma`` σ of their difference,
-      |L2 - L1| >= min_sigma · sqrt(σ1² + σ2²) (``ELM_MIN_SEPARATION_SIGMA``);
+      ``abs(L2 - L1) >= min_sigma * sqrt(σ1² + σ2²)`` (``ELM_MIN_SEPARATION_SIGMA``);
     - the gain a = (L2 - L1) / (ρ2 - ρ1) is finite and positive (a brighter panel reads brighter), and the
       offset finite;
     - with ``full_scale_dn`` (the frame's brightest signal, broadcasting against (..., B)), that signal reads at
