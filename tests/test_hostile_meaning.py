@@ -422,7 +422,7 @@ def test_the_onboard_path_still_imports_no_torch(tmp_path):
     argv = ["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG]
     code = (f"import sys; from torchskin.cli import main; rc = main({argv!r}); "
             "assert 'torch' not in sys.modules, 'torch imported'; sys.exit(rc)")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 
 
@@ -446,3 +446,124 @@ def test_render_calls_a_grazing_sun_frame_invalid_as_the_dataset_does(tmp_path, 
     assert main([*argv, "--source-zenith", "30"]) == 0
     cap = capsys.readouterr()
     assert json.loads(cap.out)["elm_valid"] and "warning" not in cap.err
+
+
+# ------------------------------------------------------------------------------- provenance: one world per artefact
+BOUNDARIES_PT = Path(__file__).resolve().parents[1] / "exports" / "boundaries.pt"
+
+
+def _other_world(tmp_path, surface="conserving"):
+    """A copy of the shipped box checkpoint whose training summary says it was trained on a dataset rendered
+    with another skin surface model (what ``torchskin train`` on a ``--surface conserving`` dataset records)."""
+    ck = torch.load(BOUNDARIES_PT, map_location="cpu", weights_only=True)
+    ck["meta"] = {**ck["meta"], "surface": surface, "training_manifest_sha256": "c" * 64, "data": "data-conserving"}
+    path = tmp_path / "C.pt"
+    torch.save(ck, path)
+    return path
+
+
+def _onnx_meta(path):
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+
+
+def test_export_of_checkpoints_from_two_worlds_is_refused_and_recorded_when_allowed(tmp_path, capsys):
+    """A user exports a thesis-surface --model with a --detector trained on a conserving-surface dataset: the
+    graphs used to all say skin_surface_model=thesis with --model's manifest hash. Refused in one line; with
+    --allow-mixed-worlds every graph records its own checkpoint's world, and the flag."""
+    from torchskin.cli import main
+
+    other, out = _other_world(tmp_path), tmp_path / "ex"
+    line = _one_line(capsys, main(["export", "--model", str(BOUNDARIES_PT), "--detector", str(other),
+                                   "--out", str(out)]))
+    assert "different worlds" in line and "--detector conserving" in line and "--model thesis" in line, line
+    assert not out.exists()
+    assert main(["export", "--model", str(BOUNDARIES_PT), "--detector", str(other), "--out", str(out),
+                 "--allow-mixed-worlds"]) == 0
+    capsys.readouterr()
+    b, d = _onnx_meta(out / "boundaries.onnx"), _onnx_meta(out / "detector.onnx")
+    own = torch.load(BOUNDARIES_PT, map_location="cpu", weights_only=True)["meta"]
+    assert (b["skin_surface_model"], b["training_manifest_sha256"]) == ("thesis", own["training_manifest_sha256"])
+    assert (d["skin_surface_model"], d["training_manifest_sha256"]) == ("conserving", "c" * 64)
+    assert "mixed_worlds" in b and b["mixed_worlds"] == d["mixed_worlds"]
+    card = (out / "detector.md").read_text()
+    assert "c" * 64 in card and "`conserving`" in card and own["training_manifest_sha256"] not in card
+
+
+def test_export_of_one_world_records_it_as_before(tmp_path, capsys):
+    """The shipped combination (one world) exports without the flag and without a mixed_worlds key."""
+    from torchskin.cli import main
+
+    out = tmp_path / "ex"
+    assert main(["export", "--model", str(BOUNDARIES_PT), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert "mixed_worlds" not in _onnx_meta(out / "detector.onnx")
+
+
+def test_evaluate_warns_when_a_model_comes_from_another_world(tmp_path, capsys, subject_obj):
+    """``evaluate --data <thesis-surface dataset> --model <conserving-surface model>`` used to report its Pd
+    with no word: one warning line on stderr naming the model and both worlds, and the same in the JSON."""
+    import json
+
+    from torchskin.cli import main
+    from torchskin.dataset.generate import generate
+
+    data = tmp_path / "d"
+    generate(_cfg(subject_obj, 40.0, "spectralon"), 6, 0, data, quiet=True)
+    other = _other_world(tmp_path)
+    assert main(["evaluate", "--data", str(data), "--model", str(other), "--json"]) == 0
+    cap = capsys.readouterr()
+    lines = [ln for ln in cap.err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("torchskin evaluate: warning: ") and str(other) in lines[0], lines
+    assert "skin surface model conserving (the data: thesis)" in lines[0]
+    assert json.loads(cap.out)["warnings"] == [lines[0].removeprefix("torchskin evaluate: warning: ")]
+    assert main(["evaluate", "--data", str(data), "--model", str(BOUNDARIES_PT), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert "warning" not in cap.err and "warnings" not in json.loads(cap.out)
+
+
+# ---------------------------------------------------------------------------------- a pip user without an extra
+@pytest.mark.parametrize("module", ["onnxruntime", "open3d"])
+def test_a_command_whose_extra_is_missing_names_the_extra(tmp_path, module):
+    """A pip user without the extra ran ``detect`` (or ``render``) and got
+    "unexpected ModuleNotFoundError: No module named 'onnxruntime'" with no hint: the line names the extra."""
+    import subprocess
+    import sys
+
+    from torchskin.errors import EXTRAS
+
+    code = ("import sys, builtins\n"
+            f"real = builtins.__import__\n"
+            f"def fake(name, *a, **k):\n"
+            f"    if name.partition('.')[0] == {module!r}: raise ModuleNotFoundError(f'No module named {{name!r}}', name=name)\n"
+            f"    return real(name, *a, **k)\n"
+            "builtins.__import__ = fake\n"
+            "from torchskin.cli import main\n"
+            "sys.exit(main(sys.argv[1:]))\n")
+    np.save(tmp_path / "c.npy", _skin_cube())
+    argv = {"onnxruntime": ["detect", "--model", DET, "--cube", "c.npy", *CFG],  # the onboard path itself
+            "open3d": ["render", "--out", "r", "--width", "16", "--height", "16"]}[module]
+    command = argv[0]
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                       env={**__import__("os").environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    dist, extra = EXTRAS[module]
+    assert r.returncode == 1 and r.stdout == "", (r.returncode, r.stdout, r.stderr)
+    assert r.stderr.strip().splitlines() == [f"torchskin {command}: error: this command needs {dist}: pip install "
+                                              f"'torchskin[{extra}]' (or 'torchskin[all]' for every command)"]
+
+
+def test_every_optional_package_is_in_the_extra_the_error_names():
+    """``errors.EXTRAS`` and pyproject's extras agree: each named extra lists the package, and ``all`` holds every
+    extra a command needs."""
+    import re
+    import tomllib
+
+    from torchskin.errors import EXTRAS
+
+    extras = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"]
+    names = {k: {re.split(r"[\[<>=!~ ]", r, maxsplit=1)[0].lower() for r in v} for k, v in extras.items()}
+    for module, (dist, extra) in EXTRAS.items():
+        assert dist in names[extra], (module, dist, extra)
+        assert extra in extras["all"][0], (module, extra)

@@ -22,6 +22,26 @@ from .io import StrPath
 
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
+#: the optional packages a command may need: import name -> (distribution, the extra that installs it; pyproject's
+#: ``[project.optional-dependencies]``, checked by a test)
+EXTRAS = {"onnxruntime": ("onnxruntime", "onnx"), "onnx": ("onnx", "onnx"), "pyarrow": ("pyarrow", "dataset"),
+          "pandas": ("pandas", "dataset"), "earthlib": ("earthlib", "dataset"), "open3d": ("open3d", "render"),
+          "kornia": ("kornia", "render"), "skimage": ("scikit-image", "render"), "anny": ("anny", "render"),
+          "pvlib": ("pvlib", "render"), "ray": ("ray", "ray")}
+
+
+def missing_extra(e: ModuleNotFoundError) -> str | None:
+    """The one-line hint for a missing optional package (``EXTRAS``), or None for a module torchskin does not
+    know as optional.
+
+    >>> missing_extra(ModuleNotFoundError("No module named 'onnxruntime'", name="onnxruntime"))
+    "this command needs onnxruntime: pip install 'torchskin[onnx]' (or 'torchskin[all]' for every command)"
+    """
+    top = (e.name or "").partition(".")[0]
+    if top not in EXTRAS:
+        return None
+    dist, extra = EXTRAS[top]
+    return f"this command needs {dist}: pip install 'torchskin[{extra}]' (or 'torchskin[all]' for every command)"
 
 
 class Parser(argparse.ArgumentParser):
@@ -103,6 +123,13 @@ def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) ->
         if debug:
             raise
         print(f"torchskin {name}: error: {_describe_os_error(e)}", file=sys.stderr)
+        return EXIT_FAILURE
+    except ModuleNotFoundError as e:  # an optional package not installed: the extra that installs it
+        if debug:
+            raise
+        hint = missing_extra(e) or (f"unexpected ModuleNotFoundError: {one_line(e)} (run with --debug for the "
+                                    "traceback)")
+        print(f"torchskin {name}: error: {hint}", file=sys.stderr)
         return EXIT_FAILURE
     except Exception as e:  # anything unforeseen: still one line, and the way to the traceback
         if debug:

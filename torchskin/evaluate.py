@@ -321,6 +321,51 @@ def _grid_area(cand: Candidate, cfg_X: torch.Tensor, rows: _Rows) -> torch.Tenso
     return out
 
 
+#: a model's or a dataset's world: the skin surface model of the renders and the light model (``world_of``)
+WORLD_LABELS = {"surface": "skin surface model", "light_model": "light model"}
+
+
+def model_world(path: str | os.PathLike) -> dict[str, str]:
+    """The world a model was trained in, as far as its file records it: ``surface`` and ``light_model`` from a
+    checkpoint's training summary, or ``skin_surface_model`` (and ``light_model``) from an ONNX export's metadata;
+    {} for "static" (the thesis's box belongs to no dataset)."""
+    p = str(path)
+    if p == "static":
+        return {}
+    if p.endswith(".onnx"):
+        import onnxruntime as ort
+
+        meta = ort.InferenceSession(p, providers=["CPUExecutionProvider"]).get_modelmeta().custom_metadata_map
+        world = {"surface": meta.get("skin_surface_model", ""), "light_model": meta.get("light_model", "")}
+    else:
+        train = registry.load_checkpoint(p).get("meta", {})
+        world = {"surface": str(train.get("surface", "")), "light_model": str(train.get("light_model", ""))}
+    return {k: v for k, v in world.items() if v}
+
+
+def dataset_world(data_dir: str | os.PathLike) -> dict[str, str]:
+    """The world a dataset was rendered in (its manifest: the skin surface model and the light model)."""
+    from .dataset.files import dataset_surface
+
+    world = {"surface": dataset_surface(data_dir), "light_model": str((manifest(data_dir) or {}).get("light_model", ""))}
+    return {k: v for k, v in world.items() if v}
+
+
+def world_warnings(data_dir: str | os.PathLike, model_paths: Sequence[str | os.PathLike]) -> list[str]:
+    """One sentence per model whose recorded world (``model_world``) differs from the dataset's
+    (``dataset_world``): its figures on these data describe another world than the one it was trained in."""
+    data = dataset_world(data_dir)
+    out = []
+    for path in model_paths:
+        own = model_world(path)
+        diff = [f"{WORLD_LABELS[k]} {own[k]} (the data: {data[k]})" for k in WORLD_LABELS
+                if k in own and k in data and own[k] != data[k]]
+        if diff:
+            out.append(f"{path} was trained under another world than {data_dir}: " + ", ".join(diff)
+                       + "; its figures here do not describe the world it was made for")
+    return out
+
+
 def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Sequence[float] = ROC_SCALES,
              min_reflectance: float = MIN_REFLECTANCE) -> dict:
     """Every model of ``model_paths`` and the static box on the held-out dataset at ``data_dir``, all under the

@@ -60,7 +60,8 @@ def detector_graph(model: DetectorModel, meta: dict[str, str]) -> onnx.ModelProt
 def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256: str = "", *, surface: str = "",
            baseline: BoxDetectorModel | None = None, detector: DetectorModel | None = None,
            detector_meta: dict[str, str] | None = None,
-           checkpoints: dict[str, str] | None = None) -> dict[str, str]:
+           checkpoints: dict[str, str] | None = None,
+           provenance: dict[str, dict[str, str]] | None = None) -> dict[str, str]:
     """Write ``boundaries.onnx`` (``model``), ``baseline_box.onnx`` (``baseline``, a constant box with the same
     inputs and outputs, when given) and ``detector.onnx`` (``detector``: a model of any detector kind; default
     ``model``) into ``out_dir``, opset 17, with metadata (``metadata``). Every graph is built and checked before
@@ -76,6 +77,10 @@ def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256:
         detector_meta: extra metadata of ``detector.onnx`` (e.g. which model it is and why).
         checkpoints: per graph name ("boundaries", "baseline_box", "detector"), the checkpoint it came from
             (metadata key ``checkpoint``).
+        provenance: per graph name, the metadata of its own checkpoint's world, which replace the common ones
+            (``training_manifest_sha256``, ``skin_surface_model``; ``mixed_worlds`` when checkpoints of
+            different worlds were combined on purpose): every graph records where its own model came from,
+            not ``model``'s.
 
     Shape:
         boundaries.onnx / baseline_box.onnx: ``config`` (N, k) -> ``boxes`` (N, 5); detector.onnx: ``cube``
@@ -87,8 +92,11 @@ def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256:
     """
     ck = checkpoints or {}
 
+    own = provenance or {}
+
     def meta(m: DetectorModel, name: str) -> dict[str, str]:
-        return {**metadata(m, manifest_sha256, surface), **({"checkpoint": ck[name]} if name in ck else {})}
+        return {**metadata(m, manifest_sha256, surface), **({"checkpoint": ck[name]} if name in ck else {}),
+                **own.get(name, {})}
 
     graphs = {"boundaries": model.boundaries_graph(meta(model, "boundaries"))}
     if baseline is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from ..errors import check_output_file, check_output_folder
 from .options import add_json
@@ -14,7 +15,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..dataset.files import manifest_sha256
-    from ..evaluate import boxes_plot, compare_plot, evaluate, load_candidate, plots, table
+    from ..evaluate import boxes_plot, compare_plot, evaluate, load_candidate, plots, table, world_warnings
     from ..io import write_text
 
     if args.plots:
@@ -22,6 +23,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.save:
         check_output_file(args.save, "--save", (".json",))
     res = evaluate(args.data, args.model)
+    warnings = world_warnings(args.data, args.model)  # a model of another world: said, not refused
+    for w in warnings:
+        print(f"torchskin evaluate: warning: {w}", file=sys.stderr)
+    if warnings:
+        res["warnings"] = warnings
     res["data"] = str(args.data)
     res["data_manifest_sha256"] = manifest_sha256(args.data)
     res["model"] = str(args.model[0])
@@ -34,7 +40,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))
     if args.json:
-        print(json.dumps({k: res[k] for k in ("models", "learned", "static", "bins", "sun_zenith_ge_60")}))
+        print(json.dumps({k: res[k] for k in ("models", "learned", "static", "bins", "sun_zenith_ge_60", "warnings")
+                          if k in res}))
     else:
         print(table(res))
     return 0

@@ -22,6 +22,32 @@ def _checkpoint(path: str, what: str) -> tuple[Any, dict[str, Any]]:
     return model, {**ck.get("meta", {}), "checkpoint": Path(path).name}
 
 
+#: what makes a checkpoint's world: the training summary's keys (the skin surface model of the renders and, for
+#: checkpoints that record it, the light model); a key a checkpoint does not record is not compared
+WORLD_KEYS = ("surface", "light_model")
+#: the export option names of the graphs
+GRAPH_OPTIONS = {"boundaries": "--model", "baseline_box": "--baseline", "detector": "--detector"}
+
+
+def check_worlds(trains: dict[str, dict[str, Any]], allow: bool = False) -> str:
+    """``ValueError`` when the checkpoints of one export were trained in different worlds (``WORLD_KEYS``), unless
+    ``allow`` (``--allow-mixed-worlds``); returns "" for one world, else the worlds as JSON (the ``mixed_worlds``
+    metadata every graph then records)."""
+    worlds = {}
+    for key in WORLD_KEYS:
+        seen = {name: str(t[key]) for name, t in trains.items() if t.get(key)}
+        if len(set(seen.values())) > 1:
+            worlds[key] = seen
+    if not worlds:
+        return ""
+    if not allow:
+        what = "; ".join(f"{key}: " + ", ".join(f"{GRAPH_OPTIONS[n]} {v}" for n, v in seen.items())
+                         for key, seen in worlds.items())
+        raise ValueError(f"the checkpoints were trained in different worlds ({what}): export each world on its "
+                         "own, or pass --allow-mixed-worlds (recorded in every graph's metadata)")
+    return json.dumps(worlds, sort_keys=True)
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from ..detectors import registry
     from ..export import export, write_model_cards
@@ -56,9 +82,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     floor = (evaluation or {}).get("min_reflectance", MIN_REFLECTANCE)
     det_meta = {"detector_model": trains["detector"]["checkpoint"], "detector_reason": reason,
                 "checkpoint": trains["detector"]["checkpoint"], "min_reflectance": f"{float(floor):g}"}
+    mixed = check_worlds(trains, args.allow_mixed_worlds)
+    provenance = {name: {"training_manifest_sha256": t.get("training_manifest_sha256", ""),
+                         "skin_surface_model": t.get("surface", ""), **({"mixed_worlds": mixed} if mixed else {})}
+                  for name, t in trains.items()}
     paths = export(model, args.out, train.get("training_manifest_sha256", ""), surface=train.get("surface", ""),
                    baseline=baseline, detector=detector, detector_meta=det_meta, checkpoints={
-                       k: v["checkpoint"] for k, v in trains.items()})
+                       k: v["checkpoint"] for k, v in trains.items()}, provenance=provenance)
     paths.update(write_model_cards(args.out, train, evaluation, trains))
     print(json.dumps(paths) if args.json else "wrote " + ", ".join(paths.values()))
     return 0
@@ -78,6 +108,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     xp.add_argument("--detector-reason", metavar="TEXT", help="why that model: recorded in detector.onnx's "
                                                               "metadata and model card")
     xp.add_argument("--metrics", metavar="EVAL.json", help="torchskin evaluate --save output for the model cards")
+    xp.add_argument("--allow-mixed-worlds", action="store_true",
+                    help="combine checkpoints trained under different skin surface or light models (refused "
+                         "otherwise; recorded as mixed_worlds in every graph's metadata)")
     add_json(xp)
     xp.set_defaults(func=cmd_export)
     return xp

@@ -31,10 +31,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def _save_trained(args: argparse.Namespace, save: Callable[..., None], model: Any, info: dict, text: str) -> int:
     """Record the training data in the summary, write the checkpoint, report."""
-    from ..dataset.files import dataset_surface, manifest_sha256
+    from ..dataset.files import dataset_surface, manifest, manifest_sha256
 
     info.update(training_manifest_sha256=manifest_sha256(args.data), data=str(args.data),
-                surface=dataset_surface(args.data))
+                surface=dataset_surface(args.data), light_model=str((manifest(args.data) or {}).get("light_model", "")))
     save(model, args.out, info)
     print(json.dumps({**info, "out": str(args.out)}) if args.json else f"{text}; wrote {args.out}")
     return 0
