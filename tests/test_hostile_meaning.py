@@ -567,3 +567,71 @@ def test_every_optional_package_is_in_the_extra_the_error_names():
     for module, (dist, extra) in EXTRAS.items():
         assert dist in names[extra], (module, dist, extra)
         assert extra in extras["all"][0], (module, extra)
+
+
+# ------------------------------------------------------------------------------ bands mean wavelengths everywhere
+def _reordered(tmp_path, order):
+    """The skin cube with its bands in ``order`` (indices into 544, 633, 1080, 1580 nm), saved as c.npy."""
+    cube = _skin_cube()[list(order)]
+    np.save(tmp_path / "c.npy", cube)
+    return str(tmp_path / "c.npy"), [[544, 633, 1080, 1580][i] for i in order]
+
+
+@pytest.mark.parametrize("how", ["--bands", "sidecar"])
+def test_detect_reads_a_cube_in_another_band_order_by_its_wavelengths(tmp_path, capsys, how):
+    """A cube written 1580, 544, 1080, 633 used to be read as 544, 633, 1080, 1580 and gave 0 skin pixels
+    instead of the right count: its wavelengths (``--bands`` or the sidecar) put the bands in the model's order."""
+    import json
+
+    from torchskin.cli import main
+    from torchskin.io import bands_sidecar_text, sidecar_path
+
+    ref, _ = _reordered(tmp_path, (0, 1, 2, 3))
+    assert main(["detect", "--model", DET, "--cube", ref, *CFG, "--json"]) == 0
+    want = json.loads(capsys.readouterr().out)["skin_pixels"]
+    assert want == 100
+    other = tmp_path / "o"
+    other.mkdir()
+    path, bands = _reordered(other, (3, 0, 2, 1))
+    extra = ["--bands", ",".join(map(str, bands))] if how == "--bands" else []
+    if how == "sidecar":
+        sidecar_path(path).write_text(bands_sidecar_text(bands))
+    assert main(["detect", "--model", DET, "--cube", path, *CFG, "--json", *extra]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == want
+
+
+@pytest.mark.parametrize("bands,needle", [("544,633,1080", "gives 3 bands"), ("544,633,1080,1550", "1580 nm"),
+                                          ("0.544,0.633,1.08,1.58", "micrometres"), ("544,544,1080,1580", "twice")],
+                         ids=["count", "missing band", "micrometres", "duplicate"])
+def test_detect_refuses_a_cube_whose_bands_do_not_match_the_model(tmp_path, capsys, bands, needle):
+    from torchskin.cli import main
+
+    path, _ = _reordered(tmp_path, (0, 1, 2, 3))
+    out = tmp_path / "m.png"
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", path, *CFG, "--bands", bands,
+                                   "--out", str(out)]))
+    assert needle in line, line
+    assert not out.exists()
+
+
+def test_render_writes_the_cubes_wavelengths_and_calibrate_carries_them(tmp_path, capsys):
+    """``render`` writes reflectance.bands.json and signal.bands.json beside its cubes; ``calibrate`` of the
+    signal writes the same wavelengths beside its reflectance cube, which ``detect`` then reads."""
+    import json
+
+    from torchskin.cli import main
+    from torchskin.io import read_bands_sidecar, sidecar_path
+
+    out = tmp_path / "r"
+    assert main(["render", "--out", str(out), "--width", "48", "--height", "48", "--no-ground"]) == 0
+    capsys.readouterr()
+    for cube in ("reflectance", "signal"):
+        assert read_bands_sidecar(out / f"{cube}.npy") == [544.0, 633.0, 1080.0, 1580.0]
+        assert json.loads(sidecar_path(out / f"{cube}.npy").read_text())["quantity"] == cube
+    doc = json.loads((out / "render.json").read_text())
+    panels = [f"{':'.join(map(str, v['region']))}={v['reference'][0][0][0]}" for v in doc["panels"].values()]
+    refl = tmp_path / "refl.npy"
+    argv = ["calibrate", "--cube", str(out / "signal.npy"), "--out", str(refl)]
+    assert main([*argv, *[x for p in panels for x in ("--panel", p)]]) == 0
+    capsys.readouterr()
+    assert read_bands_sidecar(refl) == [544.0, 633.0, 1080.0, 1580.0]

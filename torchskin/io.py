@@ -199,3 +199,84 @@ def npy_header(path: StrPath) -> tuple[tuple[int, ...], np.dtype]:
         else:
             raise ValueError(f"unsupported .npy format version {version}")
     return tuple(shape), dtype
+
+
+# ------------------------------------------------------------------------------------ a cube's wavelengths
+#: the sidecar beside a ``.npy`` cube that says what its bands are: ``CUBE.npy`` -> ``CUBE.bands.json``
+#: (``render`` writes one beside ``reflectance.npy`` and ``signal.npy``, ``calibrate`` beside its output;
+#: ``detect`` and ``calibrate`` read it)
+SIDECAR_SUFFIX = ".bands.json"
+
+
+def sidecar_path(cube: StrPath) -> Path:
+    """The wavelength sidecar of a cube file (``SIDECAR_SUFFIX``).
+
+    >>> str(sidecar_path("frame/reflectance.npy"))
+    'frame/reflectance.bands.json'
+    """
+    p = Path(cube)
+    return p.with_name(p.stem + SIDECAR_SUFFIX)
+
+
+def bands_sidecar_text(bands_nm: list[float], fwhm_nm: list[float] | None = None,
+                       quantity: str = "reflectance") -> str:
+    """The sidecar's JSON: band centres (and FWHM) in nm in the cube's band order (axis 0 of a (bands, H, W)
+    cube, axis 1 of (frames, bands, H, W)) and what the values are ("reflectance" or "signal")."""
+    import json
+
+    doc: dict[str, object] = {"bands_nm": [float(b) for b in bands_nm], "units": "nm", "quantity": quantity}
+    if fwhm_nm is not None:
+        doc["fwhm_nm"] = [float(f) for f in fwhm_nm]
+    return json.dumps(doc, indent=1)
+
+
+def parse_band_list(text: str, option: str = "--bands") -> list[float]:
+    """Band centres in nm from "544,633,1080,1580" (a ``/FWHM`` after a centre is accepted and ignored): positive,
+    finite, distinct; ``ValueError`` naming ``option`` otherwise.
+
+    >>> parse_band_list("1580, 544/20,1080,633")
+    [1580.0, 544.0, 1080.0, 633.0]
+    """
+    out = []
+    for item in str(text).split(","):
+        centre = item.strip().partition("/")[0].strip()
+        try:
+            v = float(centre)
+        except ValueError:
+            raise ValueError(f"{option}: {item.strip()!r} is not a band centre in nm") from None
+        if not (v > 0 and v < float("inf")):
+            raise ValueError(f"{option}: band centres must be positive wavelengths in nm, got {item.strip()!r}")
+        out.append(v)
+    return check_band_list(out, option)
+
+
+def check_band_list(bands: list[float], where: str) -> list[float]:
+    """``bands`` when they are distinct positive centres in nm; ``ValueError`` naming ``where`` otherwise (a band
+    given twice, or centres that look like µm: all below 10)."""
+    if not bands:
+        raise ValueError(f"{where}: no band centres")
+    if len(set(bands)) != len(bands):
+        raise ValueError(f"{where}: a band is given twice ({', '.join(f'{b:g}' for b in bands)} nm)")
+    if max(bands) < 10:
+        raise ValueError(f"{where}: band centres {', '.join(f'{b:g}' for b in bands)} look like micrometres; "
+                         "give them in nm")
+    return bands
+
+
+def read_bands_sidecar(cube: StrPath) -> list[float] | None:
+    """The band centres (nm) of a cube from its sidecar (``sidecar_path``), or None when it has none;
+    ``ValueError`` naming the sidecar when it cannot be read or does not hold distinct centres in nm."""
+    import json
+
+    p = sidecar_path(cube)
+    if not p.is_file():
+        return None
+    try:
+        doc = json.loads(p.read_text())
+        bands = [float(b) for b in doc["bands_nm"]]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"cannot read the band sidecar {str(p)!r}: expected JSON with a 'bands_nm' list "
+                         f"({type(e).__name__})") from None
+    if doc.get("units", "nm") != "nm":
+        raise ValueError(f"the band sidecar {str(p)!r} gives units {doc.get('units')!r}; expected 'nm'")
+    return check_band_list(bands, f"the band sidecar {str(p)!r}")

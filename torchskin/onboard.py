@@ -53,6 +53,33 @@ REFLECTANCE_MAX_SHARE = 0.01
 REFLECTANCE_MIN = -0.2
 
 
+#: how far (nm) a cube's band centre may lie from the model's and still be that band (a camera's nominal centres
+#: are rounded; the model's bands are 544, 633, 1080, 1580 nm, hundreds of nm apart)
+BAND_MATCH_NM = 2.0
+
+
+def match_bands(cube_bands: Sequence[float], model_bands: Sequence[float], tol_nm: float = BAND_MATCH_NM) -> list[int]:
+    """For each of the model's bands, the index of the cube's band at that wavelength (within ``tol_nm``): the
+    order to read the cube in. ``ValueError`` naming the band when the cube has none there.
+
+    >>> match_bands([1580, 544, 1080, 633], [544, 633, 1080, 1580])
+    [1, 3, 2, 0]
+    >>> match_bands([544, 633, 1080], [544, 633, 1080, 1580])
+    Traceback (most recent call last):
+    ...
+    ValueError: the cube's bands (544, 633, 1080 nm) do not include the model's 1580 nm band (within 2 nm)
+    """
+    cube = np.asarray(cube_bands, dtype=np.float64)
+    order = []
+    for b in model_bands:
+        d = np.abs(cube - float(b))
+        if not d.size or d.min() > tol_nm:
+            raise ValueError(f"the cube's bands ({', '.join(f'{v:g}' for v in cube)} nm) do not include the model's "
+                             f"{float(b):g} nm band (within {tol_nm:g} nm)")
+        order.append(int(d.argmin()))
+    return order
+
+
 def check_reflectance_range(low: float, high: float, above: float = 1.0) -> None:
     """``ValueError`` with a hint when a cube's reflectance lies out of meaning: its smallest value ``low`` below
     ``REFLECTANCE_MIN``, or its largest ``high`` above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE``

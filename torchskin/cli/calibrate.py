@@ -10,7 +10,7 @@ import json
 import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file, one_line
-from ..io import save_npy, write_text
+from ..io import bands_sidecar_text, read_bands_sidecar, save_npy, sidecar_path, write_text
 from ..onboard import elm_apply, elm_fit
 from .cubes import load_cube
 from .options import add_json, add_max_megapixels, add_out_file
@@ -107,6 +107,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
         if args.save_coefficients else None
     cube = load_cube(args.cube, "--cube", args.max_megapixels)
+    bands = read_bands_sidecar(args.cube)  # the input's wavelengths go with the output
+    n_bands = cube.shape[0] if cube.ndim == 3 else cube.shape[1]
+    if bands is not None and len(bands) != n_bands:
+        raise ValueError(f"the sidecar {str(sidecar_path(args.cube))!r} gives {len(bands)} bands, but --cube "
+                         f"{args.cube!r} holds {n_bands}")
     if args.coefficients:
         gain, offset = read_coefficients(args.coefficients)
         fit = None
@@ -126,6 +131,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         coef["residual"] = fit["residual"].tolist()
     coef_text = json.dumps(coef, indent=1)  # everything prepared before the first file is written
     save_npy(out, refl)
+    out_sidecar = sidecar_path(out)
+    if bands is not None:
+        write_text(out_sidecar, bands_sidecar_text(bands, quantity="reflectance"))
+    elif out_sidecar.is_file():  # an earlier output's wavelengths do not describe this one
+        out_sidecar.unlink()
     if save_coef is not None:
         write_text(save_coef, coef_text)
     res = {**coef, "out": args.out, "shape": list(refl.shape),

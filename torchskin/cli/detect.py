@@ -9,9 +9,10 @@ import json
 import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file
-from ..onboard import OnboardDetector
+from ..io import parse_band_list, read_bands_sidecar, sidecar_path
+from ..onboard import OnboardDetector, match_bands
 from .cubes import load_cube, write_mask_png
-from .options import add_json, add_max_megapixels, add_out_file
+from .options import add_bands, add_json, add_max_megapixels, add_out_file
 
 PROG = "torchskin detect"
 DESCRIPTION = "Skin mask of a reflectance cube with the exported detector (numpy + onnxruntime, no torch)."
@@ -25,7 +26,9 @@ FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The ``torchskin detect`` options."""
     ap.add_argument("--model", required=True, help="detector.onnx")
-    ap.add_argument("--cube", required=True, help=".npy reflectance cube (4, H, W) or (B, 4, H, W), float32")
+    ap.add_argument("--cube", required=True, help=".npy reflectance cube (bands, H, W) or (B, bands, H, W)")
+    add_bands(ap, default="the cube's sidecar CUBE.bands.json, written by render and calibrate; without either, "
+                          "the cube must hold the model's bands, 544,633,1080,1580, in that order")
     ap.add_argument("--sun-zenith", type=float, help="degrees")
     ap.add_argument("--camera-zenith", type=float, help="degrees")
     ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
@@ -71,6 +74,26 @@ def configuration_values(args: argparse.Namespace, features: list[str]) -> list[
     return values
 
 
+def model_bands(cube: np.ndarray, args: argparse.Namespace, bands_nm: list[float]) -> np.ndarray:
+    """The (B, bands, H, W) ``cube`` with the model's bands in the model's order: the cube's own wavelengths come
+    from ``--bands`` or the sidecar beside ``--cube`` (``io.read_bands_sidecar``); a cube that has neither must
+    hold the model's bands in its order. ``ValueError`` naming the option when the cube does not match."""
+    if args.bands:
+        cube_bands, where = parse_band_list(args.bands), "--bands"
+    else:
+        cube_bands, where = read_bands_sidecar(args.cube), f"the sidecar {str(sidecar_path(args.cube))!r}"
+    if cube_bands is None or not bands_nm:  # nothing to match (a model without bands_nm metadata: as given)
+        return cube
+    if len(cube_bands) != cube.shape[1]:
+        raise ValueError(f"{where} gives {len(cube_bands)} bands, but --cube {args.cube!r} holds {cube.shape[1]} "
+                         f"(shape {cube.shape[1:]} per frame)")
+    try:
+        order = match_bands(cube_bands, bands_nm)
+    except ValueError as e:
+        raise ValueError(f"--cube {args.cube!r} ({where}): {e}") from None
+    return cube if order == list(range(cube.shape[1])) else cube[:, order]
+
+
 def cli_detect(argv: list[str]) -> int:
     """``torchskin detect --model detector.onnx --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
     --relative-azimuth DEG [--range M] [--out MASK.png] [--json]`` (numpy + onnxruntime only)."""
@@ -84,6 +107,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if cube.ndim == 3:
         cube = cube[None]
+    cube = model_bands(cube, args, det.bands_nm)
     values = configuration_values(args, det.features)
     out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
               negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)

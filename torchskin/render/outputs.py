@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..detect import has_index_bands
-from ..io import save_npy, write_text
+from ..io import bands_sidecar_text, save_npy, sidecar_path, write_text
 from .elm import ELM_MIN_SUNLIT, elm_line_valid, panel_median_noise_dn, panel_regions, panel_sunlit_fraction
 from .pipeline import RenderResult
 from .scene import Scene
@@ -102,7 +102,8 @@ def elm_warning(info: dict) -> str | None:
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
                   sensor: Sensor | None = None) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
-    sensor signal cube before ELM (``signal.npy``, digital numbers), the rules detector's mask, ``mask.png``: an
+    sensor signal cube before ELM (``signal.npy``, digital numbers), each with its wavelengths in a sidecar
+    (``reflectance.bands.json``, ``signal.bands.json``: ``io.bands_sidecar_text``), the rules detector's mask, ``mask.png``: an
     RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
     detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
     everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
@@ -119,6 +120,10 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     out.mkdir(parents=True, exist_ok=True)
     save_npy(out / "reflectance.npy", result.cube(s, c))
     save_npy(out / "signal.npy", result.cube(s, c, "signal"))
+    centres = [float(b.center_nm) for b in result.bands]  # the cubes' wavelengths, for detect and calibrate
+    fwhm = [float(b.fwhm_nm) for b in result.bands]  # 0: monochromatic
+    for name, quantity in (("reflectance", "reflectance"), ("signal", "signal")):
+        write_text(sidecar_path(out / f"{name}.npy"), bands_sidecar_text(centres, fwhm, quantity))
     for k, b in enumerate(result.bands):
         band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")
