@@ -567,3 +567,14 @@ def test_every_optional_package_is_in_the_extra_the_error_names():
     for module, (dist, extra) in EXTRAS.items():
         assert dist in names[extra], (module, dist, extra)
         assert extra in extras["all"][0], (module, extra)
+
+
+def test_a_dataset_given_as_the_model_is_named_as_such(tmp_path, capsys):
+    """``evaluate --data D --model D`` (the folder twice) said the model file "does not exist"."""
+    from torchskin.cli import main
+
+    data = tmp_path / "d"
+    data.mkdir()
+    (data / "_manifest.json").write_text("{}")
+    line = _one_line(capsys, main(["evaluate", "--data", str(data), "--model", str(data)]))
+    assert "is a folder (a dataset: pass it as --data)" in line and "does not exist" not in line, line
