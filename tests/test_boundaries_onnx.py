@@ -106,9 +106,10 @@ def test_onboard_rejects_bad_input_and_flags_out_of_domain(trained, tmp_path):
     out = d(good, cfg)
     assert out["mask"].shape == (1, 4, 4) and not out["out_of_domain"].any()
     assert d(good, np.array([[95.0, 20.0, 90.0]]))["out_of_domain"].tolist() == [True]
-    for bad, msg in [(good[0], "rank 4"), (good[:, :3], "4 bands"), (good.astype(np.float64), "float32"),
+    assert np.array_equal(d(good.astype(np.float64), cfg)["score"], out["score"])  # float64 converted, not refused
+    for bad, msg in [(good[0], "rank 4"), (good[:, :3], "4 bands"),
                      (np.where(np.arange(4) == 0, np.nan, good).astype(np.float32), "NaN"),
-                     (-good, "negative")]:
+                     (-0.1 * good, "negative"), (-good, "far below 0")]:
         with pytest.raises(ValueError, match=msg):
             d(bad, cfg)
     with pytest.raises(ValueError, match="config must be"):

@@ -251,7 +251,7 @@ def test_train_by_method_is_the_commands(tiny_dataset, tmp_path, capsys):
     ck = torch.load(tmp_path / "c.pt", map_location="cpu", weights_only=True)
     assert ck["kind"] == "classifier" and registry.kind_of(model) == "classifier"
     assert all(torch.equal(ck["state_dict"][k], v) for k, v in model.state_dict().items())
-    assert {k: v for k, v in ck["meta"].items() if k not in ("training_manifest_sha256", "data", "surface")} == info
+    assert {k: v for k, v in ck["meta"].items() if k not in ("training_manifest_sha256", "data", "surface", "light_model")} == info
     assert text.startswith(line)
     with pytest.raises(ValueError, match="unknown training method 'svm'"):
         registry.train(TrainRequest(tiny_dataset, "svm"))

@@ -635,3 +635,13 @@ def test_render_writes_the_cubes_wavelengths_and_calibrate_carries_them(tmp_path
     assert main([*argv, *[x for p in panels for x in ("--panel", p)]]) == 0
     capsys.readouterr()
     assert read_bands_sidecar(refl) == [544.0, 633.0, 1080.0, 1580.0]
+
+def test_a_dataset_given_as_the_model_is_named_as_such(tmp_path, capsys):
+    """``evaluate --data D --model D`` (the folder twice) said the model file "does not exist"."""
+    from torchskin.cli import main
+
+    data = tmp_path / "d"
+    data.mkdir()
+    (data / "_manifest.json").write_text("{}")
+    line = _one_line(capsys, main(["evaluate", "--data", str(data), "--model", str(data)]))
+    assert "is a folder (a dataset: pass it as --data)" in line and "does not exist" not in line, line

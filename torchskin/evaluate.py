@@ -78,8 +78,11 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
     p = str(spec)
     if p == "static":
         return static_candidate()
+    if Path(p).is_dir():
+        what = " (a dataset: pass it as --data)" if (Path(p) / "_manifest.json").is_file() else ""
+        raise ValueError(f"--model {p!r} is a folder{what}; a model file (.pt or .onnx) or 'static' is expected")
     if not Path(p).is_file():
-        raise ValueError(f"model file {p!r} does not exist")
+        raise ValueError(f"--model {p!r} does not exist")
     name = Path(p).name
     if p.endswith(".onnx"):
         from .onboard import Boundaries, OnboardDetector, model_inputs

@@ -96,7 +96,7 @@ def check_reflectance_range(low: float, high: float, above: float = 1.0) -> None
         raise ValueError(f"cube reads reflectance above {REFLECTANCE_MAX:g} in {100 * above:.1f} % of its values (up "
                          f"to {high:.4g}; refused above {100 * REFLECTANCE_MAX_SHARE:g} %): is this uncalibrated signal "
                          "(digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?")
-    if low < REFLECTANCE_MIN:
+    if low < np.float32(REFLECTANCE_MIN):  # cubes are float32: -0.2 as a float32 is at the bound, not below it
         raise ValueError(f"cube reads reflectance down to {low:.4g}, far below 0 (refused below "
                          f"{REFLECTANCE_MIN:g}; sensor noise reaches about -0.001): is this uncalibrated signal "
                          "with an offset, or calibrated with swapped panels?")

@@ -78,6 +78,7 @@ def model_bands(cube: np.ndarray, args: argparse.Namespace, bands_nm: list[float
     """The (B, bands, H, W) ``cube`` with the model's bands in the model's order: the cube's own wavelengths come
     from ``--bands`` or the sidecar beside ``--cube`` (``io.read_bands_sidecar``); a cube that has neither must
     hold the model's bands in its order. ``ValueError`` naming the option when the cube does not match."""
+    cube_bands: list[float] | None
     if args.bands:
         cube_bands, where = parse_band_list(args.bands), "--bands"
     else:
