@@ -8,6 +8,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 import torch
+from test_boundaries_onnx import diagonal  # the synthetic skin walk of the box tests
 from torch import nn
 
 from torchskin.detectors import registry
@@ -152,18 +153,8 @@ def test_decide_is_the_rules_on_the_pixels_indices():
     assert torch.equal(model.decide(R, X), want)
 
 
-def diagonal(n=3000, seed=2):
-    g = torch.Generator().manual_seed(seed)
-    X = torch.stack([torch.rand(n, generator=g) * 80, torch.rand(n, generator=g) * 70,
-                     torch.rand(n, generator=g) * 180], -1)
-    t = X[:, 0] / 80
-    Y = torch.stack([-0.6 + 0.5 * t, 0.55 + 0.3 * t], -1) + 0.015 * torch.randn(n, 2, generator=g)
-    C = torch.tensor([[-0.5, 0.8], [-0.45, 0.84], [-0.2, 0.58], [-0.15, 0.6], [0.3, 0.1], [-0.8, 0.2]])
-    return X, Y, C
-
-
 def test_training_settings_are_dataclasses_and_the_keyword_call_still_works():
-    X, Y, C = diagonal()
+    X, Y, C = diagonal(3000, 2)
     a = train_boxes(X, Y, C, BoxTraining(steps=30, batch=1000, hidden=8)).model.state_dict()
     b = train_boxes(X, Y, C, steps=30, batch=1000, hidden=8).model.state_dict()
     c = train_boxes(X, Y, C, BoxTraining(steps=30, hidden=8), batch=1000).model.state_dict()
