@@ -41,3 +41,14 @@ def pytest_report_header(config):
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     terminalreporter.write_line(capability_line())  # also under -q, which leaves the header out
+
+
+@pytest.fixture(scope="module")
+def subject_obj(tmp_path_factory):
+    """A small sphere mesh (a head 0.9 m above the ground) as an OBJ subject for dataset tests."""
+    from torchskin.render.meshes import sphere_mesh, write_obj
+
+    v, f = sphere_mesh(0.35, 3)
+    p = tmp_path_factory.mktemp("mesh") / "head.obj"
+    write_obj(p, v + [0.0, 0.0, 0.9], f)
+    return p

@@ -15,15 +15,6 @@ from torchskin.cli import main
 from torchskin.dataset.config import resolve_config
 from torchskin.dataset.generate import MANIFEST, generate, verify
 from torchskin.render.kernels import compiler_available
-from torchskin.render.meshes import sphere_mesh, write_obj
-
-
-@pytest.fixture(scope="module")
-def subject_obj(tmp_path_factory):
-    v, f = sphere_mesh(0.35, 3)
-    p = tmp_path_factory.mktemp("mesh") / "head.obj"
-    write_obj(p, v + [0.0, 0.0, 0.9], f)
-    return p
 
 
 def small_cfg(obj, **over):

@@ -9,16 +9,7 @@ import torch
 
 from torchskin.dataset.config import resolve_config, sample_group
 from torchskin.render.elm import ELM_MAX_FULL_SCALE, ELM_MIN_SEPARATION_SIGMA, elm_line_valid, panel_median_noise_dn
-from torchskin.render.meshes import sphere_mesh, write_obj
 from torchskin.render.scene import PANEL_KINDS
-
-
-@pytest.fixture(scope="module")
-def subject_obj(tmp_path_factory):
-    v, f = sphere_mesh(0.35, 3)
-    p = tmp_path_factory.mktemp("mesh") / "head.obj"
-    write_obj(p, v + [0.0, 0.0, 0.9], f)
-    return p
 
 
 def _cfg(obj, sun_zenith, kind):

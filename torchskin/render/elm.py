@@ -50,12 +50,15 @@ def elm_coefficients(L1: TensorLike, L2: TensorLike, ref1: TensorLike,
     """
     L1 = as_tensor(L1)
     L2, ref1, ref2 = (as_tensor(x, like=L1) for x in (L2, ref1, ref2))
-    dref = ref2 - ref1
-    if bool((dref == 0).any()):
+    if bool((ref2 - ref1 == 0).any()):
         raise ValueError("ref1 and ref2 must differ in every band (the empirical line is undefined otherwise)")
-    a = (L2 - L1) / dref
-    b = (L1 * ref2 - L2 * ref1) / dref
-    return a, b
+    return _line(L1, L2, ref1, ref2)
+
+
+def _line(L1: torch.Tensor, L2: torch.Tensor, ref1: torch.Tensor, ref2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gain and offset of the line through (ref1, L1) and (ref2, L2), unchecked (eqs 2.5.5-2.5.6)."""
+    dref = ref2 - ref1
+    return (L2 - L1) / dref, (L1 * ref2 - L2 * ref1) / dref
 
 
 def erode(mask: torch.Tensor, pixels: int = 1) -> torch.Tensor:
@@ -216,9 +219,7 @@ def elm_line_valid(panel_signal: torch.Tensor, references: torch.Tensor, noise_d
     L1, L2 = panel_signal[..., 0, :], panel_signal[..., 1, :]
     r1, r2 = references[..., 0, :], references[..., 1, :]
     sigma = torch.sqrt(noise_dn[..., 0, :] ** 2 + noise_dn[..., 1, :] ** 2)
-    dref = r2 - r1
-    a = (L2 - L1) / dref
-    b = (L1 * r2 - L2 * r1) / dref
+    a, b = _line(L1, L2, r1, r2)  # non-finite where the panels' references coincide: not a line
     ok = ((L2 - L1).abs() >= min_sigma * sigma) & torch.isfinite(a) & (a > 0) & torch.isfinite(b)
     if full_scale_dn is not None:
         fs = as_tensor(full_scale_dn, like=a)
