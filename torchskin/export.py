@@ -78,7 +78,8 @@ def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256:
         checkpoints: per graph name ("boundaries", "baseline_box", "detector"), the checkpoint it came from
             (metadata key ``checkpoint``).
         provenance: per graph name, the metadata of its own checkpoint's world, which replace the common ones
-            (``training_manifest_sha256``, ``skin_surface_model``; ``mixed_worlds`` when checkpoints of
+            (``training_manifest_sha256``, ``skin_surface_model``, ``light_model`` where the checkpoint records
+            it; ``mixed_worlds`` when checkpoints of
             different worlds were combined on purpose): every graph records where its own model came from,
             not ``model``'s.
 

@@ -136,6 +136,8 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
         "surface model (`thesis`: eq 3.1.1's ρ_d is the total diffuse-model reflectance, front surface included, as "
         "the thesis defines it; `conserving`: its subsurface part only). Detectors learned under one model are not "
         "valid under the other.", "",
+        *([f"Light model of the training renders: `{meta['light_model']}` (`torchskin light`).", ""]
+          if meta.get("light_model") else []),
         "Configuration features (order, units, training domain; values outside it are flagged `out_of_domain`):", "",
         "| feature | units | domain |", "|---|---|---|",
     ]

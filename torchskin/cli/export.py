@@ -84,7 +84,9 @@ def cmd_export(args: argparse.Namespace) -> int:
                 "checkpoint": trains["detector"]["checkpoint"], "min_reflectance": f"{float(floor):g}"}
     mixed = check_worlds(trains, args.allow_mixed_worlds)
     provenance = {name: {"training_manifest_sha256": t.get("training_manifest_sha256", ""),
-                         "skin_surface_model": t.get("surface", ""), **({"mixed_worlds": mixed} if mixed else {})}
+                         "skin_surface_model": t.get("surface", ""),
+                         **({"light_model": str(t["light_model"])} if t.get("light_model") else {}),
+                         **({"mixed_worlds": mixed} if mixed else {})}
                   for name, t in trains.items()}
     paths = export(model, args.out, train.get("training_manifest_sha256", ""), surface=train.get("surface", ""),
                    baseline=baseline, detector=detector, detector_meta=det_meta, checkpoints={

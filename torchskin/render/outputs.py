@@ -6,13 +6,23 @@ the reflectance and signal cubes, the mask PNGs and ``render.json``.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..detect import has_index_bands
 from ..io import bands_sidecar_text, save_npy, sidecar_path, write_text
-from .elm import ELM_MIN_SUNLIT, elm_line_valid, panel_median_noise_dn, panel_regions, panel_sunlit_fraction
+from .elm import (
+    ELM_MAX_IRRADIANCE_RATIO,
+    ELM_MIN_SUNLIT,
+    elm_line_valid,
+    panel_irradiance_ratio,
+    panel_median_noise_dn,
+    panel_normals,
+    panel_regions,
+    panel_sunlit_fraction,
+)
 from .pipeline import RenderResult
 from .scene import Scene
 from .sensor import Sensor
@@ -36,13 +46,11 @@ def detections(mask: np.ndarray, truth: np.ndarray | None = None, min_area: int 
     return sorted(out, key=lambda d: -d["area"])
 
 
-def line_valid(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None,
-               max_full_scale: float | None = None) -> bool:
-    """Whether the empirical line of frame (sun ``s``, camera ``c``) is physical (``elm.elm_line_valid``): its
+def line_valid(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None) -> bool:
+    """Whether the empirical line of frame (sun ``s``, camera ``c``) is a line (``elm.elm_line_valid``): its
     panels ``ELM_MIN_SEPARATION_SIGMA`` σ of their medians' noise apart in every band (``sensor``'s noise model;
-    without a sensor, or without noise, the ADC's or none) and a finite positive gain; with ``max_full_scale``
-    (e.g. ``elm.ELM_MAX_FULL_SCALE``) also the frame's brightest signal in each band reading at most that (off
-    by default, as in the datasets: ``dataset.generate.line_valid``). True for a frame without two panels."""
+    without a sensor, or without noise, the ADC's or none) and a finite positive gain. True for a frame without
+    two panels."""
     import torch
 
     names = list(result.panels)
@@ -56,23 +64,39 @@ def line_valid(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | No
         n = torch.tensor([[float(len(result.panel_pixels[k][c]))] for k in range(2)], dtype=torch.float64)
         noise = panel_median_noise_dn(pv, n, sensor.read_noise_e, 2.0 ** int(sensor.adc_bits) / sensor.full_well_e,
                                       sensor.quantize, sensor.noise)
-    if max_full_scale is None:
-        return bool(elm_line_valid(pv, refs, noise))
-    sig = result.signal[s, c]
-    full = sig.reshape(-1, sig.shape[-1]).amax(0).double().cpu()
-    return bool(elm_line_valid(pv, refs, noise, full, max_full_scale=max_full_scale))
+    return bool(elm_line_valid(pv, refs, noise))
 
 
-def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None) -> dict:
+def irradiance_ratio(result: RenderResult, sun_dir: Sequence[float], s: int = 0, c: int = 0) -> float:
+    """``elm.panel_irradiance_ratio`` of frame (sun ``s``, camera ``c``), the sun towards ``sun_dir`` (unit, z up):
+    how many times its reflectance a sunlit surface can read through the frame's empirical line (1.0 for a frame
+    without reference panels)."""
+    import torch
+
+    if len(result.panels) < 2:
+        return 1.0
+    light = result.light
+    d = torch.tensor([list(sun_dir)], dtype=torch.float64)
+    normals = panel_normals(result.gbuffer, result.panel_pixels[:2], c).double().cpu()
+    return float(panel_irradiance_ratio(light.beam[s:s + 1].double().cpu(), light.sky[s:s + 1].double().cpu(), d,
+                                        normals)[0])
+
+
+def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None = None,
+            sun_dir: Sequence[float] | None = None) -> dict:
     """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``; whether the
-    frame's ELM is physical (``elm_valid``: every reference panel at least ``ELM_MIN_SUNLIT`` sunlit, and the
-    line through them physical, ``line_valid`` with ``sensor``'s noise; without sunlit panels the empirical line
-    is set by sky light, and with panels lit less than the scene reflectance can exceed 1)."""
+    frame's ELM is physical (``elm_valid``): every reference panel at least ``ELM_MIN_SUNLIT`` sunlit (without
+    sunlit panels the empirical line is set by sky light), the line through them a line (``line_valid`` with
+    ``sensor``'s noise), and, given the sun's direction ``sun_dir``, no surface able to receive more than
+    ``ELM_MAX_IRRADIANCE_RATIO`` times the panels' irradiance (``irradiance_ratio``; with panels lit less than the
+    scene, reflectance reads several times too high)."""
     skin = result.skin[c]
     lit = skin & result.lit[s, c]
     det = result.mask[s, c]
     n, nl = int(skin.sum()), int(lit.sum())
     sunlit = panel_sunlit_fraction(result.lit[s, c], result.panel_pixels, c)
+    line = line_valid(result, s, c, sensor)
+    ratio = None if sun_dir is None else irradiance_ratio(result, sun_dir, s, c)
     return {
         "skin_pixels": n,
         "sunlit_skin_pixels": nl,
@@ -80,9 +104,11 @@ def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None 
         "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
         "false_alarm_pixels": int((det & ~skin).sum()),
         "rules_detector": has_index_bands(result.bands),  # false: the bands lack 544/633/1080/1580 nm
-        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit) and line_valid(result, s, c, sensor),
-        "elm_line_valid": line_valid(result, s, c, sensor),
+        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit) and line
+        and (ratio is None or ratio <= ELM_MAX_IRRADIANCE_RATIO),
+        "elm_line_valid": line,
         "panel_sunlit_fraction": sunlit,
+        **({} if ratio is None else {"panel_irradiance_ratio": ratio}),
     }
 
 
@@ -95,8 +121,13 @@ def elm_warning(info: dict) -> str | None:
                 f"{', '.join(f'{v:.2f}' for v in info['panel_sunlit_fraction'])}; the sun is behind or below them, or "
                 "the subject shadows them): the empirical line is set by sky light and the reflectance is not "
                 "physical (elm_valid false)")
-    return ("the empirical line through the reference panels is not physical: they are too close in signal for "
-            "the sensor noise, or its gain is not positive (elm_valid false)")
+    if not info["elm_line_valid"]:
+        return ("the empirical line through the reference panels is not physical: they are too close in signal for "
+                "the sensor noise, or its gain is not positive (elm_valid false)")
+    return (f"the reference panels receive less light than the scene: a surface facing the sun receives up to "
+            f"{info['panel_irradiance_ratio']:.2f} times their irradiance (more than {ELM_MAX_IRRADIANCE_RATIO:g}; a low "
+            "sun grazing the panels, or panels turned from it), so the line reads sunlit surfaces that many times "
+            "their reflectance and the reflectance is not physical (elm_valid false)")
 
 
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
@@ -111,7 +142,10 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     detections) in ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
     model judges the empirical line, ``summary``). Returns the summary."""
     if isinstance(scene, Scene):
+        suns = scene.suns
         scene = scene.to_dict()
+    elif isinstance(scene, dict):
+        suns = Scene.from_dict(scene).suns
     if not isinstance(scene, dict):
         raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
     from ..plots import band_image, mask_image, mask_png
@@ -130,7 +164,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
     mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
                f"rules detector mask ({result.mask.shape[-1]} x {result.mask.shape[-2]} px)")
-    info = summary(result, s, c, sensor)
+    info = summary(result, s, c, sensor, sun_dir=[float(x) for x in suns[s].direction] if s < len(suns) else None)
     dets = detections(result.mask[s, c].cpu().numpy(), result.skin[c].cpu().numpy())
     H, W = result.mask.shape[-2:]
     regions = panel_regions(result.panel_pixels, list(result.panels), H, W, camera=c)
