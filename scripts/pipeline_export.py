@@ -18,6 +18,8 @@ from pathlib import Path
 from torchskin.cli import main
 from torchskin.io import atomic_path
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 def run(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -52,6 +54,10 @@ def run(argv=None) -> int:
     from torchskin.evaluate import thesis_frame
 
     thesis_frame(out / "detector.onnx", plot=out / "thesis_frame.png")  # the shipped detector on the thesis geometry
+    if out.resolve() == (ROOT / "exports").resolve():  # the shipped detector, packaged for pip users
+        with atomic_path(ROOT / "torchskin" / "data" / "detector.onnx") as tmp:
+            shutil.copyfile(out / "detector.onnx", tmp)
+        print("[export] copied detector.onnx to torchskin/data/detector.onnx (the packaged default)", flush=True)
     return 0
 
 

@@ -66,3 +66,22 @@ def test_cli_reference_lists_every_command_and_option(site):
                     missing.append(f"{name} {opt}")
     assert not missing, missing
     assert html.count("--clip-negative") >= 1 and "torchskin detect" in html  # the torch-free parsers are in
+
+
+def test_the_dataset_column_table_is_the_schema():
+    """docs/guide/datasets.md lists every Parquet column with the type, meaning and unit the generator writes
+    (``dataset.generate.COLUMNS``), in order: a column added or reworded in the code shows up here."""
+    from pathlib import Path
+
+    from torchskin.dataset.generate import COLUMNS
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "datasets.md").read_text()
+    rows = [ln for ln in text.splitlines() if ln.startswith("| `")]
+    table = {}
+    for ln in rows:
+        cells = [c.strip() for c in ln.strip("|").split(" | ")]
+        if len(cells) == 4 and cells[0].strip("`") in COLUMNS:
+            table[cells[0].strip("`")] = (cells[1], cells[2].replace("&#124;", "|"), cells[3])
+    assert list(table) == list(COLUMNS)
+    for k, (t, d, u) in COLUMNS.items():
+        assert table[k] == (t, d, u), k

@@ -278,3 +278,14 @@ def test_selection_ships_only_graphs_that_meet_the_onboard_budget():
     # within the Pd tolerance a box model with the smaller region wins, whatever the order
     other = model("b2.pt", "boxes", 0.960, area=0.25)
     assert select_detector({"models": [boxes, other, static]})[0] == "b2.pt"
+
+
+def test_the_packaged_detector_is_the_shipped_one():
+    """pip users get ``torchskin/data/detector.onnx`` (package data; ``detect``'s default model): it must be the
+    committed ``exports/detector.onnx`` byte for byte (``make demo``'s export step copies it)."""
+    from torchskin.onboard import SHIPPED_DETECTOR
+
+    packaged = Path(SHIPPED_DETECTOR)
+    assert packaged == Path(__file__).resolve().parents[1] / "torchskin" / "data" / "detector.onnx"
+    assert packaged.read_bytes() == (EXPORTS / "detector.onnx").read_bytes(), \
+        "torchskin/data/detector.onnx differs from exports/detector.onnx: copy it (scripts/pipeline_export.py does)"

@@ -292,3 +292,23 @@ def test_readme_quickstart_shows_the_cli_from_spectra_to_the_onboard_detector():
     cmds = [cmd for cmd, _ in readme_examples()]
     for prefix in ("torchskin spectra", "torchskin render", "torchskin detect"):
         assert any(c.startswith(prefix) for c in cmds), prefix
+
+
+def test_readme_links_render_on_a_package_index_and_exist_here():
+    """The README is the package index page too (pyproject's readme): its images and page links are absolute links
+    to this repository's files (relative ones break there), and every file they name exists in the checkout."""
+    raw = "https://raw.githubusercontent.com/torchskin/torchskin/main/"
+    blob = "https://github.com/torchskin/torchskin/blob/main/"
+    text = README.read_text()
+    images = re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", text)
+    pages = re.findall(r"(?<!!)\[[^\]]*\]\(([^)\s]+)\)", text)
+    assert images and pages
+    for link in images:
+        assert link.startswith(raw), f"README image {link!r} is not an absolute link into the repository"
+        assert (ROOT / link[len(raw):]).is_file(), link
+    for link in pages:
+        if link.startswith("#"):
+            continue
+        assert link.startswith(("https://", "http://")), f"README link {link!r} is relative"
+        if link.startswith(blob):
+            assert (ROOT / link[len(blob):].partition("#")[0]).exists(), link

@@ -24,20 +24,26 @@ EXIT_USAGE = 2
 EXIT_FAILURE = 1
 #: the optional packages a command may need: import name -> (distribution, the extra that installs it; pyproject's
 #: ``[project.optional-dependencies]``, checked by a test)
-EXTRAS = {"onnxruntime": ("onnxruntime", "onnx"), "onnx": ("onnx", "onnx"), "pyarrow": ("pyarrow", "dataset"),
+EXTRAS = {"onnx": ("onnx", "onnx"), "pyarrow": ("pyarrow", "dataset"),
           "pandas": ("pandas", "dataset"), "earthlib": ("earthlib", "dataset"), "open3d": ("open3d", "render"),
           "kornia": ("kornia", "render"), "skimage": ("scikit-image", "render"), "anny": ("anny", "render"),
           "pvlib": ("pvlib", "render"), "ray": ("ray", "ray")}
+
+#: the base requirements a command imports (pyproject's ``dependencies``): a ``--no-deps`` install may lack them
+BASE = {"onnxruntime": "onnxruntime", "torch": "torch", "matplotlib": "matplotlib", "tqdm": "tqdm"}
 
 
 def missing_extra(e: ModuleNotFoundError) -> str | None:
     """The one-line hint for a missing optional package (``EXTRAS``), or None for a module torchskin does not
     know as optional.
 
-    >>> missing_extra(ModuleNotFoundError("No module named 'onnxruntime'", name="onnxruntime"))
-    "this command needs onnxruntime: pip install 'torchskin[onnx]' (or 'torchskin[all]' for every command)"
+    >>> missing_extra(ModuleNotFoundError("No module named 'open3d'", name="open3d"))
+    "this command needs open3d: pip install 'torchskin[render]' (or 'torchskin[all]' for every command)"
     """
     top = (e.name or "").partition(".")[0]
+    if top in BASE:
+        return (f"this command needs {BASE[top]}, a requirement of torchskin that is not installed: pip install "
+                f"{BASE[top]} (an install with --no-deps leaves it out)")
     if top not in EXTRAS:
         return None
     dist, extra = EXTRAS[top]

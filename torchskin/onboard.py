@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 #: reflectance above this in more than ``REFLECTANCE_MAX_SHARE`` of a cube's values is not calibrated reflectance:
 #: the detector refuses the cube. The ELM maps the white panel (0.97-0.99) near the top of the sensor's range; a
 #: calibrated frame reads more only where a surface receives more light than the panels (a surface facing a low
-#: sun that grazes level panels, ``render.elm.ELM_MAX_FULL_SCALE``) or in a specular glint (water, glass, a
+#: sun that grazes level panels: up to ``render.elm.ELM_MAX_IRRADIANCE_RATIO`` times its reflectance in a valid frame) or in a specular glint (water, glass, a
 #: car), which is why a few such values are allowed. Digital numbers (up to 2^bits) and per cent (up to 100) put
 #: nearly every value above it
 REFLECTANCE_MAX = 1.5
@@ -52,6 +52,10 @@ REFLECTANCE_MAX_SHARE = 0.01
 #: (``negative="clip"`` clips only values above this)
 REFLECTANCE_MIN = -0.2
 
+
+#: the shipped detector, packaged with torchskin (a copy of the repository's ``exports/detector.onnx``, made by
+#: ``make demo``'s export step): ``torchskin detect``'s and ``OnboardDetector``'s default model
+SHIPPED_DETECTOR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "detector.onnx")
 
 #: how far (nm) a cube's band centre may lie from the model's and still be that band (a camera's nominal centres
 #: are rounded; the model's bands are 544, 633, 1080, 1580 nm, hundreds of nm apart)
@@ -242,7 +246,7 @@ class OnboardDetector(_Model):
     KIND = "detector (cube + configuration -> mask, score)"
     IO = ({"cube", "config"}, {"mask", "score"})
 
-    def __init__(self, path: str | os.PathLike, threads: int | None = None, tile: int = 65536):
+    def __init__(self, path: str | os.PathLike = SHIPPED_DETECTOR, threads: int | None = None, tile: int = 65536):
         super().__init__(path, threads)
         if tile < 1024:
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")

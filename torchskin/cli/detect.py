@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file
 from ..io import parse_band_list, read_bands_sidecar, sidecar_path
-from ..onboard import OnboardDetector, match_bands
+from ..onboard import SHIPPED_DETECTOR, OnboardDetector, match_bands
 from .cubes import load_cube, write_mask_png
 from .options import add_bands, add_json, add_max_megapixels, add_out_file
 
@@ -25,7 +25,9 @@ FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The ``torchskin detect`` options."""
-    ap.add_argument("--model", required=True, help="detector.onnx")
+    ap.add_argument("--model", default=None,
+                    help="detector.onnx (default: the shipped detector, packaged with torchskin: "
+                         "torchskin/data/detector.onnx, a copy of the repository's exports/detector.onnx)")
     ap.add_argument("--cube", required=True, help=".npy reflectance cube (bands, H, W) or (B, bands, H, W)")
     add_bands(ap, default="the cube's sidecar CUBE.bands.json, written by render and calibrate; without either, "
                           "the cube must hold the model's bands, 544,633,1080,1580, in that order")
@@ -96,7 +98,7 @@ def model_bands(cube: np.ndarray, args: argparse.Namespace, bands_nm: list[float
 
 
 def cli_detect(argv: list[str]) -> int:
-    """``torchskin detect --model detector.onnx --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
+    """``torchskin detect [--model detector.onnx] --cube CUBE.npy --sun-zenith DEG --camera-zenith DEG
     --relative-azimuth DEG [--range M] [--out MASK.png] [--json]`` (numpy + onnxruntime only)."""
     return cmd_detect(detect_parser().parse_args(argv))
 
@@ -104,7 +106,8 @@ def cli_detect(argv: list[str]) -> int:
 def cmd_detect(args: argparse.Namespace) -> int:
     """Run ``torchskin detect`` on parsed options."""
     mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
-    det = OnboardDetector(check_input_file(args.model, "--model", (".onnx",)))
+    det = OnboardDetector(check_input_file(SHIPPED_DETECTOR if args.model is None else args.model, "--model",
+                                           (".onnx",)))
     cube = load_cube(args.cube, "--cube", args.max_megapixels)
     if cube.ndim == 3:
         cube = cube[None]
