@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from torchskin.render.meshes import sphere_mesh, write_obj
-from torchskin.render.outputs import summary, write_outputs
+from torchskin.render.outputs import write_outputs
 from torchskin.render.pipeline import render
 from torchskin.render.scene import Camera, Sun, default_scene
 from torchskin.render.sensor import Sensor
@@ -46,8 +46,7 @@ def main() -> None:
                           sun=Sun(zenith_deg=args.sun_zenith, azimuth_deg=args.sun_azimuth, sky_fraction=0.1))
     result = render(scene, sensor=Sensor())  # sensor noise on; reflectance comes from the two panels (ELM)
 
-    print(json.dumps(summary(result), indent=1))
-    write_outputs(result, scene.to_dict(), args.out)
+    print(json.dumps(write_outputs(result, scene, args.out), indent=1))  # the frame's summary
     print(f"wrote {', '.join(sorted(p.name for p in args.out.iterdir()))} to {args.out}")
 
 

@@ -243,8 +243,8 @@ def panel_irradiance_ratio(beam: torch.Tensor, sky: torch.Tensor, sun_dirs: torc
     ``beam``, ``sky`` (S, B): the light tables' beam (on a surface facing the sun) and isotropic sky irradiance
     (on a level surface), as shading reads them (``LightTables``); ``sun_dirs`` (S, 3) unit vectors to the sun, z
     up; ``panel_normals`` (P, 3) unit normals. A surface of normal n receives E(n) = E_beam max(0, n·s) +
-    E_sky (1 + n_z) / 2 (the isotropic sky's view factor), whose largest value over n, at n ∝ E_beam s +
-    (E_sky / 2) z, is E_sky / 2 + |E_beam s + (E_sky / 2) z|. Ground-reflected light and occlusion are left out
+    E_sky (1 + n_z) / 2 (the isotropic sky's view factor), whose largest value over n, at n along
+    v = E_beam s + (E_sky / 2) z, is E_sky / 2 + ‖v‖. Ground-reflected light and occlusion are left out
     of both (a level panel sees no ground). 1 under an overcast sky (no beam); 1 / cos θz for a clear sky and level
     panels; inf where a panel receives no light.
 
