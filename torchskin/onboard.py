@@ -40,8 +40,8 @@ if TYPE_CHECKING:
 #: reflectance above this in more than ``REFLECTANCE_MAX_SHARE`` of a cube's values is not calibrated reflectance:
 #: the detector refuses the cube. The ELM maps the white panel (0.97-0.99) near the top of the sensor's range; a
 #: calibrated frame reads more only where a surface receives more light than the panels (a surface facing a low
-#: sun that grazes level panels: up to ``render.elm.ELM_MAX_IRRADIANCE_RATIO`` times its reflectance in a valid frame) or in a specular glint (water, glass, a
-#: car), which is why a few such values are allowed. Digital numbers (up to 2^bits) and per cent (up to 100) put
+#: sun that grazes level panels: ``render.elm.panel_irradiance_ratio`` times its reflectance) or in a specular
+#: glint (water, glass, a car), which is why a few such values are allowed. Digital numbers (up to 2^bits) and per cent (up to 100) put
 #: nearly every value above it
 REFLECTANCE_MAX = 1.5
 #: the share of a cube's values that may read above ``REFLECTANCE_MAX`` (glints, sun-facing surfaces)
