@@ -365,3 +365,38 @@ def test_compiled_generation_matches_eager(tmp_path, subject_obj):
     mixed = generate(cfg, 12, 4, tmp_path / "eager", quiet=True, resume=True, compile=True)
     assert mixed["compiled"] is False
     assert [e["compiled"] for e in mixed["shards"]] == [False, True] + [False] * (len(mixed["shards"]) - 2)
+
+
+def test_the_irradiance_bound_splits_line_frames_from_physical_ones(tmp_path, subject_obj):
+    """Suns 60-88° from the zenith over level panels: some frames' panels receive more than 3 times less light
+    than a sun-facing surface. ``elm_valid`` is ``elm_line_valid`` with that bound (``panel_irradiance_ratio`` <=
+    3); training's ``--frames line`` reads the line frames, evaluation's physical frames only, and a frame's
+    rows read like its ratio says (sun-facing skin above 1 only where the ratio allows it)."""
+    import numpy as np
+    import pandas as pd
+
+    from torchskin.dataset.files import read_valid
+    from torchskin.detectors.boxes import load_skin_rows
+    from torchskin.render.elm import ELM_MAX_IRRADIANCE_RATIO
+
+    cfg = small_cfg(subject_obj, sun={"zenith_deg": [60.0, 88.0], "per_pose": 6},
+                    camera={"zenith_deg": [20.0, 40.0]}, sampling={"groups_per_shard": 2})
+    generate(cfg, 48, 5, tmp_path / "d", quiet=True)
+    df = pd.read_parquet(tmp_path / "d")
+    assert (df.elm_valid == (df.elm_line_valid & (df.panel_irradiance_ratio <= ELM_MAX_IRRADIANCE_RATIO))).all()
+    limited = df.elm_line_valid & ~df.elm_valid
+    assert limited.any() and df.elm_valid.any()  # both kinds of frame in the draw
+    assert (df.panel_irradiance_ratio[limited] > ELM_MAX_IRRADIANCE_RATIO).all()
+    cols = ["label", "r1080"]
+    assert len(read_valid(tmp_path / "d", cols)[0]) == int(df.elm_valid.sum())
+    assert len(read_valid(tmp_path / "d", cols, "line")[0]) == int(df.elm_line_valid.sum())
+    with pytest.raises(ValueError, match="frames must be one of"):
+        read_valid(tmp_path / "d", cols, "all")
+    n_line = len(load_skin_rows(tmp_path / "d", frames="line")[0])
+    n_phys = len(load_skin_rows(tmp_path / "d", frames="physical")[0])
+    assert n_line > n_phys > 0
+    # the bound is what it says: sunlit skin (brightest band below 0.75) reads at most the ratio times that,
+    # below 3 in physical frames but for a glint's few rows; frames beyond the bound read skin above 3
+    lit = df.label & ~df.shadow
+    peak = df[["r544", "r633", "r1080", "r1580"]].max(axis=1)
+    assert np.percentile(peak[lit & df.elm_valid], 99) < ELM_MAX_IRRADIANCE_RATIO < peak[lit & limited].max()

@@ -87,7 +87,7 @@ def test_committed_metadata_and_cards(committed):
 def test_shipped_models_meet_their_claims(committed):
     """Held-out (used to calibrate and choose) and fresh test set (seed 3, used for nothing else): the committed
     figures claim the shipped detector within the false-alarm budgets, its sunlit Pd well above the static box's
-    and above the single refitted box's at the same budgets (README: 0.745, 0.454, 0.644)
+    and above the single refitted box's at the same budgets (README: 0.770, 0.488, 0.689)
     (measured again on a regenerated slice of the test set in
     ``test_shipped_detector_claims_hold_on_a_regenerated_test_slice``); every committed box model keeps the
     earthlib test spectra out over its whole training domain."""
@@ -99,7 +99,9 @@ def test_shipped_models_meet_their_claims(committed):
     names = [m["name"] for m in test["models"]]
     assert names == ["boundaries.onnx", "baseline_box.onnx", "detector.onnx", "static box (thesis)"]
     det, static = test["models"][2]["overall"], test["models"][3]["overall"]
-    assert test["configurations"] >= 900
+    # 960 drawn; the frames whose empirical line is physical (elm_valid) are evaluated: 762 (the rest have
+    # unlit or shadowed panels, no line, or panels lit less than a third of what a sun-facing surface gets)
+    assert test["configurations"] >= 700
     assert det["pfa"] <= 1e-3 and det["pfa_scene"] <= 1e-4  # the budgets the card claims
     assert det["pd_sunlit"] - static["pd_sunlit"] >= 0.25 and det["pd_shadow"] - static["pd_shadow"] >= 0.15
     assert det["pd_sunlit"] > test["models"][1]["overall"]["pd_sunlit"]  # the single box, calibrated alike

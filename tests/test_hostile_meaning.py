@@ -46,9 +46,6 @@ def _frames(obj, sun_zenith, kind):
     return valid, peak, sunlit
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (issue 23): datasets do not apply the irradiance-ratio bound "
-                   "(render.elm.ELM_MAX_IRRADIANCE_RATIO) yet; applied, the retrained shipped detector lost Pd "
-                   "through its false-alarm tuning (dataset.generate.line_valid)")
 @pytest.mark.parametrize("kind", PANEL_KINDS)
 def test_a_grazing_sun_frame_whose_panels_are_sunlit_is_not_called_valid(subject_obj, kind):
     """A user trains on ``elm_valid`` rows. A sun 87° from the zenith grazes the level panels (cos 87° = 0.05)
@@ -449,10 +446,9 @@ def test_the_onboard_path_still_imports_no_torch(tmp_path):
     assert r.returncode == 0, r.stderr
 
 
-def test_render_warns_that_a_grazing_sun_frame_reads_too_bright(tmp_path, capsys):
+def test_render_calls_a_grazing_sun_frame_invalid_as_the_dataset_does(tmp_path, capsys):
     """``render`` with a sun 87° from the zenith, off to the side of a camera 30° from the zenith: the panels
-    are sunlit, but the line through them is not the scene's: render.json gives the panels' irradiance ratio and
-    the warning says how many times too bright sunlit surfaces read."""
+    are sunlit, but the line through them is not the scene's; render.json says elm_valid false (as the dataset generator would) and the warning says why."""
     import json
 
     from torchskin.cli import main
@@ -463,7 +459,7 @@ def test_render_warns_that_a_grazing_sun_frame_reads_too_bright(tmp_path, capsys
     assert main([*argv, "--source-zenith", "87"]) == 0
     cap = capsys.readouterr()
     doc = json.loads((out / "render.json").read_text())["summary"]
-    assert min(doc["panel_sunlit_fraction"]) >= 0.5 and doc["elm_line_valid"]
+    assert min(doc["panel_sunlit_fraction"]) >= 0.5 and doc["elm_line_valid"] and not doc["elm_valid"]
     assert doc["panel_irradiance_ratio"] > ELM_MAX_IRRADIANCE_RATIO
     assert "times their irradiance" in cap.err and "not sunlit" not in cap.err
     assert main([*argv, "--source-zenith", "30"]) == 0

@@ -29,6 +29,12 @@ _TITLES = {"boundaries": "configuration-dependent skin-detector boundaries (the 
            "detector": "onboard skin detector (cube + configuration -> mask)"}
 
 
+#: what ``torchskin train --frames`` learned from, for the model card
+FRAMES_TEXT = {"line": "every frame with sunlit panels and a physical line, also where the panels receive less "
+                       "light than sun-facing surfaces; calibrated and evaluated on physical frames only",
+               "physical": "only frames whose ELM reflectance is physical, as evaluated"}
+
+
 def _f(v, digits=3) -> str:
     if v is None:
         return "n/a"
@@ -148,8 +154,10 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               f"- Dataset: `{train.get('data', '')}`, manifest SHA-256 `{meta.get('training_manifest_sha256', '')}` "
               f"(rendered by `torchskin generate`: anny bodies with Kubelka-Munk + microfacet skin, eq 3.1.1, "
               f"reference panels, earthlib confusers, sensor noise, ELM calibration).",
-              f"- {train.get('rows', 'n/a')} sunlit skin pixels; method `{train.get('method', 'n/a')}` "
-              f"({', '.join(f'{k}={v}' for k, v in sorted(opts.items()))}).",
+              f"- {train.get('rows', 'n/a')} skin pixels ({', '.join(train.get('light_classes', ['sunlit']))}); "
+              f"method `{train.get('method', 'n/a')}` ({', '.join(f'{k}={v}' for k, v in sorted(opts.items()))})"
+              + (f"; frames `{train['frames']}` ({FRAMES_TEXT.get(train['frames'], '')})" if train.get("frames")
+                 else "") + ".",
               _false_alarm_line(train), ""]
     if evaluation:
         lines += _metrics_section(evaluation, meta.get("checkpoint", train.get("checkpoint", "")))
@@ -161,8 +169,9 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               "not represented beyond what the renderer models.",
               "- Confusers are earthlib's Lambertian laboratory spectra; glossy or fluorescent materials, skin-like "
               "fabrics and leather are not in the library.",
-              "- Sunlit skin drove the training; shadowed skin is reported but was not optimised for. Skin seen at "
-              "grazing local incidence or in a glint carries a spectrally flat surface reflection that pulls NDGRI "
+              ("- Sunlit and shadowed skin drove the training (Pd is reported for each). " if "shadow" in
+               train.get("light_classes", []) else "- Sunlit skin drove the training; shadowed skin is reported but "
+               "was not optimised for. ") + "Skin seen at grazing local incidence or in a glint carries a spectrally flat surface reflection that pulls NDGRI "
               "and NDSI towards 0; the part of it below the box's NDSI floor is missed (it would meet soils).",
               "- The visible/NIR rule (NDVN >= d1) was set from the rendered skin population (Fitzpatrick I-VI of the "
               "calibrated model); skin darker in the visible than that (or heavily made-up) would be rejected.",

@@ -25,7 +25,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         args.data, args.method, pfa_budget=args.pfa_budget, scene_budget=args.scene_budget,
         use_scene=not args.no_scene, sunlit_only=args.sunlit_only, hidden=args.hidden, steps=args.steps,
         seed=args.seed, ndvn_rule=not args.no_ndvn_rule, q=args.q, margin=args.margin,
-        width_cost=args.width_cost, spread_cost=args.spread_cost))
+        width_cost=args.width_cost, spread_cost=args.spread_cost, frames=args.frames))
     return _save_trained(args, registry.save, model, info, text)
 
 
@@ -78,6 +78,12 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     help="hold only the earthlib spectra to a budget, not the dataset's non-skin pixels")
     tp.add_argument("--sunlit-only", action="store_true",
                     help="learn from sunlit skin only (default: sunlit and shadowed skin)")
+    tp.add_argument("--frames", choices=("line", "physical"), default="line",
+                    help="the frames to learn from: line (default), every frame whose reference panels are sunlit "
+                         "and whose empirical line is a line (elm_line_valid), also where the panels receive less "
+                         "light than sun-facing surfaces (a low sun grazing level panels: the detector meets such "
+                         "frames in the field, and learning from them keeps more skin on physical frames); "
+                         "physical: only the frames evaluation and calibration use (elm_valid)")
     add_json(tp)
     tp.set_defaults(func=cmd_train)
     return tp

@@ -19,9 +19,10 @@ MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when 
 #: the renderer's revision for datasets: raised whenever the same config and seed render other bytes, so that
 #: ``generate --resume`` does not keep shards of another revision (2: anny bodies in float64, camera rays and
 #: facing tests and angles written out in a fixed order; 3: the light stage: SPECTRL2 sun, sky and ground-reflected
-#: light, sky views, RTLSR ground and confusers; 1 or missing: before). ``elm_valid``'s noise and gain checks
-#: (``render.elm.elm_line_valid``) left it at 3: they change no row of the default datasets
-RENDER_REVISION = 3
+#: light, sky views, RTLSR ground and confusers; 4: ``elm_valid`` asks the panels to receive at least a third of the
+#: light a surface facing the sun and sky does, ``render.elm.ELM_MAX_IRRADIANCE_RATIO``; 1 or missing: before).
+#: ``elm_valid``'s noise and gain checks (``render.elm.elm_line_valid``) change no row of the default datasets
+RENDER_REVISION = 4
 
 
 def sha256_file(path: StrPath) -> str:
@@ -99,26 +100,40 @@ def open_dataset(data_dir: StrPath, columns: Sequence[str] = ()) -> ds.Dataset:
     return d
 
 
-def read_valid(data_dir: StrPath, columns: Sequence[str]) -> tuple[pa.Table, int]:
-    """The rows training and evaluation use: those of frames whose reference panels were sunlit.
+#: which frames ``read_valid`` keeps: "physical", those whose ELM reflectance is physical (``elm_valid``: what
+#: evaluation and calibration use); "line", also those whose one fault is that the panels receive less light than
+#: sun-facing surfaces (``elm_line_valid``: panels sunlit and the line a line, the irradiance-ratio bound aside),
+#: which ``torchskin train --frames line`` (its default) learns from
+FRAME_SETS = {"physical": "elm_valid", "line": "elm_line_valid"}
+
+
+def read_valid(data_dir: StrPath, columns: Sequence[str], frames: str = "physical") -> tuple[pa.Table, int]:
+    """The rows training and evaluation use: those of frames whose empirical line is physical.
 
     Args:
         data_dir: the dataset folder.
         columns: the columns to read.
+        frames: "physical" (rows with ``elm_valid`` true) or "line" (rows with ``elm_line_valid`` true, which adds
+            the frames whose panels are lit less than the scene's sun-facing surfaces; ``FRAME_SETS``).
 
     Returns:
-        A pyarrow table of ``columns`` keeping only the rows with ``elm_valid`` true (datasets without that
-        column keep every row), and the number of rows left out.
+        A pyarrow table of ``columns`` keeping only those rows (datasets without the column: ``elm_valid`` for
+        "line" when ``elm_line_valid`` is missing; every row without either), and the number of rows left out.
     """
     import numpy as np
 
+    if frames not in FRAME_SETS:
+        raise ValueError(f"frames must be one of {', '.join(FRAME_SETS)}, got {frames!r}")
     d = open_dataset(data_dir, columns)
-    if "elm_valid" not in d.schema.names:
+    flag = FRAME_SETS[frames]
+    if flag not in d.schema.names:
+        flag = "elm_valid"
+    if flag not in d.schema.names:
         return d.to_table(columns=list(columns)), 0
-    t = d.to_table(columns=list(dict.fromkeys([*columns, "elm_valid"])))
-    valid = t.column("elm_valid")
+    t = d.to_table(columns=list(dict.fromkeys([*columns, flag])))
+    valid = t.column(flag)
     excluded = len(t) - int(np.count_nonzero(valid.to_numpy(zero_copy_only=False)))
     return t.filter(valid).select(list(columns)), excluded
 
 
-__all__ = ["MANIFEST", "dataset_surface", "manifest", "open_dataset", "manifest_sha256", "read_valid", "sha256_file"]
+__all__ = ["FRAME_SETS", "MANIFEST", "dataset_surface", "manifest", "open_dataset", "manifest_sha256", "read_valid", "sha256_file"]

@@ -32,9 +32,12 @@ from ..detectors.features import BAND_COLUMNS
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import (
+    ELM_MAX_IRRADIANCE_RATIO,
     ELM_MIN_SUNLIT,
     elm_line_valid,
+    panel_irradiance_ratio,
     panel_median_noise_dn,
+    panel_normals,
     panel_pixels,
     panel_subset,
 )
@@ -49,10 +52,12 @@ from ..render.sensor import Sensor
 from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
 from .files import MANIFEST, RENDER_REVISION, sha256_file
 
-SCHEMA_VERSION = 5  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
+SCHEMA_VERSION = 6  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
 # clothing and material columns, clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
 # (sky_view, direct_share_*, light, backlit), sky_fraction derived; 5: one set of pixels per pose group (every sun x
-# skin of a group shades the same 2 x pixels_per_class pixels), panel medians from a capped sample (PANEL_SAMPLE)
+# skin of a group shades the same 2 x pixels_per_class pixels), panel medians from a capped sample (PANEL_SAMPLE);
+# 6: panel_irradiance_ratio column, elm_valid false where it exceeds render.elm.ELM_MAX_IRRADIANCE_RATIO, and
+# elm_line_valid (elm_valid without that bound)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
@@ -123,10 +128,15 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "direct_share_544": ("float32", "share of the pixel's irradiance at 544 nm that is direct (sun and circumsolar)",
                          ""),
     "direct_share_1580": ("float32", "share of the pixel's irradiance at 1580 nm that is direct", ""),
+    "panel_irradiance_ratio": ("float32", "the most irradiance a surface facing the sun and sky receives over the "
+                               "reference panels' (render.elm.panel_irradiance_ratio): sunlit surfaces read up to this "
+                               "many times their reflectance through the empirical line", ""),
     "elm_valid": ("bool", "the frame's ELM is physical: both reference panels sunlit (>= half of each interior), "
-                  "their signals >= 20 sigma of the medians' noise apart in every band and a positive finite gain "
-                  "(render.elm.elm_line_valid); training and evaluation use "
-                  "only these frames", ""),
+                  "their signals >= 20 sigma of the medians' noise apart in every band, a positive finite gain "
+                  "(render.elm.elm_line_valid), and panel_irradiance_ratio <= 3 (ELM_MAX_IRRADIANCE_RATIO); "
+                  "evaluation and calibration use only these frames", ""),
+    "elm_line_valid": ("bool", "elm_valid but for the irradiance-ratio bound: panels sunlit and the line a line; "
+                       "torchskin train --frames line (its default) also learns from these frames", ""),
     "r544": ("float32", "ELM reflectance at 544 nm", ""),
     "r633": ("float32", "ELM reflectance at 633 nm", ""),
     "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
@@ -309,10 +319,12 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     sunlit = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
                            list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
     n_cfg = n_suns * n_skins
-    # (the irradiance-ratio bound, render.elm.ELM_MAX_IRRADIANCE_RATIO, is not applied yet: see line_valid)
-    elm_valid = sunlit.numpy()[np.arange(n_cfg) % n_suns] & line_valid(res, sensor)  # per configuration
+    ratio = panel_irradiance_ratio(light.beam, light.sky, sun_dirs.double(), panel_normals(gb, pix).double()).numpy()
+    sun_of = np.arange(n_cfg) % n_suns
+    line_ok = sunlit.numpy()[sun_of] & line_valid(res, sensor)  # per configuration
+    elm_valid = line_ok & (ratio <= ELM_MAX_IRRADIANCE_RATIO)[sun_of]
     rows = configuration_rows(group, res, np.tile(picks, n_cfg), np.tile(np.arange(2 * m), n_cfg), gb, sun_dirs,
-                              labels, elm_valid, light, sensor)
+                              labels, elm_valid, light, sensor, ratio, line_ok)
     return {k: [v] for k, v in rows.items()}
 
 
@@ -320,13 +332,7 @@ def line_valid(res: RenderResult, sensor: Sensor) -> np.ndarray:
     """Per configuration (the render's leading axis, (S·K,)), whether the empirical line through the reference
     panels' medians is a line (``elm.elm_line_valid``): the panels separated by ``ELM_MIN_SEPARATION_SIGMA``
     σ of the medians' noise in every band (``elm.panel_median_noise_dn``, from the sensor's shot, read and ADC
-    noise and each panel's sample size) and a finite positive gain.
-
-    Not applied yet: the bound on the panels' irradiance (``elm.panel_irradiance_ratio`` <=
-    ``ELM_MAX_IRRADIANCE_RATIO``, from the light tables and ``elm.panel_normals``). Applied to the default
-    pipeline it drops 22 % of the configurations, and the retrained shipped detector lost Pd (fresh-test sunlit
-    0.743 -> 0.646, the thesis frame 0.966 -> 0.898) through the false-alarm tuning, not through the frames it
-    drops: the old model scores 0.770 on the new test set within the budget. It waits for a sturdier tuning."""
+    noise and each panel's sample size) and a finite positive gain."""
     names = list(res.panels)
     pv = torch.tensor([res.panels[p]["signal"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
     refs = torch.tensor([res.panels[p]["reference"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
@@ -338,12 +344,14 @@ def line_valid(res: RenderResult, sensor: Sensor) -> np.ndarray:
 
 def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
                        sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray,
-                       light: LightTables, sensor: Sensor) -> dict[str, np.ndarray]:
+                       light: LightTables, sensor: Sensor, irradiance_ratio: np.ndarray,
+                       elm_line_valid: np.ndarray) -> dict[str, np.ndarray]:
     """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
     rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
     found at ``pos`` (same slice) of the pixel render ``res``'s row c (rendered with ``irradiance``);
     ``elm_valid`` (S·K,) per configuration; ``light``: the scene's light tables (S rows, float64); ``sensor``: the group's
-    (``group_sensor``)."""
+    (``group_sensor``); ``irradiance_ratio`` (S,): per sun, ``elm.panel_irradiance_ratio``; ``elm_line_valid``
+    (S·K,): ``elm_valid`` but for the irradiance-ratio bound."""
     n_suns, n_skins = len(group.suns), len(group.skin_types)
     n_cfg = n_suns * n_skins
     per = len(idx) // n_cfg  # 2m
@@ -372,6 +380,7 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "relative_azimuth_deg": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                                   for s in group.suns]),
                  "sky_fraction": sky_fraction(light, [s["zenith_deg"] for s in group.suns])[si],
+                 "panel_irradiance_ratio": irradiance_ratio.astype(np.float32)[si],
                  "backlit": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                      >= BACKLIT_MIN_DEG for s in group.suns]),
                  "skin_type": strings(ki, group.skin_types),
@@ -385,7 +394,8 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "label": np.tile(np.repeat(np.array([True, False]), per // 2), n_cfg), "theta_i_deg": ti.numpy(),
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
                  "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
-                 "elm_valid": elm_valid[cfg], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
+                 "elm_valid": elm_valid[cfg],
+                 "elm_line_valid": elm_line_valid[cfg], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
                  "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
     shadow = rows["shadow"]

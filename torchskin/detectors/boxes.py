@@ -276,31 +276,34 @@ class TrainResult:
 
 
 def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
-                   sunlit_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                   sunlit_only: bool = False, frames: str = "physical") -> tuple[torch.Tensor, torch.Tensor]:
     """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
-    sunlit and shadowed (``sunlit_only``: sunlit only), from frames whose ELM is valid (``elm_valid``, when the
-    dataset has the column)."""
-    X, Y = _index_rows(data_dir, features, skin=True, sunlit_only=sunlit_only)
+    sunlit and shadowed (``sunlit_only``: sunlit only), from the frames ``frames`` names
+    (``dataset.files.read_valid``: "physical", ``elm_valid``; "line", ``elm_line_valid``)."""
+    X, Y = _index_rows(data_dir, features, skin=True, sunlit_only=sunlit_only, frames=frames)
     if len(X) == 0:
         raise ValueError(f"no usable {'sunlit ' if sunlit_only else ''}skin pixels in {str(data_dir)!r}")
     return X, Y
 
 
 def load_scene_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
-                    min_reflectance: float = MIN_REFLECTANCE) -> tuple[torch.Tensor, torch.Tensor]:
+                    min_reflectance: float = MIN_REFLECTANCE, frames: str = "physical"
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the non-skin pixels of a generated dataset (clothing,
-    ground and confuser patches, in sun and in shadow, as the camera saw them; valid-ELM frames, float32): the
+    ground and confuser patches, in sun and in shadow, as the camera saw them; the frames ``frames`` names, as
+    ``load_skin_rows``; float32): the
     scene false alarms ``learn`` holds to its scene budget. Pixels whose mean reflectance is not above
     ``min_reflectance`` (the detector's brightness floor: never skin) keep their row with NaN indices, which no
     box holds: they count in the budget's denominator, as in the evaluation, and constrain nothing."""
-    return _index_rows(data_dir, features, skin=False, sunlit_only=False, floor=min_reflectance)
+    return _index_rows(data_dir, features, skin=False, sunlit_only=False, floor=min_reflectance, frames=frames)
 
 
 def _index_rows(data_dir: str | os.PathLike, features: Sequence[str], skin: bool,
-                sunlit_only: bool, floor: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                sunlit_only: bool, floor: float | None = None, frames: str = "physical"
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     from ..dataset.files import read_valid
 
-    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS])
+    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS], frames)
     label = t.column("label").to_numpy(zero_copy_only=False)
     keep = label.copy() if skin else ~label
     if sunlit_only:
@@ -823,8 +826,8 @@ def train_on_dataset(req: TrainRequest) -> tuple[BoundaryModel, dict, str]:
     """``torchskin train --method boxes|quantiles`` on a dataset folder: the skin and scene rows
     (``load_skin_rows``, ``load_scene_rows``), the declared domain (``domain_from_manifest``), ``learn``; returns
     the model, its training summary (``learn``'s, with ``light_classes``) and the command's one-line report."""
-    X, Y = load_skin_rows(req.data, sunlit_only=req.sunlit_only)
-    scene = load_scene_rows(req.data) if req.use_scene else None
+    X, Y = load_skin_rows(req.data, sunlit_only=req.sunlit_only, frames=req.frames)
+    scene = load_scene_rows(req.data, frames=req.frames) if req.use_scene else None
     opts: dict[str, Any] = {"hidden": req.hidden, "steps": req.steps, "seed": req.seed}
     domain = domain_from_manifest(req.data)
     if req.method == "quantiles":
@@ -836,6 +839,7 @@ def train_on_dataset(req: TrainRequest) -> tuple[BoundaryModel, dict, str]:
                         scene_budget=req.scene_budget, **opts)
     info["options"].pop("domain", None)
     info["light_classes"] = ["sunlit"] if req.sunlit_only else ["sunlit", "shadow"]
+    info["frames"] = req.frames
     scene_text = "" if scene is None else (f"; scene non-skin {info['pfa_scene_train']:.2e} <= {req.scene_budget:g} "
                                            f"of {info['scene_pixels']} training pixels")
     text = (f"trained ({req.method}) on {info['rows']} {'sunlit ' if req.sunlit_only else ''}skin pixels, loss "

@@ -219,13 +219,13 @@ class ClassifierDetector(nn.Module):
         return (score > 0) & valid.reshape(B, H, W), score
 
 
-def load_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES
+def load_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES, frames: str = "physical"
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Training rows of a generated dataset (valid ELM frames): configuration (n, k), reflectance (n, 4),
-    skin label and sunlit flag (numpy)."""
+    """Training rows of a generated dataset (the frames ``frames`` names: ``dataset.files.read_valid``):
+    configuration (n, k), reflectance (n, 4), skin label and sunlit flag (numpy)."""
     from ..dataset.files import read_valid
 
-    t, _ = read_valid(data_dir, list(features) + list(BAND_COLUMNS) + ["label", "shadow"])
+    t, _ = read_valid(data_dir, list(features) + list(BAND_COLUMNS) + ["label", "shadow"], frames)
     col = {c: np.asarray(t.column(c).to_numpy(zero_copy_only=False)) for c in t.column_names}
     X = np.stack([col[f] for f in features], -1).astype(np.float32)
     R = np.stack([col[b] for b in BAND_COLUMNS], -1).astype(np.float32)
@@ -462,11 +462,12 @@ def train_on_dataset(req: TrainRequest) -> tuple[SkinClassifier, dict, str]:
     """``torchskin train --method classifier`` on a dataset folder: the rows (``load_rows``), the declared domain
     (``domain_from_manifest``), ``train_classifier`` with the request's options (width at least 1); returns the
     model, its training summary and the command's one-line report."""
-    X, R, label, sunlit = load_rows(req.data)
+    X, R, label, sunlit = load_rows(req.data, frames=req.frames)
     model, info = train_classifier(X, R, label, sunlit, hidden=max(req.hidden, 1), steps=req.steps, seed=req.seed,
                                    domain=domain_from_manifest(req.data), pfa_budget=req.pfa_budget,
                                    scene_budget=req.scene_budget if req.use_scene else None,
                                    sunlit_only=req.sunlit_only)
+    info["frames"] = req.frames
     text = (f"trained (classifier) on {info['rows']} {'sunlit ' if req.sunlit_only else ''}skin pixels; threshold "
             f"{info['threshold']:.3f} (logit) for Pfa <= {req.pfa_budget:g} on the earthlib train partition over "
             f"{info['calibration_configs']} configurations; training skin kept {info['train_coverage']:.3f}, scene "

@@ -95,6 +95,9 @@ class TrainRequest:
         scene_budget: the largest share of the dataset's non-skin pixels called skin, in [0, 1).
         use_scene: hold the dataset's non-skin pixels to ``scene_budget`` (False: the earthlib spectra only).
         sunlit_only: learn from sunlit skin only.
+        frames: the frames to learn from (``dataset.files.FRAME_SETS``): "line" (the command's default), every
+            frame whose panels are sunlit and whose empirical line is a line, also where the panels receive less
+            light than sun-facing surfaces; "physical", only the frames evaluation uses (``elm_valid``).
         hidden, steps, seed: network width, optimisation steps, seed.
         ndvn_rule: boxes and quantiles: the visible/NIR rule (NDVN >= d1).
         q: quantiles: the quantile of the box edges.
@@ -107,6 +110,7 @@ class TrainRequest:
     scene_budget: float = 1e-4
     use_scene: bool = True
     sunlit_only: bool = False
+    frames: str = "line"
     hidden: int = 32
     steps: int = 1500
     seed: int = 0

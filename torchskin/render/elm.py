@@ -42,8 +42,7 @@ ELM_MIN_SEPARATION_SIGMA = 20.0
 #: (up to ~150 at an 89° sun). Measured on ``generate --configs 2400 --seed 1`` (2,271 configurations valid by the
 #: other rules, 4,279 of their rows above 3): a bound of 2 drops 33 % of them and leaves 33 of 759 with the sun
 #: >= 60° (no row above 3); 3 drops 22 % and keeps 267 of 759 (20 rows above 3, at most 5.1: skin's specular glint at
-#: forward grazing geometry, a true reading); 5 drops 12 % (151 rows above 3, up to 11.9). Not applied to
-#: ``elm_valid`` yet (``dataset.generate.line_valid`` says why); ``render`` reports the ratio and warns above it
+#: forward grazing geometry, a true reading); 5 drops 12 % (151 rows above 3, up to 11.9)
 ELM_MAX_IRRADIANCE_RATIO = 3.0
 
 

@@ -87,10 +87,9 @@ def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None 
     """Skin pixel counts and the fraction the rules detector finds, for sun ``s`` and camera ``c``; whether the
     frame's ELM is physical (``elm_valid``): every reference panel at least ``ELM_MIN_SUNLIT`` sunlit (without
     sunlit panels the empirical line is set by sky light), the line through them a line (``line_valid`` with
-    ``sensor``'s noise); given the sun's direction ``sun_dir``, also ``panel_irradiance_ratio``
-    (``irradiance_ratio``): above ``ELM_MAX_IRRADIANCE_RATIO`` the panels are lit less than the scene and sunlit
-    reflectance reads several times too high (``elm_warning`` says so; like the datasets, ``elm_valid`` does not
-    apply that bound yet: ``dataset.generate.line_valid``)."""
+    ``sensor``'s noise), and, given the sun's direction ``sun_dir``, no surface able to receive more than
+    ``ELM_MAX_IRRADIANCE_RATIO`` times the panels' irradiance (``irradiance_ratio``; with panels lit less than the
+    scene, reflectance reads several times too high)."""
     skin = result.skin[c]
     lit = skin & result.lit[s, c]
     det = result.mask[s, c]
@@ -105,7 +104,8 @@ def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None 
         "detected_fraction_sunlit": float(det[lit].float().mean()) if nl else 0.0,
         "false_alarm_pixels": int((det & ~skin).sum()),
         "rules_detector": has_index_bands(result.bands),  # false: the bands lack 544/633/1080/1580 nm
-        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit) and line,
+        "elm_valid": all(f >= ELM_MIN_SUNLIT for f in sunlit) and line
+        and (ratio is None or ratio <= ELM_MAX_IRRADIANCE_RATIO),
         "elm_line_valid": line,
         "panel_sunlit_fraction": sunlit,
         **({} if ratio is None else {"panel_irradiance_ratio": ratio}),
@@ -114,8 +114,7 @@ def summary(result: RenderResult, s: int = 0, c: int = 0, sensor: Sensor | None 
 
 def elm_warning(info: dict) -> str | None:
     """Why a frame's ELM is not physical, in one sentence, from its ``summary`` (None when it is)."""
-    ratio = info.get("panel_irradiance_ratio")
-    if info["elm_valid"] and (ratio is None or ratio <= ELM_MAX_IRRADIANCE_RATIO):
+    if info["elm_valid"]:
         return None
     if min(info["panel_sunlit_fraction"], default=1.0) < ELM_MIN_SUNLIT:
         return ("the reference panels are not sunlit (sunlit share of their interiors "
@@ -126,9 +125,9 @@ def elm_warning(info: dict) -> str | None:
         return ("the empirical line through the reference panels is not physical: they are too close in signal for "
                 "the sensor noise, or its gain is not positive (elm_valid false)")
     return (f"the reference panels receive less light than the scene: a surface facing the sun receives up to "
-            f"{ratio:.2f} times their irradiance (more than {ELM_MAX_IRRADIANCE_RATIO:g}; a low sun grazing the "
-            "panels, or panels turned from it), so the line reads sunlit surfaces up to that many times their "
-            "reflectance")
+            f"{info['panel_irradiance_ratio']:.2f} times their irradiance (more than {ELM_MAX_IRRADIANCE_RATIO:g}; a low "
+            "sun grazing the panels, or panels turned from it), so the line reads sunlit surfaces that many times "
+            "their reflectance and the reflectance is not physical (elm_valid false)")
 
 
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
