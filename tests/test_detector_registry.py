@@ -116,10 +116,14 @@ def test_register_refuses_taken_names_and_incomplete_kinds(toy_kind):
 
 
 def test_checkpoints_carry_their_kind_and_old_ones_still_load(tmp_path):
-    old = torch.load(EXPORTS / "boundaries.pt", map_location="cpu", weights_only=True)
-    assert "kind" not in old  # the shipped box checkpoints predate the key
-    model, ck = registry.load(EXPORTS / "boundaries.pt")
+    shipped = torch.load(EXPORTS / "boundaries.pt", map_location="cpu", weights_only=True)
+    assert shipped["kind"] == "boxes"
+    old = {k: v for k, v in shipped.items() if k != "kind"}  # a box checkpoint written before the key existed
+    torch.save(old, tmp_path / "old.pt")
+    model, ck = registry.load(tmp_path / "old.pt")
     assert registry.kind_of(model) == "boxes" and ck is not None
+    assert torch.equal(model.boxes(torch.tensor([[30.0, 40.0, 90.0]])),
+                       registry.load(EXPORTS / "boundaries.pt")[0].boxes(torch.tensor([[30.0, 40.0, 90.0]])))
     clf, ck = registry.load(EXPORTS / "classifier.pt")
     assert registry.kind_of(clf) == "classifier" and ck["kind"] == "classifier"
     registry.save(model, tmp_path / "b.pt", {"note": 1})
