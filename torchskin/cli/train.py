@@ -8,6 +8,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+from ..dataset.files import FRAME_SETS
 from ..errors import check_output_file
 from .options import add_json, add_out_file, add_seed, check_number
 
@@ -78,7 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     help="hold only the earthlib spectra to a budget, not the dataset's non-skin pixels")
     tp.add_argument("--sunlit-only", action="store_true",
                     help="learn from sunlit skin only (default: sunlit and shadowed skin)")
-    tp.add_argument("--frames", choices=("line", "physical"), default="line",
+    tp.add_argument("--frames", choices=list(FRAME_SETS), default="line",
                     help="the frames to learn from: line (default), every frame whose reference panels are sunlit "
                          "and whose empirical line is a line (elm_line_valid), also where the panels receive less "
                          "light than sun-facing surfaces (a low sun grazing level panels: the detector meets such "
