@@ -514,3 +514,42 @@ def test_learn_holds_the_scene_budget_on_its_own_non_skin_pixels():
         Bd.learn(X, Y, confusers=far, steps=1, scene=(Xs, Ps), scene_budget=1.0)
     with pytest.raises(ValueError, match="scene must be"):
         Bd.learn(X, Y, confusers=far, steps=1, scene=(Xs[:, :2], Ps))
+
+
+def test_tile_head_takes_every_path_with_the_whole_graphs_bits(trained, tmp_path):
+    """The rebuilt per-tile head (``onboard._EdgeHead``: two-band MatMuls for L1-L4, the minimum in numpy, the
+    floor skipped, gathered or summed by tile) gives the bits of the whole graph run per tile, on tiles with no
+    skin, a few skin pixels and many, and tiles that fail the one-pass range check (a glint above
+    REFLECTANCE_MAX, -0.0)."""
+    from torchskin.onboard import REFLECTANCE_MAX, OnboardDetector
+
+    X, _, res = trained
+    paths = export(res.model, tmp_path)
+    det = OnboardDetector(paths["detector"], threads=2, tile=1024)
+    assert det._split is not None and det._split[1].groups == ["gr", "gr", "ns", "ns", "all"]
+    joined = OnboardDetector(paths["detector"], threads=2, tile=1024)
+    joined._split = None
+    cfg = X[:1].numpy().astype(np.float64)
+    rng = np.random.default_rng(7)
+    cube = (rng.random((1, 4, 64, 96)) * 0.7).astype(np.float32)  # 6 tiles of 1024 pixels
+    skin = det(cube, cfg)["mask"].reshape(-1)
+    flat = cube.reshape(4, -1)
+    inside = np.flatnonzero(skin)
+    assert len(inside) > 10
+    # tile 0 all skin: skin pixels' spectra scaled (the same indices, so inside the boxes) to mean reflectance
+    # 0.02-0.6, which the floors 0.05 and 0.3 split
+    pick = rng.choice(inside, 1024)
+    scale = rng.uniform(0.02, 0.6, 1024) / cube.reshape(4, -1)[:, pick].mean(0)
+    cube.reshape(4, -1)[:, :1024] = (cube.reshape(4, -1)[:, pick] * scale).astype(np.float32)
+    inside = np.flatnonzero(det(cube, cfg)["mask"].reshape(-1))
+    flat[:, 1024:2048] = 0.5  # equal bands: NDGRI = NDSI = 0, taken by no learned box -> a tile without skin
+    flat[:, 2048:3072] = 0.5
+    flat[:, 2048:2058] = flat[:, inside[:10]]  # a tile with few skin pixels
+    flat[0, 3100] = REFLECTANCE_MAX * 1.01  # a glint: the slow check, still a valid cube
+    flat[1, 4200] = -0.0  # sign bit set: the slow check, not negative
+    for floor in (0.0, 0.05, 0.3):
+        a, b = det(cube, cfg, min_reflectance=floor), joined(cube, cfg, min_reflectance=floor)
+        assert np.array_equal(a["mask"], b["mask"]) and np.array_equal(a["score"], b["score"])
+        assert np.array_equal(a["mask"], (b["score"] > 0) & (cube.sum(1) > 4 * floor))  # the floor by its definition
+    m = det(cube, cfg, min_reflectance=0.0)["mask"].reshape(-1)
+    assert not m[1024:2048].any() and 0 < m[2048:3072].sum() <= 10 and m[:1024].sum() > 900

@@ -166,9 +166,9 @@ def model_inputs(path: str | os.PathLike) -> list[str]:
 
 def _split_box_graph(path: str, options: Any) -> tuple | None:
     """A box detector graph (``export._detector_graph``: edge matrices ``det_w0..`` from the configuration, then
-    per pixel one MatMul per edge form, Min, Greater) as two onnxruntime sessions: the per-frame part
-    (config -> edge matrices) and the per-pixel head (cube + edge matrices -> mask, score), so that tiles do not
-    run the boundary network again. None for other graphs (a classifier), or without the ``onnx`` package: the
+    per pixel one MatMul per edge form, Min, Greater) as the per-frame part (an onnxruntime session:
+    config -> edge matrices) and its per-pixel head rebuilt for tiles (``_EdgeHead``), so that tiles do not run
+    the boundary network again. None for other graphs (a classifier), or without the ``onnx`` package: the
     whole graph then runs per tile."""
     try:
         import onnx
@@ -181,11 +181,86 @@ def _split_box_graph(path: str, options: Any) -> tuple | None:
         if len(split) != 1:
             return None
         edges = list(split[0].output)
-        parts = (_subgraph(m, ["config"], edges), _subgraph(m, ["cube", *edges], ["mask", "score"]))
-        return tuple(ort.InferenceSession(p.SerializeToString(), options, providers=["CPUExecutionProvider"])
-                     for p in parts)
+        per_frame = ort.InferenceSession(_subgraph(m, ["config"], edges).SerializeToString(), options,
+                                         providers=["CPUExecutionProvider"])
+        return per_frame, _EdgeHead(m, len(edges), options)
     except Exception:  # noqa: BLE001 - any failure to split: run the whole graph per tile (same results)
         return None
+
+
+#: the float32 bit pattern of ``REFLECTANCE_MAX``: non-negative float32 values order as their bits (as unsigned
+#: integers), while negative ones (the sign bit, -0.0 included) and NaN lie above it; one integer maximum of a tile
+#: at or below this proves every value finite and within [0, REFLECTANCE_MAX]
+_MAX_BITS = int(np.array(REFLECTANCE_MAX, dtype=np.float32).view(np.uint32))
+
+
+class _EdgeHead:
+    """The per-pixel head of a box detector graph rebuilt for tiles: the edge forms, each one MatMul as in the
+    graph, written into the rows of one (E, n) buffer, whose minimum over the rows (exact in any order) is the
+    score and ``score > 0`` the mask, as the graph's Min and Greater. An edge form whose band weights are zero by
+    construction (``det_edge_M`` and ``det_edge_C`` zero for those bands: L1, L2 use only g and r, L3, L4 only n
+    and s) is a (1, 2) MatMul over those two bands' rows of the tile, which the tile buffer holds contiguously,
+    instead of a (1, 4) one over all four: half the reads, and the products it skips are exact zeros. The inputs
+    are views of one (4, n) tile buffer, the outputs rows of the edge buffer, all bound once per worker.
+    ``sums`` is a second session, the band sum (g + r + n + s, in band order, as a MatMul with ones) for the
+    brightness floor."""
+
+    GROUPS = {"gr": (0, 2), "ns": (2, 4), "all": (0, 4)}
+
+    def __init__(self, m: Any, e: int, options: Any):
+        import onnxruntime as ort
+        from onnx import TensorProto, helper, numpy_helper
+
+        inits = {t.name: numpy_helper.to_array(t) for t in m.graph.initializer}
+        M, C = inits["det_edge_M"].reshape(-1, e, 4), inits["det_edge_C"].reshape(e, 4)
+        used = (M != 0).any(0) | (C != 0)  # (edge, band): can this weight be non-zero for some box?
+        self.e, self.groups = e, []
+        for k in range(e):
+            bands = set(np.flatnonzero(used[k]).tolist())
+            self.groups.append(next(g for g, (lo, hi) in self.GROUPS.items() if bands <= set(range(lo, hi))))
+        self.inputs = sorted(set(self.groups), key=list(self.GROUPS).index)
+        F = TensorProto.FLOAT
+
+        def session(nodes: list, inputs: list, outputs: list, inits: list) -> Any:
+            graph = helper.make_graph(nodes, "torchskin_tile_head", inputs, outputs, inits)
+            model = helper.make_model(graph, opset_imports=list(m.opset_import))
+            model.ir_version = m.ir_version
+            return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+
+        def rows(g: str) -> int:
+            return self.GROUPS[g][1] - self.GROUPS[g][0]
+
+        self.session = session(
+            [helper.make_node("MatMul", [f"w{k}", g], [f"e{k}"]) for k, g in enumerate(self.groups)],
+            [helper.make_tensor_value_info(g, F, [rows(g), "N"]) for g in self.inputs]
+            + [helper.make_tensor_value_info(f"w{k}", F, [1, rows(g)]) for k, g in enumerate(self.groups)],
+            [helper.make_tensor_value_info(f"e{k}", F, [1, "N"]) for k in range(e)], [])
+        self.sums = session([helper.make_node("MatMul", ["ones", "all"], ["bsum"])],
+                            [helper.make_tensor_value_info("all", F, [4, "N"])],
+                            [helper.make_tensor_value_info("bsum", F, [1, "N"])],
+                            [numpy_helper.from_array(np.ones((1, 4), dtype=np.float32), "ones")])
+
+    def bind(self, io: Any, sums: Any, tile: np.ndarray, edges: np.ndarray, total: np.ndarray) -> None:
+        """Bind a (4, n) tile buffer's band groups and the rows of an (E, n) edge buffer to ``io``, and the tile
+        and an (n,) band-sum buffer to ``sums`` (the head's and the band sum's bindings)."""
+        n = tile.shape[1]
+        for g in self.inputs:
+            lo, hi = self.GROUPS[g]
+            io.bind_cpu_input(g, tile[lo:hi])
+        for k in range(self.e):
+            io.bind_output(f"e{k}", "cpu", 0, np.float32, [1, n], edges[k].ctypes.data)
+        sums.bind_cpu_input("all", tile)
+        sums.bind_output("bsum", "cpu", 0, np.float32, [1, n], total.ctypes.data)
+
+    def weights(self, io: Any, edges: list[np.ndarray]) -> list[np.ndarray]:
+        """Bind one frame's edge matrices (``det_w0..``, each (1, 1, 4)) as the head's weights; returns them
+        (to be kept referenced while bound)."""
+        ws = []
+        for k, (g, w) in enumerate(zip(self.groups, edges, strict=True)):
+            lo, hi = self.GROUPS[g]
+            ws.append(np.ascontiguousarray(w.reshape(4)[lo:hi].reshape(1, hi - lo), dtype=np.float32))
+            io.bind_cpu_input(f"w{k}", ws[-1])
+        return ws
 
 
 def _subgraph(m: Any, inputs: list[str], outputs: list[str]) -> Any:
@@ -254,71 +329,117 @@ class OnboardDetector(_Model):
         self._buffers: dict[int, np.ndarray] = {}
         self._split = _split_box_graph(self.path, self.session.get_session_options())
 
+    @staticmethod
+    def _check_tile(t: np.ndarray, b: int, clipped: np.ndarray | None) -> tuple[float, float, int] | None:
+        """Validate a (4, n) tile while it is in cache: its smallest and largest value and how many exceed
+        ``REFLECTANCE_MAX`` (NaN propagates), clipping negative values to 0 (counted in ``clipped[b]``) when
+        ``clipped`` is given. A tile whose integer maximum shows every value within [0, ``REFLECTANCE_MAX``]
+        (``_MAX_BITS``, the usual calibrated tile) costs that one pass and returns None: nothing to flag."""
+        if int(t.view(np.uint32).max()) <= _MAX_BITS:
+            return None
+        low, top = t.min(), t.max()
+        over = int(np.count_nonzero(t > REFLECTANCE_MAX)) if top > REFLECTANCE_MAX else 0
+        if clipped is not None:
+            clipped[b] += np.count_nonzero(t < 0)
+            np.maximum(t, 0, out=t)  # NaN stays NaN
+        return low, top, over
+
+    @staticmethod
+    def _apply_floor(t: np.ndarray, m: np.ndarray, floor: float, total: np.ndarray,
+                     band_sum: Callable[[], None] | None = None) -> None:
+        """``m &= t.sum(0) > floor`` (the band sum in band order, as float32) for a (4, n) tile ``t`` and its mask
+        ``m``: nothing where no pixel is masked, at the masked pixels alone when they are few (the same sums),
+        over the tile into ``total`` otherwise (by ``band_sum()`` when given: the head's ``sums`` session)."""
+        count = np.count_nonzero(m)
+        if not count:  # a tile without skin (most of a frame's)
+            return
+        if 16 * count < len(m):
+            idx = np.flatnonzero(m)
+            s = t[0, idx]
+            for k in range(1, t.shape[0]):
+                s += t[k, idx]
+            m[idx[~(s > floor)]] = False
+            return
+        if band_sum is not None:
+            band_sum()
+        else:
+            np.add(t[0], t[1], out=total)
+            for k in range(2, t.shape[0]):
+                np.add(total, t[k], out=total)
+        np.logical_and(m, total > floor, out=m)
+
     def _run_tiles(self, flat: np.ndarray, c: np.ndarray, mask: np.ndarray, score: np.ndarray,
                    take: Callable[[], tuple[int, int, int] | None], slot: int = 0, clipped: np.ndarray | None = None,
                    floor: float = 0.0) -> tuple[float, float, int]:
-        """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffer
+        """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffers
         ``slot``; return the smallest and largest reflectance seen before clipping (NaN if any) and how many values
-        exceed ``REFLECTANCE_MAX``. ``clipped`` (per-frame counts): set
-        negative values to 0 and count them. ``floor``: pixels whose band sum is not above it are not skin.
-        A box graph runs split (``_split_box_graph``): its edge matrices once per frame, its per-pixel head per
-        tile."""
+        exceed ``REFLECTANCE_MAX`` (``_check_tile``; (0, 0, 0) when all lie within [0, ``REFLECTANCE_MAX``]).
+        ``clipped`` (per-frame counts): set negative values to 0 and count them. ``floor``: pixels whose band sum
+        is not above it are not skin.
+        A box graph runs split (``_split_box_graph``): its edge matrices once per frame, its per-pixel head
+        (``_EdgeHead``) per tile; other graphs run whole per tile."""
         from onnxruntime import OrtValue
 
-        per_frame, edges = None, []
+        head: _EdgeHead | None = None
         if self._split is not None:
-            per_frame, session = self._split
-            edge_names = [o.name for o in per_frame.get_outputs()]
+            per_frame, head = self._split
+            session = head.session
+            sums = head.sums.io_binding()
         else:
             session = self.session
         io = session.io_binding()
-        buf = self._buffers.get(slot)
-        if buf is None:  # kept between calls: no fresh pages to fault in per frame
-            buf = self._buffers[slot] = np.empty((4, self.tile), dtype=np.float32)
-        # a plain (4, tile) array, bound as (1, 4, 1, tile): numpy copies the frame's band runs into it ~6x faster
-        # than into the same memory viewed through a (1, 4, 1, tile) array's [0, :, 0, :]
-        io.bind_cpu_input("cube", buf.reshape(1, 4, 1, self.tile))  # the tile buffer is bound once and refilled
-        sums, brights = np.empty(self.tile, dtype=np.float32), np.empty(self.tile, dtype=bool)
-        low, high, over, frame = np.inf, -np.inf, 0, -1
+        rows = head.e if head is not None else 0
+        bufs = self._buffers.get(slot)
+        if bufs is None:  # kept between calls: no fresh pages to fault in per frame
+            bufs = self._buffers[slot] = (np.empty((4, self.tile), dtype=np.float32),
+                                          np.empty((rows, self.tile), dtype=np.float32),
+                                          np.empty(self.tile, dtype=np.float32))
+
+        def bind(t: np.ndarray, edges: np.ndarray, total: np.ndarray) -> None:  # a tile's buffers
+            if head is not None:
+                head.bind(io, sums, t, edges, total)
+            else:  # a plain (4, n) array, bound as (1, 4, 1, n): numpy fills it faster than a 4-d view
+                io.bind_cpu_input("cube", t.reshape(1, 4, 1, t.shape[1]))
+
+        def band_sum() -> None:
+            head.sums.run_with_iobinding(sums)  # type: ignore[union-attr]
+
+        bind(*bufs)  # bound once and refilled
+        low, high, over, frame, weights = 0.0, 0.0, 0, -1, []
         for b, lo, hi in iter(take, None):
             n = hi - lo
-            if n != self.tile:  # the ragged last tile of a frame
-                t = np.empty((4, n), dtype=np.float32)
-                io.bind_cpu_input("cube", t.reshape(1, 4, 1, n))
+            if n != self.tile:  # the ragged last tile of a frame: its own buffers
+                t, edges, total = (np.empty((4, n), dtype=np.float32), np.empty((rows, n), dtype=np.float32),
+                                   np.empty(n, dtype=np.float32))
+                bind(t, edges, total)
             else:
-                t = buf
+                t, edges, total = bufs
             t[...] = flat[b, :, lo:hi]
-            low = np.minimum(low, t.min())  # validation while the tile is in cache (NaN propagates)
-            top = t.max()
-            high = np.maximum(high, top)
-            if top > REFLECTANCE_MAX:  # counted only then: a calibrated tile pays for the maximum alone
-                over += int(np.count_nonzero(t > REFLECTANCE_MAX))
-            if clipped is not None:
-                clipped[b] += np.count_nonzero(t < 0)
-                np.maximum(t, 0, out=t)  # NaN stays NaN
+            checked = self._check_tile(t, b, clipped)
+            if checked is not None:
+                low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
             if b != frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if per_frame is not None:  # kept referenced while bound: the binding does not copy them
-                    edges = per_frame.run(None, {"config": c[b:b + 1]})
-                    for name, v in zip(edge_names, edges, strict=True):
-                        io.bind_cpu_input(name, v)
+                if head is not None:  # kept referenced while bound: the binding does not copy them
+                    weights = head.weights(io, per_frame.run(None, {"config": c[b:b + 1]}))
                 else:
                     io.bind_cpu_input("config", c[b:b + 1])
                 frame = b
-            # outputs written in place (an OrtValue over the result arrays binds faster than bind_output)
-            io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(mask[b, lo:hi].reshape(1, 1, n)))
-            io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(score[b, lo:hi].reshape(1, 1, n)))
-            session.run_with_iobinding(io)
-            if not np.isfinite(score[b, lo:hi].min()):  # +inf in a band gives a -inf (or NaN) score
+            m, sc = mask[b, lo:hi], score[b, lo:hi]
+            if head is not None:
+                session.run_with_iobinding(io)
+                np.minimum.reduce(edges, axis=0, out=sc)  # the graph's Min
+                np.greater(sc, 0, out=m)  # and its Greater
+            else:  # outputs written in place (an OrtValue over the result arrays binds faster than bind_output)
+                io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(m.reshape(1, 1, n)))
+                io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(sc.reshape(1, 1, n)))
+                session.run_with_iobinding(io)
+            if checked is not None and not np.isfinite(sc.min()):  # +inf in a band gives a -inf (or NaN) score
                 low = np.nan
-            if floor > 0:  # the band sum and its test written into per-worker temporaries: no allocations per tile
-                total, bright = sums[:n], brights[:n]
-                np.add(t[0], t[1], out=total)
-                for k in range(2, t.shape[0]):
-                    np.add(total, t[k], out=total)
-                np.greater(total, floor, out=bright)
-                np.logical_and(mask[b, lo:hi], bright, out=mask[b, lo:hi])
-            if t is not buf:
-                io.bind_cpu_input("cube", buf.reshape(1, 4, 1, self.tile))
+            if floor > 0:
+                self._apply_floor(t, m, floor, total, band_sum if head is not None else None)
+            if t is not bufs[0]:
+                bind(*bufs)
+        del weights
         return low, high, over
 
     def pixels(self, reflectance: ArrayLike, config: ArrayLike, chunk: int = 65536) -> dict:

@@ -1,0 +1,84 @@
+"""The onboard detector against an earlier commit's, in one process, frame by frame alternately.
+
+    python scripts/bench_detector_against.py [COMMIT] [--threads N] [--rounds R] [--tile T]
+
+COMMIT (default 2afa293, the four-edge graph before the NDVN rule and the brightness floor) is extracted with
+``git archive`` into a temporary directory and imported as the package ``torchskin_old``; its own export code
+builds its graph from a default ``BoundaryModel``, and this checkout's builds the current one (five edges, the
+shipped floor ``evaluate.MIN_REFLECTANCE``). Both run the benchmark frame of ``torchskin bench --only
+detector_onnx`` (1024 x 1024 x 4 float32) in alternating order; the read floor is one numpy sum of the frame.
+Prints the medians, the median of the paired ratios (new / old) and the ratio to the read floor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("commit", nargs="?", default="2afa293")
+    ap.add_argument("--threads", type=int, default=min(os.cpu_count() or 1, 8))
+    ap.add_argument("--rounds", type=int, default=60)
+    ap.add_argument("--tile", type=int, default=65536)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        src = os.path.join(d, "src")
+        os.makedirs(src)
+        archive = subprocess.run(["git", "-C", ROOT, "archive", args.commit, "torchskin"], check=True,
+                                 capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", src], input=archive, check=True)
+        os.rename(os.path.join(src, "torchskin"), os.path.join(src, "torchskin_old"))
+        # the old graph, exported by the old code (in a child: its package is named torchskin there)
+        os.rename(os.path.join(src, "torchskin_old"), os.path.join(src, "torchskin"))
+        code = ("import sys; sys.path.insert(0, sys.argv[1]); from torchskin.export import export\n"
+                "try:\n from torchskin.detectors.boxes import BoundaryModel\n"
+                "except ImportError:\n from torchskin.boundaries import BoundaryModel\n"
+                "export(BoundaryModel(), sys.argv[2])")
+        subprocess.run([sys.executable, "-c", code, src, os.path.join(d, "old")], check=True, capture_output=True)
+        os.rename(os.path.join(src, "torchskin"), os.path.join(src, "torchskin_old"))
+        sys.path.insert(0, src)
+        import torchskin_old.onboard as old_onboard  # type: ignore[import-not-found]
+
+        from torchskin.detectors.boxes import BoundaryModel
+        from torchskin.evaluate import MIN_REFLECTANCE
+        from torchskin.export import export
+        from torchskin.onboard import OnboardDetector
+
+        paths = export(BoundaryModel(), os.path.join(d, "new"))
+        Old = getattr(old_onboard, "OnboardDetector", None) or old_onboard.Detector
+        old = Old(os.path.join(d, "old", "detector.onnx"), threads=args.threads)
+        new = OnboardDetector(paths["detector"], threads=args.threads, tile=args.tile)
+        rng = np.random.default_rng(0)
+        cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
+        cfg = np.array([[40.0, 30.0, 60.0]])
+        runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=MIN_REFLECTANCE),
+                "read": lambda: float(cube.sum())}
+        for f in runs.values():
+            for _ in range(5):
+                f()
+        times: dict[str, list[float]] = {k: [] for k in runs}
+        for i in range(args.rounds):
+            for k in (("old", "new", "read") if i % 2 else ("new", "old", "read")):
+                t0 = time.perf_counter()
+                runs[k]()
+                times[k].append(time.perf_counter() - t0)
+    t = {k: np.array(v) for k, v in times.items()}
+    print(f"{args.threads} threads, {args.rounds} rounds: {args.commit} {1e3 * np.median(t['old']):.2f} ms, "
+          f"this checkout {1e3 * np.median(t['new']):.2f} ms per 1 MP frame; median paired ratio "
+          f"{np.median(t['new'] / t['old']):.3f}; read floor {1e3 * np.median(t['read']):.2f} ms, "
+          f"this checkout / floor {np.median(t['new']) / np.median(t['read']):.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
