@@ -326,7 +326,7 @@ class OnboardDetector(_Model):
         if tile < 1024:
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
         self.tile = int(tile)
-        self._buffers: dict[int, np.ndarray] = {}
+        self._buffers: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # per worker: tile, edges, sums
         self._split = _split_box_graph(self.path, self.session.get_session_options())
 
     @staticmethod
