@@ -37,9 +37,7 @@ def main() -> int:
         archive = subprocess.run(["git", "-C", ROOT, "archive", args.commit, "torchskin"], check=True,
                                  capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", src], input=archive, check=True)
-        os.rename(os.path.join(src, "torchskin"), os.path.join(src, "torchskin_old"))
-        # the old graph, exported by the old code (in a child: its package is named torchskin there)
-        os.rename(os.path.join(src, "torchskin_old"), os.path.join(src, "torchskin"))
+        # the old graph, exported by the old code (in a child, where its package is still named torchskin)
         code = ("import sys; sys.path.insert(0, sys.argv[1]); from torchskin.export import export\n"
                 "try:\n from torchskin.detectors.boxes import BoundaryModel\n"
                 "except ImportError:\n from torchskin.boundaries import BoundaryModel\n"
