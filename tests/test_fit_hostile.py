@@ -290,11 +290,12 @@ def test_config_names_where_the_sky_fraction_went():
 
 
 @pytest.mark.parametrize("text,what", [("1580,1080,633,544", "ascending"), ("544,544", "ascending"),
-                                        ("544,,633", "empty item")])
+                                        ("544,,633", "empty item"), ("544,544.0001,633", "both written as 544 nm")])
 def test_bands_out_of_order_or_repeated_are_refused(text, what):
     """Four per-band values (material spectra, sensor settings) are read in band order: a reversed band list
     put the ground's 1580 nm reflectance on 544 nm; a repeated band overwrote its own image. Both are refused,
-    at the CLI and in a Scene."""
+    at the CLI and in a Scene. Two centres that differ beyond the sixth significant digit wrote one
+    ``band_544nm.png`` over the other: refused too."""
     from torchskin.bands import parse_bands
     from torchskin.render.scene import default_scene
 

@@ -46,6 +46,11 @@ class Band:
         h = SUPPORT_FWHM * self.fwhm_nm
         return self.center_nm - h, self.center_nm + h
 
+    @property
+    def label(self) -> str:
+        """The centre as written in file names and titles (``band_<label>nm.png``): six significant digits."""
+        return f"{self.center_nm:g}"
+
 
 #: Centres (nm) of the thesis's four detection bands, green, red, NIR and SWIR, in this order: the bands of the
 #: NDGRI (544, 633 nm) and NDSI (1080, 1580 nm) rules. The one place these numbers are written.
@@ -131,6 +136,11 @@ def check_ascending(bands: Sequence[Band], what: str = "bands") -> None:
     c = [b.center_nm for b in bands]
     if any(b <= a for a, b in zip(c, c[1:])):
         raise ValueError(f"{what} must list band centres in strictly ascending order, got {', '.join(f'{x:g}' for x in c)}")
+    same = [(a, b) for a, b in zip(bands, bands[1:]) if a.label == b.label]
+    if same:
+        a, b = same[0]
+        raise ValueError(f"{what}: bands {a.center_nm!r} and {b.center_nm!r} nm are both written as {a.label} nm "
+                         f"(six significant digits: their images and columns would collide): use distinct centres")
 
 
 def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:

@@ -159,7 +159,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     for name, quantity in (("reflectance", "reflectance"), ("signal", "signal")):
         write_text(sidecar_path(out / f"{name}.npy"), bands_sidecar_text(centres, fwhm, quantity))
     for k, b in enumerate(result.bands):
-        band_image(out / f"band_{b.center_nm:g}nm.png", result.reflectance[s, c, :, :, k],
+        band_image(out / f"band_{b.label}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")
     mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
     mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
