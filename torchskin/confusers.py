@@ -29,10 +29,7 @@ def partition(name: str) -> str:
 
 @functools.lru_cache(maxsize=1)
 def _library():
-    try:
-        import earthlib
-    except ImportError as e:  # pragma: no cover - optional dependency
-        raise ValueError("confuser spectra need the earthlib package: pip install 'torchskin[dataset]'") from e
+    import earthlib  # the dataset extra: a ModuleNotFoundError names it (errors.missing_extra)
     root = Path(earthlib.__file__).parent / "data"
     hdr = (root / "spectra.sli.hdr").read_text()
     fields = {}

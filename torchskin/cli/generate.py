@@ -34,6 +34,12 @@ def cmd_generate(args: argparse.Namespace) -> int:
         raise ValueError(f"--seed must be a non-negative integer, got {args.seed}")
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    # the extras every dataset needs (render: the scene's rays and light; dataset: Parquet and the confuser
+    # library), imported before the progress bar starts so that a missing one is the command's only line
+    import earthlib  # noqa: F401
+    import open3d  # noqa: F401
+    import pvlib  # noqa: F401
+    import pyarrow  # noqa: F401
     man = generate(cfg, args.configs, args.seed, args.out, resume=args.resume, overwrite=args.overwrite,
                    quiet=args.quiet or args.json, device=args.device, backend=args.backend, address=args.address,
                    workers=args.workers, images=args.images, compile=COMPILE_CHOICES[args.compile])

@@ -725,10 +725,8 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
         if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
     if backend == "ray" and address:  # before the folder is made: a cluster that is not there fails in bounded time
-        import importlib.util
+        import ray  # noqa: F401 - the ray extra: a ModuleNotFoundError names it (errors.missing_extra)
 
-        if importlib.util.find_spec("ray") is None:
-            raise ValueError("the ray backend needs Ray: pip install 'torchskin[ray]'")
         wait_for_cluster(address)
     created = not out.exists()
     had_manifest = (out / MANIFEST).exists()  # else a failure before the first shard leaves the folder as it was
@@ -831,10 +829,7 @@ def wait_for_cluster(address: str, timeout_s: float | None = None) -> None:
 
 
 def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, images, compile, on_done) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise ValueError("the ray backend needs Ray: pip install 'torchskin[ray]'") from None
+    import ray  # the ray extra: a ModuleNotFoundError names it (errors.missing_extra)
     started = not ray.is_initialized()
     if started:
         kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}

@@ -254,11 +254,8 @@ AIRMASS_MODEL = "kastenyoung1989"
 def spectrl2_spectra(suns: Sequence[Sun]) -> dict[str, np.ndarray]:
     """``pvlib.spectrum.spectrl2`` for ``suns`` on its own 122 wavelengths: keys "wavelength" (122,) and
     "dni", "dhi", "dni_extra" (122, S), W m^-2 nm^-1, for a horizontal surface."""
-    try:
-        from pvlib import atmosphere as pv_atmosphere
-        from pvlib import spectrum as pv_spectrum
-    except ImportError:  # pragma: no cover - dependency missing
-        raise ValueError("illumination 'spectrl2' needs pvlib: pip install 'torchskin[render]'") from None
+    from pvlib import atmosphere as pv_atmosphere  # the render extra: a ModuleNotFoundError names it
+    from pvlib import spectrum as pv_spectrum
     zen = np.array([s.zenith_deg for s in suns], dtype=np.float64)
     atm = [s.atmosphere for s in suns]
     day = np.array([a.day_of_year for a in atm], dtype=np.float64)

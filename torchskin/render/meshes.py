@@ -161,8 +161,8 @@ def anny_body(phenotype: dict | None = None, pose: dict | None = None,
     try:
         _init_warp_quietly()
         import anny  # noqa: F401 - a clear error when it is missing
-    except ImportError as e:  # pragma: no cover - dependency missing
-        raise ValueError("the anny package is needed for anny subjects: pip install 'torchskin[render]'") from e
+    except ModuleNotFoundError as e:  # anny, or the warp it brings: the render extra names both (exit 1)
+        raise ModuleNotFoundError(f"anny subjects need anny ({e})", name="anny") from e
     key = _anny_key(phenotype, pose)
     if key in _PREBUILT:  # built in a batch (``anny_batch``)
         return _PREBUILT[key]
