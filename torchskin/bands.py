@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # torch loads with the functions that compute: the band definitions are plain data
+    import numpy as np
     import torch
 
     from ._checks import TensorLike
@@ -143,13 +144,51 @@ def check_ascending(bands: Sequence[Band], what: str = "bands") -> None:
                          f"(six significant digits: their images and columns would collide): use distinct centres")
 
 
+def response_weights(grid: Sequence[float] | np.ndarray, center_nm: float, fwhm_nm: float) -> np.ndarray:
+    """The band response model, numpy only (float64), the one place its formula is written: the weights
+    ``(n_grid,)``, summing to 1, that average a spectrum sampled on the increasing wavelengths ``grid`` (nm) over the
+    band (``center_nm``, ``fwhm_nm``). A Gaussian band (``FWHM_TO_SIGMA``) truncated at its support (centre +-
+    ``SUPPORT_FWHM`` FWHM) with trapezoid quadrature on the grid; a monochromatic band (fwhm 0) the
+    linear-interpolation weights at its centre. ``response_matrix`` (torch, the renderer) and
+    ``onboard.band_plan`` (numpy, a camera's cube) both use it. ``ValueError`` when the grid is too coarse for the
+    band; the caller checks that the grid covers the band's support.
+
+    >>> [round(float(w), 3) for w in response_weights([540.0, 550.0], 544.0, 0.0)]
+    [0.6, 0.4]
+    """
+    import numpy as np
+
+    g = np.asarray(grid, dtype=np.float64)
+    if g.size == 1:
+        return np.ones(1)
+    if fwhm_nm == 0:
+        i = int(np.clip(np.searchsorted(g, center_nm, side="right"), 1, g.size - 1))
+        t = (center_nm - g[i - 1]) / (g[i] - g[i - 1])
+        w = np.zeros_like(g)
+        w[i - 1] = 1 - t
+        w[i] = t
+        return w
+    sigma = fwhm_nm * FWHM_TO_SIGMA
+    s_lo, s_hi = center_nm - SUPPORT_FWHM * fwhm_nm, center_nm + SUPPORT_FWHM * fwhm_nm
+    gauss = np.where((g >= s_lo) & (g <= s_hi), np.exp(-0.5 * ((g - center_nm) / sigma) ** 2), 0.0)
+    dx = np.diff(g)
+    trap = np.zeros_like(g)
+    trap[:-1] += 0.5 * dx
+    trap[1:] += 0.5 * dx
+    w = gauss * trap
+    if not w.sum() > 0:
+        raise ValueError(f"grid too coarse for band {center_nm:g}/{fwhm_nm:g} nm")
+    return w / w.sum()
+
+
 def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
     """Weights ``(n_grid, n_bands)``, each column summing to 1, so that ``spectrum @ W`` gives band values.
 
     ``grid`` is an increasing 1-D wavelength tensor (nm). Gaussian bands use trapezoid quadrature on the
-    grid; monochromatic bands use linear-interpolation weights. Raises ``ValueError`` if a band's support
-    is not inside the grid.
+    grid; monochromatic bands use linear-interpolation weights (``response_weights``, computed in float64 and
+    cast to the grid's dtype and device). Raises ``ValueError`` if a band's support is not inside the grid.
     """
+    import numpy as np
     import torch
 
     from ._checks import as_tensor
@@ -157,7 +196,8 @@ def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
     grid = as_tensor(grid)
     if grid.ndim != 1 or grid.numel() < 1:
         raise ValueError("grid must be a 1-D wavelength tensor")
-    lo, hi = float(grid[0]), float(grid[-1])
+    g = grid.detach().cpu().to(torch.float64).numpy()
+    lo, hi = float(g[0]), float(g[-1])
     cols = []
     for b in bands:
         s_lo, s_hi = b.support
@@ -166,30 +206,8 @@ def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
                 f"band {b.center_nm:g}/{b.fwhm_nm:g} nm needs wavelengths {s_lo:g}..{s_hi:g} nm;"
                 f" the grid covers only {lo:g}..{hi:g} nm"
             )
-        if b.fwhm_nm == 0 or grid.numel() == 1:
-            if grid.numel() == 1:
-                w = torch.ones_like(grid)
-            else:
-                centre = torch.tensor([b.center_nm], dtype=grid.dtype, device=grid.device)
-                i = int(torch.searchsorted(grid, centre, right=True).clamp(1, grid.numel() - 1))
-                t = (b.center_nm - float(grid[i - 1])) / float(grid[i] - grid[i - 1])
-                w = torch.zeros_like(grid)
-                w[i - 1] = 1 - t
-                w[i] = t
-        else:
-            sigma = b.fwhm_nm * FWHM_TO_SIGMA
-            g = torch.exp(-0.5 * ((grid - b.center_nm) / sigma) ** 2)
-            g = torch.where((grid >= s_lo) & (grid <= s_hi), g, torch.zeros_like(g))
-            dx = torch.diff(grid)
-            trap = torch.zeros_like(grid)
-            trap[:-1] += 0.5 * dx
-            trap[1:] += 0.5 * dx
-            w = g * trap
-            if float(w.sum()) <= 0:
-                raise ValueError(f"grid too coarse for band {b.center_nm:g}/{b.fwhm_nm:g} nm")
-            w = w / w.sum()
-        cols.append(w)
-    return torch.stack(cols, dim=-1)
+        cols.append(response_weights(g, b.center_nm, b.fwhm_nm))
+    return torch.as_tensor(np.stack(cols, axis=-1), dtype=grid.dtype, device=grid.device)
 
 
 def band_integrate(values: torch.Tensor, grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:

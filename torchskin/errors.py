@@ -27,7 +27,8 @@ EXIT_FAILURE = 1
 EXTRAS = {"onnx": ("onnx", "onnx"), "pyarrow": ("pyarrow", "dataset"),
           "pandas": ("pandas", "dataset"), "earthlib": ("earthlib", "dataset"), "open3d": ("open3d", "render"),
           "kornia": ("kornia", "render"), "skimage": ("scikit-image", "render"), "anny": ("anny", "render"),
-          "pvlib": ("pvlib", "render"), "ray": ("ray", "ray")}
+          "pvlib": ("pvlib", "render"), "ray": ("ray", "ray"),
+          "spectral": ("spectral", "formats"), "tifffile": ("tifffile", "formats")}
 
 #: the base requirements a command imports (pyproject's ``dependencies``): a ``--no-deps`` install may lack them
 BASE = {"onnxruntime": "onnxruntime", "torch": "torch", "matplotlib": "matplotlib", "tqdm": "tqdm"}

@@ -510,7 +510,7 @@ class OnboardDetector(_Model):
             return 0.0
 
     def __call__(self, cube: np.ndarray, config: ArrayLike, out: tuple[np.ndarray, np.ndarray] | None = None,
-                 negative: str = "error", min_reflectance: float | None = None) -> dict:
+                 negative: str = "error", min_reflectance: float | None = None, range_check: bool = True) -> dict:
         """Detect skin in ELM reflectance frames.
 
         Args:
@@ -526,6 +526,9 @@ class OnboardDetector(_Model):
                 (at the noise floor the indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 keeps the
                 rules alone; None (default): the floor the model was evaluated with (``default_min_reflectance``,
                 from its metadata).
+            range_check: False leaves the share of values above ``REFLECTANCE_MAX`` to the caller, who checks it
+                over a whole frame cut into calls (``detect_file``'s row tiles); the smallest value, NaN and
+                negative values are still refused per call.
 
         Shape:
             cube: (B, 4, H, W); config: (B, k) (or (k,) for B = 1); out, mask, score: (B, H, W);
@@ -555,7 +558,7 @@ class OnboardDetector(_Model):
         if B * n <= self.tile:  # small frames: one call
             top = x.max()
             share = np.count_nonzero(x > REFLECTANCE_MAX) / x.size if top > REFLECTANCE_MAX else 0.0
-            self._check_low(x.min(), top, clipped is not None, share)
+            self._check_low(x.min(), top, clipped is not None, share if range_check else 0.0)
             if clipped is not None:
                 clipped += np.count_nonzero(x < 0, axis=(1, 2, 3))
                 x = np.maximum(x, 0)
@@ -595,7 +598,7 @@ class OnboardDetector(_Model):
             ranges += [f.result() for f in futures]
         lows, highs, overs = zip(*ranges)
         # NaN propagates; the outputs are discarded: no mask comes back from an invalid cube
-        self._check_low(np.min(lows), np.max(highs), clipped is not None, sum(overs) / x.size)
+        self._check_low(np.min(lows), np.max(highs), clipped is not None, sum(overs) / x.size if range_check else 0.0)
         if clipped is not None:
             clipped += np.sum(cast(list[np.ndarray], counts), axis=0)
         if out is not None:
@@ -662,14 +665,24 @@ def elm_fit(frame: ArrayLike, panels: Sequence[tuple[Sequence[int], ArrayLike]],
     check_panel_regions([roi for roi, _ in panels])
     refs, sig = [], []
     for roi, rho in panels:
-        r = np.broadcast_to(np.asarray(rho, dtype=np.float64), (nb,)) if np.ndim(rho) == 0 else np.asarray(rho, np.float64)
-        if r.shape != (nb,):
-            raise ValueError(f"panel reflectance must be one value or {nb} (one per band), got {np.shape(rho)}")
-        if not (np.all(r > 0) and np.all(r <= 1)):
-            raise ValueError(f"panel reflectance must lie in (0, 1], got {r.tolist()}")
-        refs.append(r)
+        refs.append(panel_reference(rho, nb))
         sig.append(panel_signal(f, roi, erode))
-    R, L = np.stack(refs), np.stack(sig)  # (P, bands)
+    return elm_line(np.stack(refs), np.stack(sig))
+
+
+def panel_reference(rho: ArrayLike, nb: int) -> np.ndarray:
+    """A panel's reflectance per band (``nb``) from one value or one per band, each in (0, 1]."""
+    r = np.broadcast_to(np.asarray(rho, dtype=np.float64), (nb,)) if np.ndim(rho) == 0 else np.asarray(rho, np.float64)
+    if r.shape != (nb,):
+        raise ValueError(f"panel reflectance must be one value or {nb} (one per band), got {np.shape(rho)}")
+    if not (np.all(r > 0) and np.all(r <= 1)):
+        raise ValueError(f"panel reflectance must lie in (0, 1], got {r.tolist()}")
+    return r
+
+
+def elm_line(R: np.ndarray, L: np.ndarray) -> dict:
+    """The empirical line per band through panels of known reflectance ``R`` and measured signal ``L``, both
+    (panels, bands): ``elm_fit``'s result (``calibrate_file`` measures the signals from row tiles)."""
     dR = R - R.mean(0)
     var = (dR ** 2).sum(0)
     if np.any(var < 1e-12):
@@ -738,3 +751,235 @@ def load_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
         if not np.isfinite(flat[lo:lo + _FINITE_CHUNK]).all():
             raise ValueError(f"{option} {str(p)!r} holds NaN or infinite values")
     return x
+
+
+# ------------------------------------------------------------------------------ the model's bands from any cube
+#: the widest step (nm) between a cube's samples inside (or bracketing) a model band's response that
+#: ``band_plan`` interpolates across: a wider gap (a cube with a missing detector range) is refused
+MAX_SAMPLE_GAP_NM = 50.0
+
+
+def _interp_matrix(x: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(len(g), len(x)) weights of linear interpolation from samples at increasing ``x`` onto ``g`` (within x)."""
+    i = np.clip(np.searchsorted(x, g, side="right"), 1, len(x) - 1)
+    t = (g - x[i - 1]) / (x[i] - x[i - 1])
+    m = np.zeros((len(g), len(x)))
+    m[np.arange(len(g)), i - 1] = 1 - t
+    m[np.arange(len(g)), i] += t
+    return m
+
+
+def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, model_bands: Sequence[float],
+              model_fwhm: Sequence[float] | None = None) -> dict:
+    """How to read the model's bands from a cube with bands ``cube_bands`` (nm): ``{"kind": "reorder", "order":
+    [...]}`` when the cube has exactly the model's bands (``match_bands``: used as they are, reordered), else
+    ``{"kind": "synthesis", "matrix": (n_model, n_cube) float64}``, each row summing to 1: the model's band
+    (``model_fwhm``, 0 = monochromatic: the renderer's default bands) by the band response model of the renderer
+    (``bands.response_weights``) on the cube's spectrum, linearly interpolated between its samples onto a 1 nm grid
+    over the band's support. The cube's own FWHM (``cube_fwhm``) is not deconvolved: its samples are taken as the
+    spectrum at their centres. ``ValueError`` naming the band and the cube's range when the cube does not cover
+    a band, or leaves a gap over ``MAX_SAMPLE_GAP_NM`` inside it.
+
+    >>> band_plan([1580, 544, 1080, 633], None, [544, 633, 1080, 1580])
+    {'kind': 'reorder', 'order': [1, 3, 2, 0]}
+    >>> p = band_plan(range(450, 1651, 10), None, [544, 633, 1080, 1580])
+    >>> p["kind"], p["matrix"].shape, [round(float(w), 2) for w in p["matrix"][0, 9:11]]
+    ('synthesis', (4, 121), [0.6, 0.4])
+    """
+    from .bands import SUPPORT_FWHM, response_weights
+
+    cb = np.asarray([float(b) for b in cube_bands], dtype=np.float64)
+    mf = [0.0] * len(model_bands) if model_fwhm is None else [float(f) for f in model_fwhm]
+    if len(cb) == len(model_bands):
+        try:
+            return {"kind": "reorder", "order": match_bands(cb, model_bands)}
+        except ValueError:
+            pass
+    order = np.argsort(cb)
+    x = cb[order]
+    lo, hi = float(x[0]), float(x[-1])
+    rows = []
+    for c, f in zip((float(b) for b in model_bands), mf):
+        s_lo, s_hi = c - SUPPORT_FWHM * f, c + SUPPORT_FWHM * f
+        near = np.abs(x - c)
+        if f == 0 and near.min() <= BAND_MATCH_NM and not (lo <= c <= hi):
+            s_lo = s_hi = float(x[near.argmin()])  # a band just past the cube's last sample, within the match
+        if len(x) < 2 or s_lo < lo - 1e-9 or s_hi > hi + 1e-9:
+            raise ValueError(f"the cube's {len(x)} bands span {lo:g}..{hi:g} nm, which does not cover the model's "
+                             f"{c:g} nm band (its response needs {s_lo:g}..{s_hi:g} nm)")
+        a = max(int(np.searchsorted(x, s_lo, side="right")) - 1, 0)
+        b = min(int(np.searchsorted(x, s_hi, side="left")), len(x) - 1)
+        gap = float(np.diff(x[a:b + 1]).max()) if b > a else 0.0
+        if gap > MAX_SAMPLE_GAP_NM:
+            raise ValueError(f"the cube's bands ({lo:g}..{hi:g} nm) leave a {gap:g} nm gap inside the model's {c:g} nm "
+                             f"band (at most {MAX_SAMPLE_GAP_NM:g} nm between samples is interpolated)")
+        grid = np.array([s_lo]) if f == 0 else np.linspace(s_lo, s_hi, max(math.ceil(s_hi - s_lo), 8) + 1)
+        w = response_weights(grid, s_lo if f == 0 else c, f) @ _interp_matrix(x, np.clip(grid, lo, hi))
+        row = np.zeros(len(x))
+        row[order] = w
+        rows.append(row)
+    return {"kind": "synthesis", "matrix": np.stack(rows)}
+
+
+def apply_plan(plan: dict, block: np.ndarray) -> np.ndarray:
+    """The model's bands (n_model, rows, W) float32 from a cube's rows ``block`` (n_cube, rows, W) by ``plan``."""
+    if plan["kind"] == "reorder":
+        order = plan["order"]
+        return block if order == list(range(block.shape[0])) else np.ascontiguousarray(block[order])
+    m = plan["matrix"].astype(np.float32)
+    return np.tensordot(m, block, axes=1).astype(np.float32, copy=False)
+
+
+def model_fwhm(det: _Model) -> list[float] | None:
+    """The model's band FWHM (nm) from its metadata ``fwhm_nm``; None (monochromatic, the renderer's default
+    bands) when it has none."""
+    try:
+        f = json.loads(det.meta.get("fwhm_nm", "null"))
+        return None if f is None else [float(v) for v in f]
+    except (ValueError, TypeError):
+        return None
+
+
+# ---------------------------------------------------------------------------------------- streaming a file
+#: rows of a frame per tile of ``detect_file`` and ``calibrate_file``: peak memory is about bands x this x W x 4
+#: bytes per buffer, whatever the frame's height (256 rows of a 20000-column 4-band frame: 82 MB)
+TILE_ROWS = 256
+
+
+def _check_tile_rows(tile_rows: int) -> int:
+    if isinstance(tile_rows, bool) or not isinstance(tile_rows, (int, np.integer)) or tile_rows < 1:
+        raise ValueError(f"--tile-rows must be a positive whole number of rows, got {tile_rows!r}")
+    return int(tile_rows)
+
+
+def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list) -> Any:
+    from .cubefiles import PngRows, TiffMaskRows
+
+    suf = os.path.splitext(str(out))[1].lower()
+    if suf in (".tif", ".tiff"):
+        return TiffMaskRows(out, shape[0], shape[1], geotags)
+    if suf != ".png":
+        raise ValueError(f"--out {str(out)!r} must be a .png or .tif mask")
+    if geotags:
+        raise ValueError(f"--out {str(out)!r}: the cube is georeferenced; give a .tif mask (a GeoTIFF keeps its "
+                         "transform and CRS; a PNG would drop them)")
+    return PngRows(out, shape[0], shape[1])
+
+
+def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath | None = None,
+                tile_rows: int = TILE_ROWS, negative: str = "error", min_reflectance: float | None = None,
+                bands: Sequence[float] | None = None, option: str = "--cube") -> dict:
+    """Detect skin in a cube file of one frame (``cubefiles.open_cube``: ``.npy`` + sidecar, ENVI, GeoTIFF; or an
+    open ``CubeFile``), ``tile_rows`` rows at a time: the model's bands read as they are or synthesised
+    (``band_plan``; ``bands`` overrides the file's wavelengths; a cube without any must hold the model's four
+    bands in its order), the mask written rows by rows to ``out`` (``.png``, or ``.tif``: a GeoTIFF keeping the
+    input's georeferencing) through a temporary file renamed at the end. The reflectance range is checked over
+    the whole frame (``check_reflectance_range``) before the rename: on refusal nothing is written. The mask
+    equals ``det`` on the whole frame in memory. Returns ``skin_pixels``, ``pixels``, ``shape`` (H, W),
+    ``out_of_domain``, ``plan`` ("reorder" or "synthesis"), ``clipped_values`` (with ``negative="clip"``) and
+    ``reflectance_range``."""
+    from .cubefiles import CubeFile, open_cube
+
+    tile_rows = _check_tile_rows(tile_rows)
+    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
+    nb, H, W = cf.shape
+    cube_bands = list(bands) if bands is not None else cf.bands
+    where = f"{option} {str(cf.path)!r}"
+    if cube_bands is not None and len(cube_bands) != nb:
+        raise ValueError(f"--bands gives {len(cube_bands)} bands, but {where} holds {nb}")
+    if cube_bands is None or not det.bands_nm:
+        if nb != len(det.bands_nm or [0] * 4):
+            raise ValueError(f"{where} holds {nb} bands and gives no wavelengths; the model needs its "
+                             f"{len(det.bands_nm)} bands ({det.bands_nm} nm) in that order, or wavelengths to "
+                             "pick or synthesise them from")
+        plan: dict = {"kind": "reorder", "order": list(range(nb))}
+    else:
+        try:
+            plan = band_plan(cube_bands, cf.fwhm, det.bands_nm, model_fwhm(det))
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+    c = np.asarray(config, dtype=np.float64).reshape(1, -1)
+    writer = None if out is None else _mask_writer(out, (H, W), cf.geotags)
+    low, high, over, skin, clipped = np.inf, -np.inf, 0, 0, 0
+    ood = np.zeros(1, bool)
+    try:
+        for r0 in range(0, H, tile_rows):
+            r1 = min(r0 + tile_rows, H)
+            x = apply_plan(plan, cf.read_rows(r0, r1))
+            t_lo, t_hi = float(x.min()), float(x.max())
+            low, high = min(low, t_lo), max(high, t_hi)
+            if t_hi > REFLECTANCE_MAX:
+                over += int(np.count_nonzero(x > REFLECTANCE_MAX))
+            res = det(x[None], c, negative=negative, min_reflectance=min_reflectance, range_check=False)
+            m = res["mask"][0]
+            skin += int(np.count_nonzero(m))
+            ood = res["out_of_domain"]
+            if "clipped_values" in res:
+                clipped += int(res["clipped_values"][0])
+            if writer is not None:
+                writer.write_rows(m.view(np.uint8) * np.uint8(255))
+        check_reflectance_range(low, high, over / (4 * H * W))
+    except BaseException as e:
+        if writer is not None:
+            writer.abort(e)
+        raise
+    if writer is not None:
+        writer.close()
+    doc = {"skin_pixels": skin, "pixels": H * W, "shape": [H, W], "out_of_domain": ood.tolist(),
+           "plan": plan["kind"], "reflectance_range": [low, high]}
+    if negative == "clip":
+        doc["clipped_values"] = [clipped]
+    return doc
+
+
+def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int], ArrayLike]] | None = None,
+                   coefficients: tuple[ArrayLike, ArrayLike] | None = None, erode: int = 1,
+                   tile_rows: int = TILE_ROWS, option: str = "--cube") -> dict:
+    """The empirical line of a signal cube file of one frame (``cubefiles.open_cube``), from reference
+    ``panels`` (``elm_fit``'s (region, reflectance); only the panels' rows are read) or saved ``coefficients``
+    (gain, offset), applied ``tile_rows`` rows at a time and written to ``out`` in the input's format (``.npy`` +
+    sidecar, ENVI, GeoTIFF with the input's geotags; wavelengths and FWHM carried over) through a temporary file
+    renamed at the end; a tile with NaN or infinite reflectance removes it. Returns ``gain``, ``offset``, the fit
+    (``signals``, ``references``, ``residual``; None with coefficients), ``shape``, ``reflectance_range`` and
+    ``out`` (the path written)."""
+    from .cubefiles import CubeFile, CubeWriter, open_cube, output_path
+
+    tile_rows = _check_tile_rows(tile_rows)
+    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
+    nb, H, W = cf.shape
+    fit = None
+    if coefficients is not None:
+        gain, offset = (np.asarray(v, np.float64) for v in coefficients)
+        if gain.shape != (nb,) or offset.shape != (nb,):
+            raise ValueError(f"the coefficients give {gain.shape} gains and {offset.shape} offsets for a cube of "
+                             f"{nb} bands")
+    else:
+        if panels is None or len(panels) < 2:
+            raise ValueError(f"ELM needs at least 2 reference panels, got {0 if panels is None else len(panels)}")
+        check_panel_regions([roi for roi, _ in panels])
+        refs, sig = [], []
+        for roi, rho in panels:
+            y0, y1, x0, x1 = (int(v) for v in roi)
+            if not (0 <= y0 < y1 <= H and 0 <= x0 < x1 <= W):
+                raise ValueError(f"panel region {y0}:{y1}:{x0}:{x1} must satisfy 0 <= Y0 < Y1 <= {H} and "
+                                 f"0 <= X0 < X1 <= {W}")
+            refs.append(panel_reference(rho, nb))
+            sig.append(panel_signal(cf.read_rows(y0, y1), (0, y1 - y0, x0, x1), erode))
+        fit = elm_line(np.stack(refs), np.stack(sig))
+        gain, offset = fit["gain"], fit["offset"]
+    if not np.all(np.isfinite(gain)) or np.any(gain <= 0) or not np.all(np.isfinite(offset)):
+        raise ValueError("gain must be finite and > 0 and offset finite in every band")
+    dest = output_path(out, cf.format)
+    low, high = np.inf, -np.inf
+    with CubeWriter(dest, cf.shape, cf.format, cf.bands, cf.fwhm, "reflectance", cf.geotags,
+                    {k: v for k, v in cf.envi_map.items()}) as w:
+        for r0 in range(0, H, tile_rows):
+            r1 = min(r0 + tile_rows, H)
+            refl = elm_apply(cf.read_rows(r0, r1), gain, offset)
+            t_lo, t_hi = float(refl.min()), float(refl.max())
+            if not (np.isfinite(t_lo) and np.isfinite(t_hi)):
+                raise ValueError("the calibrated cube holds NaN or infinite values (check the coefficients)")
+            low, high = min(low, t_lo), max(high, t_hi)
+            w.write_rows(r0, refl)
+    return {"gain": gain, "offset": offset, "fit": fit, "shape": [nb, H, W], "reflectance_range": [low, high],
+            "out": str(dest)}
