@@ -41,8 +41,17 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from .io import MAX_MEGAPIXELS, StrPath, as_float32, atomic_path, bands_sidecar_text, npy_header, read_bands_sidecar, \
-    sidecar_path, write_text
+from .io import (
+    MAX_MEGAPIXELS,
+    StrPath,
+    as_float32,
+    atomic_path,
+    bands_sidecar_text,
+    npy_header,
+    read_bands_sidecar,
+    sidecar_path,
+    write_text,
+)
 
 #: the suffixes of each format (``cube_format``)
 ENVI_SUFFIXES = (".hdr",)
@@ -431,7 +440,8 @@ class CubeWriter:
     def __init__(self, path: StrPath, shape: tuple[int, int, int], fmt: str, bands: Sequence[float] | None,
                  fwhm: Sequence[float] | None = None, quantity: str = "reflectance", geotags: Sequence = (),
                  envi_extra: dict | None = None):
-        self.path, self.shape, self.format = Path(path), tuple(int(s) for s in shape), fmt
+        self.path, self.format = Path(path), fmt
+        self.shape: tuple[int, int, int] = (int(shape[0]), int(shape[1]), int(shape[2]))
         self.bands = None if bands is None else [float(b) for b in bands]
         self.fwhm = None if fwhm is None else [float(f) for f in fwhm]
         self.quantity, self.geotags, self.envi_extra = quantity, list(geotags), envi_extra

@@ -792,7 +792,7 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, mo
     mf = [0.0] * len(model_bands) if model_fwhm is None else [float(f) for f in model_fwhm]
     if len(cb) == len(model_bands):
         try:
-            return {"kind": "reorder", "order": match_bands(cb, model_bands)}
+            return {"kind": "reorder", "order": match_bands(cb.tolist(), model_bands)}
         except ValueError:
             pass
     order = np.argsort(cb)

@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 import numpy as np
 
+from ..cubefiles import cube_format
 from ..errors import Parser, check_input_file, check_output_file, one_line
-from ..io import bands_sidecar_text, read_bands_sidecar, save_npy, sidecar_path, write_text
-from ..onboard import elm_apply, elm_fit
+from ..io import bands_sidecar_text, npy_header, read_bands_sidecar, save_npy, sidecar_path, write_text
+from ..onboard import calibrate_file, elm_apply, elm_fit
 from .cubes import load_cube
-from .options import add_json, add_max_megapixels, add_out_file
+from .options import add_json, add_max_megapixels, add_out_file, add_tile_rows
 
 PROG = "torchskin calibrate"
 DESCRIPTION = ("Signals (DN or radiance) to reflectance with the empirical line through reference panels in the "
@@ -65,14 +67,16 @@ def read_coefficients(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The ``torchskin calibrate`` options."""
-    ap.add_argument("--cube", required=True, help=".npy signal cube (bands, H, W), or (B, bands, H, W) with "
-                    "--coefficients")
+    ap.add_argument("--cube", required=True, help="signal cube: .npy (bands, H, W), or (B, bands, H, W) with "
+                    "--coefficients; an ENVI .hdr (with its data file) or a multi-band GeoTIFF .tif")
     ap.add_argument("--panel", action="append", default=[], metavar="Y0:Y1:X0:X1=REFL",
                     help="a reference panel: pixel region and reflectance (one value, or one per band separated by "
                          "commas); repeat for each panel (at least 2)")
     ap.add_argument("--coefficients", help="apply a saved gain/offset JSON instead of fitting panels")
     ap.add_argument("--erode", type=int, default=1, help="pixels dropped on every side of a panel region (default 1)")
-    add_out_file(ap, "the reflectance cube, .npy (float32)")
+    add_out_file(ap, "the reflectance cube (float32) in the input's format: .npy (+ sidecar), .hdr (ENVI, with a "
+                     ".img beside it) or .tif (GeoTIFF, the input's georeferencing kept)")
+    add_tile_rows(ap)
     ap.add_argument("--save-coefficients", help="write the fitted gain/offset JSON (for later frames)")
     add_max_megapixels(ap)
     add_json(ap)
@@ -103,9 +107,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Run ``torchskin calibrate`` on parsed options."""
     if bool(args.panel) == bool(args.coefficients):
         raise ValueError("give either --panel (at least twice) or --coefficients")
-    out = check_output_file(args.out, "--out", (".npy",))
+    fmt = cube_format(args.cube)
+    suffixes = {"npy": (".npy",), "envi": (".hdr",), "tiff": (".tif", ".tiff")}[fmt]
+    out = check_output_file(args.out, "--out", suffixes)
     save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
         if args.save_coefficients else None
+    if fmt != "npy" or len(_npy_shape(args.cube)) == 3:
+        return _calibrate_stream(args, out, save_coef)
     cube = load_cube(args.cube, "--cube", args.max_megapixels)
     bands = read_bands_sidecar(args.cube)  # the input's wavelengths go with the output
     n_bands = cube.shape[0] if cube.ndim == 3 else cube.shape[1]
@@ -146,5 +154,37 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
               f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
               + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
+              + ("" if fit is None else "; residual " + ", ".join(f"{v:.4f}" for v in fit["residual"])))
+    return 0
+
+
+def _npy_shape(path: str) -> tuple[int, ...]:
+    try:
+        return npy_header(path)[0]
+    except (OSError, ValueError, EOFError, SyntaxError):
+        return ()  # load_cube gives the one-line error
+
+
+def _calibrate_stream(args: argparse.Namespace, out: Any, save_coef: Any) -> int:
+    """``torchskin calibrate`` of one frame, streamed in row tiles (``onboard.calibrate_file``), written in the
+    input's format."""
+    coefficients = read_coefficients(args.coefficients) if args.coefficients else None
+    panels = [parse_panel(p) for p in args.panel] if args.panel else None
+    res = calibrate_file(args.cube, out, panels, coefficients, args.erode, args.tile_rows)
+    gain, offset, fit = res["gain"], res["offset"], res["fit"]
+    coef: dict[str, Any] = {"gain": gain.tolist(), "offset": offset.tolist()}
+    if fit is not None and panels is not None:
+        coef["panels"] = [{"region": list(roi), "reflectance": r.tolist(), "signal": s.tolist()}
+                          for (roi, _), r, s in zip(panels, fit["references"], fit["signals"])]
+        coef["residual"] = fit["residual"].tolist()
+    if save_coef is not None:
+        write_text(save_coef, json.dumps(coef, indent=1))
+    doc = {**coef, "out": res["out"], "shape": res["shape"], "reflectance_range": res["reflectance_range"]}
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        lo, hi = res["reflectance_range"]
+        print(f"wrote {res['out']} {tuple(res['shape'])}: reflectance {lo:.4f} .. {hi:.4f}; gain "
+              + ", ".join(f"{v:.5g}" for v in gain) + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
               + ("" if fit is None else "; residual " + ", ".join(f"{v:.4f}" for v in fit["residual"])))
     return 0

@@ -9,10 +9,10 @@ import json
 import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file
-from ..io import parse_band_list, read_bands_sidecar, sidecar_path
-from ..onboard import SHIPPED_DETECTOR, OnboardDetector, match_bands
+from ..io import npy_header, parse_band_list, read_bands_sidecar, sidecar_path
+from ..onboard import SHIPPED_DETECTOR, OnboardDetector, detect_file, match_bands
 from .cubes import load_cube, write_mask_png
-from .options import add_bands, add_json, add_max_megapixels, add_out_file
+from .options import add_bands, add_json, add_max_megapixels, add_out_file, add_tile_rows
 
 PROG = "torchskin detect"
 DESCRIPTION = "Skin mask of a reflectance cube with the exported detector (numpy + onnxruntime, no torch)."
@@ -28,14 +28,18 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--model", default=None,
                     help="detector.onnx (default: the shipped detector, packaged with torchskin: "
                          "torchskin/data/detector.onnx, a copy of the repository's exports/detector.onnx)")
-    ap.add_argument("--cube", required=True, help=".npy reflectance cube (bands, H, W) or (B, bands, H, W)")
+    ap.add_argument("--cube", required=True, help="reflectance cube: .npy (bands, H, W) or (B, bands, H, W), an ENVI "
+                    ".hdr (with its data file) or a multi-band GeoTIFF .tif, with wavelengths; other bands than the "
+                    "model's are synthesised from the cube's spectra")
     add_bands(ap, default="the cube's sidecar CUBE.bands.json, written by render and calibrate; without either, "
                           "the cube must hold the model's bands, 544,633,1080,1580, in that order")
     ap.add_argument("--sun-zenith", type=float, help="degrees")
     ap.add_argument("--camera-zenith", type=float, help="degrees")
     ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
     ap.add_argument("--range", type=float, help="metres (if the model uses it)")
-    add_out_file(ap, "the mask PNG of the first frame", required=False)
+    add_out_file(ap, "the mask of the first frame: .png, or .tif (a GeoTIFF; required for a georeferenced cube, "
+                     "whose transform and CRS it keeps)", required=False)
+    add_tile_rows(ap)
     ap.add_argument("--clip-negative", action="store_true",
                     help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
                          "clipped, instead of refusing the cube")
@@ -104,29 +108,53 @@ def cli_detect(argv: list[str]) -> int:
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    """Run ``torchskin detect`` on parsed options."""
-    mask_path = check_output_file(args.out, "--out", (".png",)) if args.out else None
+    """Run ``torchskin detect`` on parsed options: a one-frame cube streams in row tiles (``onboard.detect_file``),
+    a (B, bands, H, W) ``.npy`` is read whole."""
+    mask_path = check_output_file(args.out, "--out", (".png", ".tif", ".tiff")) if args.out else None
     det = OnboardDetector(check_input_file(SHIPPED_DETECTOR if args.model is None else args.model, "--model",
                                            (".onnx",)))
-    cube = load_cube(args.cube, "--cube", args.max_megapixels)
-    if cube.ndim == 3:
-        cube = cube[None]
-    cube = model_bands(cube, args, det.bands_nm)
-    values = configuration_values(args, det.features)
-    out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
-              negative="clip" if args.clip_negative else "error", min_reflectance=args.min_reflectance)
-    if mask_path is not None:
-        write_mask_png(mask_path, out["mask"][0])
-    frac = float(out["mask"].mean())
-    clipped = out.get("clipped_values")
-    if args.json:
-        res = {"skin_fraction": frac, "skin_pixels": int(out["mask"].sum()),
-               "out_of_domain": out["out_of_domain"].tolist(), "shape": list(out["mask"].shape)}
-        if clipped is not None:
-            res["clipped_values"] = clipped.tolist()
-        print(json.dumps(res))
+    negative = "clip" if args.clip_negative else "error"
+    if not _batched_npy(args.cube):
+        values = configuration_values(args, det.features)
+        res = detect_file(det, args.cube, values, mask_path, args.tile_rows, negative, args.min_reflectance,
+                          parse_band_list(args.bands) if args.bands else None)
+        n, total = res["skin_pixels"], res["pixels"]
+        ood = res["out_of_domain"]
+        clipped_list = res.get("clipped_values")
+        shape = [1, *res["shape"]]
     else:
-        flag = " (configuration OUTSIDE the training domain)" if out["out_of_domain"].any() else ""
-        clip = f"; {int(clipped.sum())} negative values clipped to 0" if clipped is not None else ""
-        print(f"skin pixels {int(out['mask'].sum())} of {out['mask'].size} ({frac:.4f}){flag}{clip}")
+        if mask_path is not None and mask_path.suffix.lower() != ".png":
+            raise ValueError(f"--out {args.out!r}: a .npy cube carries no georeferencing; give a .png mask")
+        cube = load_cube(args.cube, "--cube", args.max_megapixels)
+        cube = model_bands(cube, args, det.bands_nm)
+        values = configuration_values(args, det.features)
+        out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
+                  negative=negative, min_reflectance=args.min_reflectance)
+        if mask_path is not None:
+            write_mask_png(mask_path, out["mask"][0])
+        n, total = int(out["mask"].sum()), int(out["mask"].size)
+        ood = out["out_of_domain"].tolist()
+        clipped = out.get("clipped_values")
+        clipped_list = None if clipped is None else clipped.tolist()
+        shape = list(out["mask"].shape)
+    frac = n / total
+    if args.json:
+        doc = {"skin_fraction": frac, "skin_pixels": n, "out_of_domain": ood, "shape": shape}
+        if clipped_list is not None:
+            doc["clipped_values"] = clipped_list
+        print(json.dumps(doc))
+    else:
+        flag = " (configuration OUTSIDE the training domain)" if any(ood) else ""
+        clip = f"; {sum(clipped_list)} negative values clipped to 0" if clipped_list is not None else ""
+        print(f"skin pixels {n} of {total} ({frac:.4f}){flag}{clip}")
     return 0
+
+
+def _batched_npy(path: str) -> bool:
+    """Whether ``--cube`` is a ``.npy`` of several frames (B, bands, H, W) (read whole, as before streaming)."""
+    if not str(path).lower().endswith(".npy"):
+        return False
+    try:
+        return len(npy_header(path)[0]) != 3
+    except (OSError, ValueError, EOFError, SyntaxError):
+        return True  # load_cube gives the one-line error

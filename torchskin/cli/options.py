@@ -167,6 +167,13 @@ def add_max_megapixels(p: ArgumentTarget) -> None:
                    help=f"refuse frames larger than this many megapixels (default {MAX_MEGAPIXELS:g})")
 
 
+def add_tile_rows(p: ArgumentTarget) -> None:
+    """``--tile-rows``: rows per tile when ``detect`` and ``calibrate`` stream a frame (``onboard.TILE_ROWS``)."""
+    p.add_argument("--tile-rows", type=int, default=256,
+                   help="rows of the frame read, processed and written at a time (default 256): peak memory is "
+                        "about bands x rows x width x 4 bytes, whatever the frame's height")
+
+
 def add_no_noise(p: ArgumentTarget) -> None:
     """``--no-noise``: the sensor without noise."""
     p.add_argument("--no-noise", action="store_true", help="switch sensor noise off")
@@ -238,7 +245,7 @@ def check_frame(args: argparse.Namespace, bands: int, suns: int = 1) -> None:
 
 
 __all__ = ["ATMOSPHERE_OPTIONS", "BANDS_HELP", "DEVICE_HELP", "JSON_HELP", "MAX_MEGAPIXELS", "SURFACE_HELP", "add_atmosphere",
-           "add_bands", "add_device", "add_frame", "add_illumination", "add_json", "add_max_megapixels", "add_no_noise", "add_out_file",
+           "add_bands", "add_device", "add_tile_rows", "add_frame", "add_illumination", "add_json", "add_max_megapixels", "add_no_noise", "add_out_file",
            "add_out_folder", "add_panels", "add_seed", "add_sky", "add_surface", "atmosphere_from_args",
            "check_angle", "check_atmosphere", "check_frame", "check_number", "light_models", "panel_kinds",
            "surface_models"]
