@@ -405,10 +405,11 @@ def test_calibrate_reports_the_fit_residual(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("command", ["detect", "calibrate"])
-def test_a_huge_cube_is_refused_from_its_header_before_it_is_read(tmp_path, capsys, command):
-    """A 4 x 20000 x 20000 float32 cube (6.4 GB) used to be loaded whole by ``detect``. The header says 400
-    megapixels, above render's cap of 16: refused before any data is read (here the file holds the header
-    only: reading its data would fail), naming --max-megapixels."""
+def test_a_huge_cube_that_is_cut_short_is_refused_from_its_header(tmp_path, capsys, command):
+    """A 4 x 20000 x 20000 float32 cube (6.4 GB) used to be loaded whole by ``detect``, then was refused above a
+    16-megapixel cap. ``detect`` and ``calibrate`` now stream one frame in row tiles (issue 24: streaming replaces
+    the cap for them; ``test_cubefiles`` bounds the memory), so such a header is fine, but this file holds the
+    header only: refused from the header before any data is mapped, as truncated, nothing written."""
     from torchskin.cli import main
 
     p = tmp_path / "big.npy"
@@ -417,20 +418,28 @@ def test_a_huge_cube_is_refused_from_its_header_before_it_is_read(tmp_path, caps
                                                   "shape": (4, 20000, 20000)})
     argv = ["--cube", str(p), *(CFG if command == "detect" else ["--panel", "0:5:0:5=0.97", "--panel",
                                                                  "9:12:9:12=0.03"])]
-    extra = ["--model", DET] if command == "detect" else ["--out", str(tmp_path / "r.npy")]
-    line = _one_line(capsys, main([command, *extra, *argv]))
-    assert "400.0 megapixels" in line and "--max-megapixels" in line, line
+    out = tmp_path / ("m.png" if command == "detect" else "r.npy")
+    extra = ["--model", DET] if command == "detect" else []
+    line = _one_line(capsys, main([command, *extra, *argv, "--out", str(out)]))
+    assert "truncated" in line and "4 x 20000 x 20000" in line and "big.npy" in line, line
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["big.npy"]
 
 
-def test_max_megapixels_raises_the_cap_as_for_render(tmp_path, capsys):
+def test_max_megapixels_caps_a_batch_read_whole_and_not_a_streamed_frame(tmp_path, capsys):
+    """``--max-megapixels`` caps what is read whole, as for render: a (B, 4, H, W) batch. One frame streams in
+    row tiles (issue 24), so the cap no longer refuses it: the same mask either way."""
     import json
 
     from torchskin.cli import main
 
-    np.save(tmp_path / "c.npy", _skin_cube())  # 400 pixels
-    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG, "--json"]
+    np.save(tmp_path / "b.npy", _skin_cube()[None])  # a batch of one 400-pixel frame
+    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "b.npy"), *CFG, "--json"]
     assert "--max-megapixels" in _one_line(capsys, main([*argv, "--max-megapixels", "0.0001"]))
     assert main([*argv, "--max-megapixels", "0.0004"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+    np.save(tmp_path / "c.npy", _skin_cube())
+    one = ["detect", "--model", DET, "--cube", str(tmp_path / "c.npy"), *CFG, "--json", "--tile-rows", "3"]
+    assert main([*one, "--max-megapixels", "0.0001"]) == 0
     assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
 
 

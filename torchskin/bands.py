@@ -98,12 +98,53 @@ def check_band_within(band: Band, lo: float, hi: float) -> None:
                      f" nm, outside the model's {lo:g}-{hi:g} nm; the FWHM may be at most {fmax:.4g} nm at this centre")
 
 
+#: most bands one ``START:STOP:STEP`` range of ``--bands`` may expand to
+MAX_RANGE_BANDS = 10_000
+
+
+def expand_band_items(text: str, option: str = "--bands") -> list[str]:
+    """The items ``centre[/fwhm]`` of a band list (comma-separated), each range ``START:STOP:STEP[/FWHM]``
+    expanded to START, START + STEP, ... up to STOP inclusive (STOP is in it when it lies on the step, within
+    1e-6 of a step), each with the range's FWHM. ``ValueError`` naming ``option`` for an empty item or a bad
+    range (STEP > 0, STOP >= START, at most ``MAX_RANGE_BANDS`` bands).
+
+    >>> expand_band_items("450:480:10/5,1580")
+    ['450/5', '460/5', '470/5', '480/5', '1580']
+    >>> len(expand_band_items("450:1650:10"))
+    121
+    """
+    out: list[str] = []
+    for item in str(text).split(","):
+        item = item.strip()
+        if not item:
+            raise ValueError(f"{option} has an empty item in {text!r} (use centre[/fwhm],... in nm)")
+        if ":" not in item:
+            out.append(item)
+            continue
+        rng, _, f = item.partition("/")
+        parts = rng.split(":")
+        try:
+            start, stop, step = (float(v) for v in parts) if len(parts) == 3 else (math.nan,) * 3
+        except ValueError:
+            start = stop = step = math.nan
+        if not (all(math.isfinite(v) for v in (start, stop, step)) and step > 0 and stop >= start):
+            raise ValueError(f"bad band range {item!r} in {option} (use START:STOP:STEP[/FWHM] in nm, "
+                             "STEP > 0, STOP >= START)")
+        n = math.floor((stop - start) / step + 1e-6) + 1
+        if n > MAX_RANGE_BANDS:
+            raise ValueError(f"band range {item!r} in {option} gives {n} bands, more than {MAX_RANGE_BANDS}")
+        suffix = f"/{f.strip()}" if f.strip() else ""
+        out += [f"{round(start + k * step, 9):.12g}{suffix}" for k in range(n)]
+    return out
+
+
 def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:
     """Parse a band list as the CLI's ``--bands`` takes it.
 
     Args:
         text: comma-separated bands ``centre[/fwhm]`` in nm, e.g. ``"544,633,1080/20,1580/40"`` (no fwhm:
-            monochromatic).
+            monochromatic), or ranges ``START:STOP:STEP[/FWHM]`` (``expand_band_items``: ``450:1650:10`` is
+            the 121 bands 450, 460, ..., 1650 nm).
         within: ``(lo, hi)`` nm that every band's response (centre ± ``SUPPORT_FWHM`` FWHM) must lie in; default
             the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``).
 
@@ -115,10 +156,7 @@ def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[B
     """
     lo, hi = MODEL_RANGE_NM if within is None else within
     out = []
-    for item in text.split(","):
-        item = item.strip()
-        if not item:
-            raise ValueError(f"--bands has an empty item in {text!r} (use centre[/fwhm],... in nm)")
+    for item in expand_band_items(text):
         c, _, f = item.partition("/")
         try:
             band = Band(float(c), float(f) if f else 0.0)

@@ -190,13 +190,24 @@ def _open_npy(p: Path, option: str) -> CubeFile:
 
     try:
         shape, dtype = npy_header(p)
-        data = np.load(p, mmap_mode="r", allow_pickle=False)
+        with open(p, "rb") as fh:  # the data's offset: the header's end
+            v = np.lib.format.read_magic(fh)
+            (np.lib.format.read_array_header_1_0 if v == (1, 0) else np.lib.format.read_array_header_2_0)(fh)
+            offset = fh.tell()
     except (OSError, ValueError, EOFError, SyntaxError) as e:
         raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
     if dtype.hasobject or dtype.kind not in "fiu":
         raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {dtype}")
     if len(shape) != 3 or 0 in shape:
         raise ValueError(f"{option} {str(p)!r} must be one frame (bands, H, W), got shape {shape}")
+    need, size = offset + math.prod(shape) * dtype.itemsize, p.stat().st_size
+    if size < need:  # checked from the header before anything is mapped: a copy cut short, a disk that filled
+        raise ValueError(f"{option} {str(p)!r} is truncated: {size} bytes, but its header's {dtype.name} "
+                         f"{' x '.join(map(str, shape))} cube needs {need}")
+    try:
+        data = np.load(p, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
     bands = read_bands_sidecar(p)
     fwhm = None
     if bands is not None:

@@ -231,14 +231,17 @@ def bands_sidecar_text(bands_nm: list[float], fwhm_nm: list[float] | None = None
 
 
 def parse_band_list(text: str, option: str = "--bands") -> list[float]:
-    """Band centres in nm from "544,633,1080,1580" (a ``/FWHM`` after a centre is accepted and ignored): positive,
+    """Band centres in nm from "544,633,1080,1580" (a ``/FWHM`` after a centre is accepted and ignored; ranges
+    ``START:STOP:STEP`` as ``bands.expand_band_items``): positive,
     finite, distinct; ``ValueError`` naming ``option`` otherwise.
 
     >>> parse_band_list("1580, 544/20,1080,633")
     [1580.0, 544.0, 1080.0, 633.0]
     """
+    from .bands import expand_band_items
+
     out = []
-    for item in str(text).split(","):
+    for item in expand_band_items(text, option):
         centre = item.strip().partition("/")[0].strip()
         try:
             v = float(centre)
