@@ -69,6 +69,11 @@ WAVELENGTH_UNITS = {"nanometers": 1.0, "nanometer": 1.0, "nanometres": 1.0, "nm"
                     "micrometer": 1000.0, "micrometres": 1000.0, "micrometre": 1000.0, "microns": 1000.0,
                     "micron": 1000.0, "um": 1000.0, "µm": 1000.0, "μm": 1000.0, "millimeters": 1e6, "mm": 1e6}
 FORMAT_HINT = "pip install 'torchskin[formats]'"
+#: the units written with each quantity's values (ENVI ``data units``, GDAL's per-band ``UNITTYPE``): reflectance
+#: is a factor (1 = a white Lambertian panel), the signal digital numbers
+QUANTITY_UNITS = {"reflectance": "1", "signal": "DN"}
+#: the formats a cube is written in (``render --format``; ``calibrate`` follows its input)
+WRITE_FORMATS = ("npy", "envi", "tiff")
 
 
 def _need(module: str, what: str) -> Any:
@@ -292,7 +297,7 @@ def _open_envi(p: Path, option: str) -> CubeFile:
     fwhm = None if fw is None else [v * scale for v in fw]
     try:
         img = envi.open(str(hdr), str(raw))
-        data = img.open_memmap(writable=False)  # the file's own interleave: no copy
+        data = img.open_memmap(interleave="source", writable=False)  # the file's own interleave: no copy
     except Exception as e:  # noqa: BLE001 - spectral raises its own types
         raise ValueError(f"cannot read {where}: {one_line(e)}") from None
     axes = {"bsq": "byx", "bil": "ybx", "bip": "yxb"}[interleave]
@@ -400,12 +405,19 @@ def _open_tiff(p: Path, option: str, max_megapixels: float) -> CubeFile:
 
 # --------------------------------------------------------------------------------------------------- writing
 def envi_header_text(shape: tuple[int, int, int], bands: Sequence[float] | None, fwhm: Sequence[float] | None,
-                     description: str = "torchskin", extra: dict | None = None) -> str:
-    """An ENVI header for a BSQ, little-endian float32 cube of ``shape`` (bands, H, W), wavelengths in nm."""
+                     description: str = "torchskin", extra: dict | None = None, units: str | None = None,
+                     reflectance: bool = False) -> str:
+    """An ENVI header for a BSQ, little-endian float32 cube of ``shape`` (bands, H, W), wavelengths and FWHM in
+    nm; ``units``: the values' (``data units``); ``reflectance``: a 0-1 reflectance factor (``reflectance scale
+    factor = 1``)."""
     nb, h, w = shape
     lines = ["ENVI", f"description = {{{description}}}", f"samples = {w}", f"lines = {h}", f"bands = {nb}",
              "header offset = 0", "file type = ENVI Standard", "data type = 4", "interleave = bsq",
              "byte order = 0"]
+    if units is not None:
+        lines.append(f"data units = {units}")
+    if reflectance:
+        lines.append("reflectance scale factor = 1")
     if bands is not None:
         lines += ["wavelength units = Nanometers", "wavelength = {" + ", ".join(f"{b:g}" for b in bands) + "}"]
         lines.append("band names = {" + ", ".join(f"{b:g} nm" for b in bands) + "}")
@@ -418,14 +430,19 @@ def envi_header_text(shape: tuple[int, int, int], bands: Sequence[float] | None,
 
 
 def gdal_metadata_xml(bands: Sequence[float] | None, fwhm: Sequence[float] | None,
-                      quantity: str | None = None) -> str | None:
+                      quantity: str | None = None, units: str | None = None) -> str | None:
     """The GDAL_METADATA tag text with each band's ``wavelength``, ``wavelength_units`` (nm) and ``fwhm`` items,
-    as GDAL's ENVI driver writes them (None without wavelengths)."""
+    as GDAL's ENVI driver writes them, and the values' ``units`` as each band's unit type (None without
+    wavelengths)."""
     if bands is None:
         return None
     items = [] if quantity is None else [f'<Item name="quantity">{escape(quantity)}</Item>']
+    if units is not None:
+        items.append(f'<Item name="units">{escape(units)}</Item>')
     for i, b in enumerate(bands):
         items.append(f'<Item name="DESCRIPTION" sample="{i}" role="description">{b:g} nm</Item>')
+        if units is not None:
+            items.append(f'<Item name="UNITTYPE" sample="{i}" role="unittype">{escape(units)}</Item>')
         items.append(f'<Item name="wavelength" sample="{i}">{b:g}</Item>')
         items.append(f'<Item name="wavelength_units" sample="{i}">Nanometers</Item>')
         if fwhm is not None:
@@ -435,9 +452,10 @@ def gdal_metadata_xml(bands: Sequence[float] | None, fwhm: Sequence[float] | Non
 
 def tiff_extratags(bands: Sequence[float] | None, fwhm: Sequence[float] | None, geotags: Sequence = (),
                    quantity: str | None = None) -> list:
-    """tifffile ``extratags``: the input's geotags and the GDAL_METADATA wavelengths."""
+    """tifffile ``extratags``: the input's geotags and the GDAL_METADATA wavelengths (and ``quantity``'s units,
+    ``QUANTITY_UNITS``)."""
     tags = [(c, dt, n, v, True) for c, dt, n, v in geotags]
-    xml = gdal_metadata_xml(bands, fwhm, quantity)
+    xml = gdal_metadata_xml(bands, fwhm, quantity, QUANTITY_UNITS.get(quantity or ""))
     if xml is not None:
         tags.append((GDAL_METADATA_TAG, 2, 0, xml, True))
     return tags
@@ -486,7 +504,8 @@ class CubeWriter:
         self._ctx.__exit__(None, None, None)
         if self.format == "envi":
             write_text(self.path.with_suffix(".hdr"), envi_header_text(
-                self.shape, self.bands, self.fwhm, f"torchskin {self.quantity}", self.envi_extra))
+                self.shape, self.bands, self.fwhm, f"torchskin {self.quantity}", self.envi_extra,
+                QUANTITY_UNITS.get(self.quantity), self.quantity == "reflectance"))
         elif self.format == "npy":
             side = sidecar_path(self.path)
             if self.bands is not None:

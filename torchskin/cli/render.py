@@ -73,6 +73,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.mesh:
         check_input_file(args.mesh, "--mesh", (".obj", ".ply"))
     check_frame(args, len(parse_bands(args.bands)) if args.bands else len(DEFAULT_BANDS))
+    if args.format == "tiff":  # the writer's package, before any work
+        from ..cubefiles import _need
+
+        _need("tifffile", "render --format tiff")
     device = check_device(args.device)
     sc = _scene_from_args(args)
     path: dict[str, Any] = {}
@@ -83,7 +87,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         path = path_terms(sc.suns[0].atmosphere, scene_light(sc, torch.float64).sky[0].tolist(), sc.bands, args.range)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed, **path)
     res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile)
-    info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor)
+    info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor, fmt=args.format)
     warning = elm_warning(info)
     if warning:
         print(f"torchskin render: warning: {warning}", file=sys.stderr)
@@ -128,6 +132,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     rp.add_argument("--fov", type=float, default=14.0, help="horizontal field of view, degrees (default 14)")
     add_frame(rp)
     add_bands(rp)
+    rp.add_argument("--format", choices=["npy", "envi", "tiff"], default="npy",
+                    help="the reflectance and signal cubes' format: npy (default; reflectance.npy, signal.npy, "
+                         "each with a wavelength sidecar .bands.json), envi (reflectance.hdr over reflectance.img, "
+                         "signal.hdr over signal.img) or tiff (reflectance.tif, signal.tif; needs torchskin[formats]); "
+                         "each with wavelengths, FWHM and units")
     add_panels(rp)
     rp.add_argument("--elm", choices=["dhr", "brdf"], default="dhr",
                     help="calibrate with the panels' DHR (ELM) or their BRDF at the geometry (BRDF-ELM)")

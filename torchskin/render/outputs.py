@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -131,7 +132,7 @@ def elm_warning(info: dict) -> str | None:
 
 
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
-                  sensor: Sensor | None = None) -> dict:
+                  sensor: Sensor | None = None, fmt: str = "npy") -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
     sensor signal cube before ELM (``signal.npy``, digital numbers), each with its wavelengths in a sidecar
     (``reflectance.bands.json``, ``signal.bands.json``: ``io.bands_sidecar_text``), the rules detector's mask, ``mask.png``: an
@@ -140,7 +141,11 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
     ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``; timing, panels with their pixel regions,
     detections) in ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
-    model judges the empirical line, ``summary``). Returns the summary."""
+    model judges the empirical line, ``summary``). ``fmt``: the cubes' format, "npy" (the default, above), "envi"
+    (``reflectance.hdr`` over ``reflectance.img``, ``signal.hdr`` over ``signal.img``) or "tiff"
+    (``reflectance.tif``, ``signal.tif``), each with its wavelengths, FWHM and units in the header
+    (``cubefiles.CubeWriter``); ``render.json``'s ``cubes`` lists the files and their format. Returns the
+    summary."""
     if isinstance(scene, Scene):
         suns = scene.suns
         scene = scene.to_dict()
@@ -150,14 +155,26 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
         raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
     from ..plots import band_image, mask_image, mask_png
 
+    from ..cubefiles import QUANTITY_UNITS, WRITE_FORMATS, write_cube
+
+    if fmt not in WRITE_FORMATS:
+        raise ValueError(f"fmt must be one of {', '.join(WRITE_FORMATS)}, got {fmt!r}")  # before any file
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    save_npy(out / "reflectance.npy", result.cube(s, c))
-    save_npy(out / "signal.npy", result.cube(s, c, "signal"))
     centres = [float(b.center_nm) for b in result.bands]  # the cubes' wavelengths, for detect and calibrate
     fwhm = [float(b.fwhm_nm) for b in result.bands]  # 0: monochromatic
-    for name, quantity in (("reflectance", "reflectance"), ("signal", "signal")):
-        write_text(sidecar_path(out / f"{name}.npy"), bands_sidecar_text(centres, fwhm, quantity))
+    cubes: dict[str, Any] = {"format": fmt}
+    for quantity in ("reflectance", "signal"):
+        cube = result.cube(s, c, quantity)
+        if fmt == "npy":
+            save_npy(out / f"{quantity}.npy", cube)
+            write_text(sidecar_path(out / f"{quantity}.npy"), bands_sidecar_text(centres, fwhm, quantity))
+            files = [f"{quantity}.npy", sidecar_path(out / f"{quantity}.npy").name]
+        else:
+            path = write_cube(out / f"{quantity}.{'hdr' if fmt == 'envi' else 'tif'}", cube, fmt, centres, fwhm,
+                              quantity)
+            files = [path.name, f"{quantity}.img"] if fmt == "envi" else [path.name]
+        cubes[quantity] = {"files": files, "units": QUANTITY_UNITS[quantity]}
     for k, b in enumerate(result.bands):
         band_image(out / f"band_{b.label}nm.png", result.reflectance[s, c, :, :, k],
                    f"{b.center_nm:g} nm reflectance (ELM)")
@@ -171,6 +188,6 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     panels = {p: {**v, "region": regions[p]} for p, v in result.panels.items()}
     doc = {"summary": info, "timing_s": result.timing, "panels": panels, "detections": dets,
            "scene": scene, "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands],
-           "illumination": result.light.summary(result.bands)}
+           "illumination": result.light.summary(result.bands), "cubes": cubes}
     write_text(out / "render.json", json.dumps(doc, indent=1))
     return info
