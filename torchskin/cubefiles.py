@@ -68,6 +68,9 @@ GDAL_METADATA_TAG = 42112
 WAVELENGTH_UNITS = {"nanometers": 1.0, "nanometer": 1.0, "nanometres": 1.0, "nm": 1.0, "micrometers": 1000.0,
                     "micrometer": 1000.0, "micrometres": 1000.0, "micrometre": 1000.0, "microns": 1000.0,
                     "micron": 1000.0, "um": 1000.0, "µm": 1000.0, "μm": 1000.0, "millimeters": 1e6, "mm": 1e6}
+#: wavelengths given without units must reach this (nm): all below it they read as micrometres (0.4-2.5 um
+#: imagers, 8-14 um thermal ones), which no camera's nanometre centres are (the far ultraviolet)
+UNITLESS_MIN_NM = 100.0
 FORMAT_HINT = "pip install 'torchskin[formats]'"
 #: the units written with each quantity's values (ENVI ``data units``, GDAL's per-band ``UNITTYPE``): reflectance
 #: is a factor (1 = a white Lambertian panel), the signal digital numbers
@@ -115,13 +118,13 @@ def units_scale(units: str | None, where: str) -> float | None:
 
 def to_nm(values: Sequence[float], units: str | None, where: str) -> list[float]:
     """Band centres in nm from header values in ``units``: declared micrometres are converted; without a unit the
-    values must already read as nm (centres all below 10 look like micrometres and are refused, as an unlabelled
-    unit cannot be guessed); distinct, positive, finite."""
+    values must already read as nm (centres all below ``UNITLESS_MIN_NM`` look like micrometres and are refused, as
+    an unlabelled unit cannot be guessed); distinct, positive, finite."""
     scale = units_scale(units, where)
     v = [float(x) * (scale or 1.0) for x in values]
     if not all(math.isfinite(x) and x > 0 for x in v):
         raise ValueError(f"{where}: wavelengths must be positive finite numbers")
-    if scale is None and max(v) < 10:
+    if scale is None and max(v) < UNITLESS_MIN_NM:
         raise ValueError(f"{where}: wavelengths {', '.join(f'{x:g}' for x in v[:4])}{', ...' if len(v) > 4 else ''} "
                          "look like micrometres but no units are declared; declare 'wavelength units = "
                          "Micrometers' (or give them in nm)")

@@ -822,12 +822,17 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, mo
 
 
 def apply_plan(plan: dict, block: np.ndarray) -> np.ndarray:
-    """The model's bands (n_model, rows, W) float32 from a cube's rows ``block`` (n_cube, rows, W) by ``plan``."""
+    """The model's bands (n_model, rows, W) float32 from a cube's rows ``block`` (n_cube, rows, W) by ``plan``
+    (a synthesis summed in float64 per pixel, then rounded)."""
     if plan["kind"] == "reorder":
         order = plan["order"]
         return block if order == list(range(block.shape[0])) else np.ascontiguousarray(block[order])
-    m = plan["matrix"].astype(np.float32)
-    return np.tensordot(m, block, axes=1).astype(np.float32, copy=False)
+    m = plan["matrix"]
+    out = np.zeros((m.shape[0], *block.shape[1:]), dtype=np.float64)
+    for j in range(m.shape[0]):  # per element, over the band's few non-zero weights: a pixel's value depends on
+        for k in np.flatnonzero(m[j]):  # its spectrum alone, not on the tile's size or its place in it (a GEMM's
+            out[j] += m[j, k] * block[k].astype(np.float64)  # blocking would change the rounding with the tile)
+    return out.astype(np.float32)
 
 
 def model_fwhm(det: _Model) -> list[float] | None:
@@ -841,12 +846,16 @@ def model_fwhm(det: _Model) -> list[float] | None:
 
 
 # ---------------------------------------------------------------------------------------- streaming a file
-#: rows of a frame per tile of ``detect_file`` and ``calibrate_file``: peak memory is about bands x this x W x 4
-#: bytes per buffer, whatever the frame's height (256 rows of a 20000-column 4-band frame: 82 MB)
-TILE_ROWS = 256
+#: bytes of the input cube's rows per tile of ``detect_file`` and ``calibrate_file`` when ``tile_rows`` is None:
+#: the rows per tile are this over bands x W x 4 (at least 1), so that peak memory is a few times this, whatever
+#: the frame's height and the cube's band count (a 4-band 20000-column frame: 104 rows; 121 bands: 3 rows)
+TILE_BYTES = 32 * 2**20
 
 
-def _check_tile_rows(tile_rows: int) -> int:
+def _check_tile_rows(tile_rows: int | None, shape: tuple[int, int, int] = (1, 1, 1)) -> int:
+    """``tile_rows`` checked, or for None the rows of a ``(bands, H, W)`` cube that fill ``TILE_BYTES``."""
+    if tile_rows is None:
+        return max(1, TILE_BYTES // (4 * shape[0] * shape[2]))
     if isinstance(tile_rows, bool) or not isinstance(tile_rows, (int, np.integer)) or tile_rows < 1:
         raise ValueError(f"--tile-rows must be a positive whole number of rows, got {tile_rows!r}")
     return int(tile_rows)
@@ -867,10 +876,10 @@ def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list) -> Any:
 
 
 def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath | None = None,
-                tile_rows: int = TILE_ROWS, negative: str = "error", min_reflectance: float | None = None,
+                tile_rows: int | None = None, negative: str = "error", min_reflectance: float | None = None,
                 bands: Sequence[float] | None = None, option: str = "--cube") -> dict:
     """Detect skin in a cube file of one frame (``cubefiles.open_cube``: ``.npy`` + sidecar, ENVI, GeoTIFF; or an
-    open ``CubeFile``), ``tile_rows`` rows at a time: the model's bands read as they are or synthesised
+    open ``CubeFile``), ``tile_rows`` rows at a time (None: ``TILE_BYTES`` of the input): the model's bands read as they are or synthesised
     (``band_plan``; ``bands`` overrides the file's wavelengths; a cube without any must hold the model's four
     bands in its order), the mask written rows by rows to ``out`` (``.png``, or ``.tif``: a GeoTIFF keeping the
     input's georeferencing) through a temporary file renamed at the end. The reflectance range is checked over
@@ -880,9 +889,10 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
     ``reflectance_range``."""
     from .cubefiles import CubeFile, open_cube
 
-    tile_rows = _check_tile_rows(tile_rows)
+    _check_tile_rows(tile_rows)
     cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
     nb, H, W = cf.shape
+    tile_rows = _check_tile_rows(tile_rows, cf.shape)
     cube_bands = list(bands) if bands is not None else cf.bands
     where = f"{option} {str(cf.path)!r}"
     if cube_bands is not None and len(cube_bands) != nb:
@@ -934,19 +944,20 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
 
 def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int], ArrayLike]] | None = None,
                    coefficients: tuple[ArrayLike, ArrayLike] | None = None, erode: int = 1,
-                   tile_rows: int = TILE_ROWS, option: str = "--cube") -> dict:
+                   tile_rows: int | None = None, option: str = "--cube") -> dict:
     """The empirical line of a signal cube file of one frame (``cubefiles.open_cube``), from reference
     ``panels`` (``elm_fit``'s (region, reflectance); only the panels' rows are read) or saved ``coefficients``
-    (gain, offset), applied ``tile_rows`` rows at a time and written to ``out`` in the input's format (``.npy`` +
+    (gain, offset), applied ``tile_rows`` rows at a time (None: ``TILE_BYTES`` of the input) and written to ``out`` in the input's format (``.npy`` +
     sidecar, ENVI, GeoTIFF with the input's geotags; wavelengths and FWHM carried over) through a temporary file
     renamed at the end; a tile with NaN or infinite reflectance removes it. Returns ``gain``, ``offset``, the fit
     (``signals``, ``references``, ``residual``; None with coefficients), ``shape``, ``reflectance_range`` and
     ``out`` (the path written)."""
     from .cubefiles import CubeFile, CubeWriter, open_cube, output_path
 
-    tile_rows = _check_tile_rows(tile_rows)
+    _check_tile_rows(tile_rows)
     cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
     nb, H, W = cf.shape
+    tile_rows = _check_tile_rows(tile_rows, cf.shape)
     fit = None
     if coefficients is not None:
         gain, offset = (np.asarray(v, np.float64) for v in coefficients)

@@ -168,10 +168,11 @@ def add_max_megapixels(p: ArgumentTarget) -> None:
 
 
 def add_tile_rows(p: ArgumentTarget) -> None:
-    """``--tile-rows``: rows per tile when ``detect`` and ``calibrate`` stream a frame (``onboard.TILE_ROWS``)."""
-    p.add_argument("--tile-rows", type=int, default=256,
-                   help="rows of the frame read, processed and written at a time (default 256): peak memory is "
-                        "about bands x rows x width x 4 bytes, whatever the frame's height")
+    """``--tile-rows``: rows per tile when ``detect`` and ``calibrate`` stream a frame (``onboard.TILE_BYTES``)."""
+    p.add_argument("--tile-rows", type=int, default=None,
+                   help="rows of the frame read, processed and written at a time (default: about 32 MB of the "
+                        "input, bands x rows x width x 4 bytes): peak memory is a few times that, whatever the "
+                        "frame's height")
 
 
 def add_no_noise(p: ArgumentTarget) -> None:

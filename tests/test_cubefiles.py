@@ -1,0 +1,404 @@
+"""Cube files in and out (issue 24): ENVI through Spectral Python, GeoTIFF through tifffile, ``.npy`` with the
+wavelength sidecar; the model's bands synthesised from hyperspectral cubes with ``bands.py``'s band response;
+frames streamed in row tiles from memory-mapped files with the same mask as the detector on the whole frame;
+hostile files refused in one line, with nothing written."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+spectral = pytest.importorskip("spectral")
+tifffile = pytest.importorskip("tifffile")
+
+from torchskin import cubefiles  # noqa: E402
+from torchskin.onboard import OnboardDetector, apply_plan, band_plan, calibrate_file, detect_file  # noqa: E402
+
+DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
+CONFIG = [40.0, 30.0, 60.0]
+MODEL_BANDS = [544.0, 633.0, 1080.0, 1580.0]
+SKIN = np.array([0.25, 0.35, 0.55, 0.15], dtype=np.float32)
+
+
+@pytest.fixture(scope="module")
+def det():
+    return OnboardDetector(DET, threads=2)
+
+
+def _skin_cube(h=20, w=20):
+    """A reflectance frame in the model's band order: a skin patch (rows 5-14, columns 5-14) on grey."""
+    cube = np.full((4, h, w), 0.2, dtype=np.float32)
+    cube[:, 5:15, 5:15] = SKIN[:, None, None]
+    return cube
+
+
+def _scene(h, w, seed=0):
+    """A frame of many skin-like and other pixels (random per pixel around the skin spectrum): a mask with many
+    edges, and scores near 0 at some pixels."""
+    rng = np.random.default_rng(seed)
+    cube = SKIN[:, None, None] * rng.uniform(0.6, 1.4, (4, h, w)).astype(np.float32)
+    cube[:, : h // 3] = rng.uniform(0.05, 0.9, (4, h // 3, w)).astype(np.float32)
+    return cube
+
+
+def _one_line(capsys, rc):
+    out, err = capsys.readouterr()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and out == "" and len(lines) == 1, (rc, out, err)
+    return lines[0]
+
+
+def _save_envi(path, cube, interleave="bsq", dtype=np.float32, byteorder="little", **meta):
+    """A (bands, H, W) cube as an ENVI file by Spectral Python itself (it takes (rows, columns, bands))."""
+    spectral.envi.save_image(str(path), np.transpose(cube, (1, 2, 0)).astype(dtype), interleave=interleave,
+                             byteorder=byteorder, dtype=dtype, force=True, metadata=meta)
+    return Path(path)
+
+
+def _save_npy(path, cube, bands, fwhm=None):
+    np.save(path, cube)
+    (path.parent / (path.stem + ".bands.json")).write_text(json.dumps(
+        {"bands_nm": list(bands), "units": "nm", **({"fwhm_nm": list(fwhm)} if fwhm is not None else {})}))
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------- ENVI
+@pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
+@pytest.mark.parametrize("byteorder", ["little", "big"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int16])
+def test_envi_cubes_of_every_layout_read_as_written(tmp_path, interleave, byteorder, dtype):
+    """Spectral Python writes the cube in each interleave, byte order and data type; ``open_cube`` reads the same
+    values with the header's wavelengths, memory-mapped in the file's own layout, and rows alone as asked."""
+    rng = np.random.default_rng(1)
+    cube = rng.integers(0, 3000, (5, 7, 9)).astype(np.float32) if dtype == np.int16 else \
+        rng.uniform(0, 1, (5, 7, 9)).astype(np.float32)
+    wl = [450.0, 544.0, 633.0, 1080.0, 1580.0]
+    hdr = _save_envi(tmp_path / "c.hdr", cube, interleave, dtype, byteorder, wavelength=wl, fwhm=[10] * 5,
+                     **{"wavelength units": "Nanometers"})
+    head = spectral.envi.read_envi_header(str(hdr))
+    assert head["interleave"] == interleave and int(head["byte order"]) == (byteorder == "big")
+    cf = cubefiles.open_cube(hdr)
+    assert cf.format == "envi" and cf.shape == (5, 7, 9) and cf.dtype == np.dtype(dtype).newbyteorder(
+        ">" if byteorder == "big" else "<")
+    assert cf.bands == wl and cf.fwhm == [10.0] * 5
+    np.testing.assert_array_equal(cf.read(), cube.astype(dtype).astype(np.float32))
+    np.testing.assert_array_equal(cf.read_rows(2, 5), cube.astype(dtype).astype(np.float32)[:, 2:5])
+    assert cubefiles.open_cube(hdr.with_suffix(".img")).shape == cf.shape  # named by its data file too
+
+
+def test_written_envi_opens_in_spectral_python_with_wavelengths_fwhm_and_units(tmp_path):
+    cube = np.random.default_rng(2).uniform(0, 1, (3, 4, 6)).astype(np.float32)
+    p = cubefiles.write_cube(tmp_path / "r.hdr", cube, "envi", [544.0, 633.5, 1080.0], [0.0, 10.0, 20.0])
+    img = spectral.open_image(str(p))
+    assert img.shape == (4, 6, 3)
+    assert img.bands.centers == [544.0, 633.5, 1080.0] and img.bands.bandwidths == [0.0, 10.0, 20.0]
+    assert img.bands.band_unit == "Nanometers" and img.metadata["data units"] == "1"
+    np.testing.assert_array_equal(np.transpose(img.load(), (2, 0, 1)), cube)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["r.hdr", "r.img"]
+
+
+def test_a_header_in_micrometres_is_converted(tmp_path, capsys, det):
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    hdr = _save_envi(tmp_path / "um.hdr", cube, wavelength=[0.544, 0.633, 1.08, 1.58],
+                     **{"wavelength units": "Micrometers"})
+    assert cubefiles.open_cube(hdr).bands == pytest.approx(MODEL_BANDS)
+    assert main(["detect", "--model", DET, "--cube", str(hdr), *CFG, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == int(det(cube[None], CONFIG)["mask"].sum()) == 100
+
+
+# ------------------------------------------------------------------------------------------------- GeoTIFF
+def test_written_geotiff_carries_band_wavelengths_read_by_tifffile(tmp_path):
+    cube = np.random.default_rng(3).uniform(0, 1, (4, 5, 6)).astype(np.float32)
+    p = cubefiles.write_cube(tmp_path / "s.tif", cube, "tiff", MODEL_BANDS, [5.0] * 4, "signal")
+    with tifffile.TiffFile(str(p)) as tif:
+        np.testing.assert_array_equal(tif.asarray(), cube)
+        xml = tif.pages[0].tags[cubefiles.GDAL_METADATA_TAG].value
+    top, per = cubefiles._gdal_items(xml)
+    assert [float(per[i]["wavelength"]) for i in range(4)] == MODEL_BANDS
+    assert {per[i]["wavelength_units"] for i in range(4)} == {"Nanometers"}
+    assert [float(per[i]["fwhm"]) for i in range(4)] == [5.0] * 4 and per[0]["unittype"] == "DN"
+    back = cubefiles.open_cube(p)
+    assert back.bands == MODEL_BANDS and back.fwhm == [5.0] * 4 and back.streaming
+    np.testing.assert_array_equal(back.read(), cube)
+
+
+def _georeferenced_tiff(path, cube, bands):
+    """A multi-band GeoTIFF with a pixel scale, a tie point, a GeoKey directory (EPSG:32633) and GDAL_METADATA
+    wavelengths, as a camera's or GDAL's product carries them."""
+    geo = [(33550, 12, 3, (0.05, 0.05, 0.0), True),
+           (33922, 12, 6, (0.0, 0.0, 0.0, 500000.0, 4649776.0, 0.0), True),
+           (34735, 3, 16, (1, 1, 0, 3, 1024, 0, 1, 1, 1025, 0, 1, 1, 3072, 0, 1, 32633), True),
+           (cubefiles.GDAL_METADATA_TAG, 2, 0, cubefiles.gdal_metadata_xml(bands, None), True)]
+    tifffile.imwrite(str(path), cube, photometric="minisblack", planarconfig="separate", extratags=geo)
+    return {c: v for c, _, _, v, _ in geo[:3]}
+
+
+def _tags(path):
+    with tifffile.TiffFile(str(path)) as tif:
+        return {c: tif.pages[0].tags[c].value for c in (33550, 33922, 34735) if c in tif.pages[0].tags}
+
+
+def test_a_georeferenced_cubes_mask_and_calibrated_cube_keep_its_transform_and_crs(tmp_path, capsys, det):
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    geo = _georeferenced_tiff(tmp_path / "geo.tif", cube, MODEL_BANDS)
+    assert main(["detect", "--model", DET, "--cube", str(tmp_path / "geo.tif"), *CFG, "--out",
+                 str(tmp_path / "mask.tif")]) == 0
+    capsys.readouterr()
+    assert {c: tuple(v) for c, v in _tags(tmp_path / "mask.tif").items()} == \
+        {c: tuple(v) for c, v in geo.items()}
+    np.testing.assert_array_equal(tifffile.imread(str(tmp_path / "mask.tif")),
+                                  det(cube[None], CONFIG)["mask"][0].astype(np.uint8) * 255)
+    # a PNG would drop the georeferencing: refused, naming the remedy, nothing written
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(tmp_path / "geo.tif"), *CFG, "--out",
+                                   str(tmp_path / "mask.png")]))
+    assert ".tif" in line and "georeferenced" in line and not (tmp_path / "mask.png").exists()
+    # calibrate --out follows the input's format and keeps its georeferencing and wavelengths
+    dn = (cube * 10000 + 100).astype(np.float32)
+    dn[:, :4, :4], dn[:, -4:, -4:] = 9800.0, 400.0
+    _georeferenced_tiff(tmp_path / "dn.tif", dn, MODEL_BANDS)
+    assert main(["calibrate", "--cube", str(tmp_path / "dn.tif"), "--panel", "0:4:0:4=0.97", "--panel",
+                 "16:20:16:20=0.03", "--out", str(tmp_path / "r.tif")]) == 0
+    capsys.readouterr()
+    assert {c: tuple(v) for c, v in _tags(tmp_path / "r.tif").items()} == {c: tuple(v) for c, v in geo.items()}
+    r = cubefiles.open_cube(tmp_path / "r.tif")
+    assert r.bands == MODEL_BANDS
+    gain, offset = (9800 - 400) / 0.94, 400 - 0.03 * (9800 - 400) / 0.94
+    np.testing.assert_allclose(r.read(), (dn - offset) / gain, atol=1e-5)
+    assert main(["calibrate", "--cube", str(tmp_path / "dn.tif"), "--panel", "0:4:0:4=0.97", "--panel",
+                 "16:20:16:20=0.03", "--out", str(tmp_path / "r.npy")]) == 2  # not the input's format
+    capsys.readouterr()
+    assert not (tmp_path / "r.npy").exists()
+
+
+# -------------------------------------------------------------------------------------------- .npy + sidecar
+def test_npy_with_its_sidecar_in_any_band_order(tmp_path, capsys, det):
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    order = [3, 0, 2, 1]
+    p = _save_npy(tmp_path / "c.npy", cube[order], [MODEL_BANDS[i] for i in order])
+    cf = cubefiles.open_cube(p)
+    assert cf.format == "npy" and cf.bands == [1580.0, 544.0, 1080.0, 633.0]
+    assert main(["detect", "--model", DET, "--cube", str(p), *CFG, "--out", str(tmp_path / "m.png"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+    np.testing.assert_array_equal(cubefiles.read_png_gray(tmp_path / "m.png"),
+                                  det(cube[None], CONFIG)["mask"][0].astype(np.uint8) * 255)
+
+
+# -------------------------------------------------------------------------------------------- band synthesis
+def _smooth(lam):
+    """A smooth reflectance spectrum (nm -> value) and the largest |second derivative| it has (per nm^2)."""
+    a, b, p = 0.35, 0.15, 180.0
+    return a + b * np.sin(lam / p) + 1e-4 * (lam - 1000.0), b / p ** 2
+
+
+@pytest.mark.parametrize("fwhm", [None, [20.0, 20.0, 40.0, 40.0]], ids=["monochromatic", "gaussian"])
+def test_synthesised_bands_equal_the_band_response_of_the_spectrum(fwhm):
+    """A 121-band cube (450..1650 nm by 10) of a smooth spectrum, synthesised to the model's bands, equals
+    ``bands.response_matrix`` of the renderer applied to the spectrum on a fine grid, within the error of
+    linear interpolation between samples 10 nm apart (h^2 / 8 max|S''|) and of the trapezoid rule on the
+    band's grid of at most 1 nm (for a normalised band mean: (L d^2 / 12) (max|(gS)''| + max|S| max|g''|) / D),
+    plus float32 rounding."""
+    import torch
+
+    from torchskin.bands import FWHM_TO_SIGMA, SUPPORT_FWHM, Band, response_matrix
+
+    lam = np.arange(450.0, 1651.0, 10.0)
+    assert len(lam) == 121
+    spec, s2 = _smooth(lam)
+    cube = np.broadcast_to(spec.astype(np.float32)[:, None, None], (121, 3, 5)).copy()
+    plan = band_plan(lam.tolist(), None, MODEL_BANDS, fwhm)
+    assert plan["kind"] == "synthesis" and plan["matrix"].shape == (4, 121)
+    np.testing.assert_allclose(plan["matrix"].sum(1), 1.0, atol=1e-12)
+    got = apply_plan(plan, cube)
+    assert got.shape == (4, 3, 5) and got.dtype == np.float32
+    fine = np.arange(400.0, 1700.0 + 1e-9, 0.01)
+    bands = [Band(c, 0.0 if fwhm is None else f) for c, f in zip(MODEL_BANDS, fwhm or [0.0] * 4)]
+    ref = (torch.as_tensor(_smooth(fine)[0]) @ response_matrix(torch.as_tensor(fine), bands)).numpy()
+    tol = np.full(4, 10.0 ** 2 / 8 * s2)
+    if fwhm is not None:
+        for k, (c, f) in enumerate(zip(MODEL_BANDS, fwhm)):
+            sig, L = f * FWHM_TO_SIGMA, 2 * SUPPORT_FWHM * f
+            x = np.linspace(c - L / 2, c + L / 2, 20001)
+            g = np.exp(-0.5 * ((x - c) / sig) ** 2)
+            S = _smooth(x)[0]
+            d2 = lambda y: np.abs(np.gradient(np.gradient(y, x), x)).max()  # noqa: E731
+            tol[k] += L * 1.0 ** 2 / 12 * (d2(g * S) + np.abs(S).max() * d2(g)) / np.trapezoid(g, x)
+    tol += 4 * np.finfo(np.float32).eps * np.abs(ref)
+    err = np.abs(got[:, 0, 0].astype(np.float64) - ref)
+    assert np.all(err <= tol), (err, tol)
+    assert np.all(got == got[:, :1, :1])  # every pixel alike
+
+
+def test_four_bands_that_match_the_model_are_used_as_they_are(tmp_path, det):
+    """Wavelengths within ``BAND_MATCH_NM`` of the model's: the cube's own values, reordered, bit for bit (no
+    weights applied), and the mask of the in-memory detector on them."""
+    cube = _scene(30, 40)
+    order = [2, 0, 3, 1]
+    bands = [MODEL_BANDS[i] + d for i, d in zip(order, (0.5, -1.0, 0.0, 1.5))]
+    plan = band_plan(bands, None, MODEL_BANDS)
+    assert plan == {"kind": "reorder", "order": [1, 3, 0, 2]}
+    got = apply_plan(plan, cube[order])
+    assert got.dtype == np.float32 and got.tobytes() == cube.tobytes()
+    same = apply_plan({"kind": "reorder", "order": [0, 1, 2, 3]}, cube)
+    assert same is cube
+    p = _save_npy(tmp_path / "c.npy", cube[order], bands)
+    res = detect_file(det, p, CONFIG, tmp_path / "m.png", negative="clip")
+    assert res["plan"] == "reorder"
+    want = det(cube[None], CONFIG, negative="clip")["mask"][0]
+    np.testing.assert_array_equal(cubefiles.read_png_gray(tmp_path / "m.png") == 255, want)
+
+
+def test_a_121_band_envi_cube_runs_through_detect_with_synthesised_bands(tmp_path, capsys):
+    """The skin patch's spectrum smooth through the skin values at the model's bands: detect synthesises the
+    four bands from the 121 and finds the patch."""
+    from torchskin.cli import main
+
+    lam = np.arange(450.0, 1651.0, 10.0)
+    spec_skin = np.interp(lam, MODEL_BANDS, SKIN)
+    cube = np.full((121, 20, 20), 0.2, dtype=np.float32)
+    cube[:, 5:15, 5:15] = spec_skin.astype(np.float32)[:, None, None]
+    hdr = _save_envi(tmp_path / "h.hdr", cube, "bil", wavelength=lam.tolist(), **{"wavelength units": "nm"})
+    assert main(["detect", "--model", DET, "--cube", str(hdr), *CFG, "--json", "--tile-rows", "6"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+
+
+# -------------------------------------------------------------------------------------------------- streaming
+@pytest.mark.parametrize("tile_rows", [1, 7, 200, None])
+def test_streaming_a_memory_mapped_cube_gives_the_in_memory_mask_exactly(tmp_path, det, tile_rows):
+    """Row tiles of 1 and 7 rows (each call below the detector's tile: the whole graph), 200 rows (80000 pixels:
+    the detector's own tiles and per-tile head) and the default, on a 300 x 400 frame the detector runs in tiles
+    in memory: the same mask bit for bit, and the same skin count."""
+    cube = _scene(300, 400)
+    p = tmp_path / "c.npy"
+    np.save(p, cube)
+    want = det(cube[None], CONFIG, negative="clip")["mask"][0]
+    assert 1000 < want.sum() < want.size - 1000
+    res = detect_file(det, p, CONFIG, tmp_path / "m.png", tile_rows=tile_rows, negative="clip")
+    got = cubefiles.read_png_gray(tmp_path / "m.png") == 255
+    np.testing.assert_array_equal(got, want)
+    assert res["skin_pixels"] == int(want.sum()) and res["pixels"] == want.size
+
+
+def test_streaming_peak_memory_is_bounded_by_the_tile_not_the_frame(tmp_path, det):
+    """A 4 x 2000 x 1000 float32 frame (32 MB) memory-mapped, detected and calibrated in 16-row tiles: the
+    largest numpy allocation at any time (tracemalloc) stays under 4 MB, an eighth of the frame; the results are
+    the whole frame's."""
+    import tracemalloc
+
+    H, W = 2000, 1000
+    mm = np.lib.format.open_memmap(tmp_path / "big.npy", mode="w+", dtype=np.float32, shape=(4, H, W))
+    for r0 in range(0, H, 250):
+        mm[:, r0:r0 + 250] = 0.2
+    mm[:, 100:140, 100:300] = SKIN[:, None, None]
+    mm.flush()
+    del mm
+    frame = 4 * H * W * 4
+    tracemalloc.start()
+    try:
+        res = detect_file(det, tmp_path / "big.npy", CONFIG, tmp_path / "m.png", tile_rows=16)
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        cal = calibrate_file(tmp_path / "big.npy", tmp_path / "r.npy", coefficients=([2.0] * 4, [0.0] * 4),
+                             tile_rows=16)
+        _, peak_cal = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert res["skin_pixels"] == 40 * 200 and cal["shape"] == [4, H, W]
+    assert peak < frame / 8 and peak_cal < frame / 8, (peak, peak_cal, frame)
+    assert np.load(tmp_path / "r.npy", mmap_mode="r")[:, 120, 200].tolist() == (SKIN / 2).tolist()
+
+
+# ---------------------------------------------------------------------------------------------------- hostile
+def _envi_by_hand(folder, header, data_bytes):
+    (folder / "x.hdr").write_text(header)
+    (folder / "x.img").write_bytes(data_bytes)
+    return folder / "x.hdr"
+
+
+HEADER = ("ENVI\nsamples = 20\nlines = 20\nbands = 4\nheader offset = 0\ndata type = 4\ninterleave = {il}\n"
+          "byte order = 0\n{wl}")
+WL_NM = "wavelength units = Nanometers\nwavelength = {544, 633, 1080, 1580}\n"
+
+
+@pytest.mark.parametrize("case,header,nbytes,expect", [
+    ("no wavelengths", HEADER.format(il="bsq", wl=""), 6400, "no 'wavelength'"),
+    ("truncated raw file", HEADER.format(il="bsq", wl=WL_NM), 6000, "truncated"),
+    ("interleave not matching the size", HEADER.format(il="bil", wl=WL_NM).replace("bands = 4", "bands = 5"),
+     6400, "truncated"),
+    ("unknown interleave", HEADER.format(il="bsx", wl=WL_NM), 6400, "interleave 'bsx'"),
+    ("wavelengths in um without units", HEADER.format(
+        il="bip", wl="wavelength = {0.544, 0.633, 1.08, 1.58}\n"), 6400, "look like micrometres"),
+    ("a band the cube does not cover", HEADER.format(
+        il="bsq", wl="wavelength units = nm\nwavelength = {520, 560, 600, 640}\n"), 6400, "1080 nm band"),
+])
+@pytest.mark.parametrize("command", ["detect", "calibrate"])
+def test_hostile_envi_files_get_one_line_and_nothing_written(tmp_path, capsys, case, header, nbytes, expect,
+                                                             command):
+    from torchskin.cli import main
+
+    data = (tmp_path / "data")
+    data.mkdir()
+    hdr = _envi_by_hand(data, header, np.full(nbytes // 4, 0.2, "<f4").tobytes())
+    out = tmp_path / "out"
+    out.mkdir()
+    if command == "calibrate" and case == "a band the cube does not cover":
+        pytest.skip("calibrate needs no model band")
+    argv = (["detect", "--model", DET, "--cube", str(hdr), *CFG, "--out", str(out / "m.png")] if command == "detect"
+            else ["calibrate", "--cube", str(hdr), "--panel", "0:4:0:4=0.97", "--panel", "16:20:16:20=0.03",
+                  "--out", str(out / "r.hdr")])
+    line = _one_line(capsys, main(argv))
+    assert expect in line and ("x.hdr" in line or "x.img" in line), line
+    if case == "a band the cube does not cover":
+        assert "520..640 nm" in line, line
+    assert list(out.iterdir()) == []
+
+
+def test_a_band_the_121_band_cube_does_not_cover_is_named_with_the_cubes_range(tmp_path, capsys):
+    from torchskin.cli import main
+
+    lam = np.arange(450.0, 1451.0, 10.0)  # stops short of 1580 nm
+    cube = np.full((len(lam), 8, 8), 0.2, dtype=np.float32)
+    hdr = _save_envi(tmp_path / "h.hdr", cube, wavelength=lam.tolist(), **{"wavelength units": "Nanometers"})
+    out = tmp_path / "out"
+    out.mkdir()
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(hdr), *CFG, "--out", str(out / "m.png")]))
+    assert "1580 nm band" in line and "450..1450 nm" in line, line
+    assert list(out.iterdir()) == []
+
+
+def test_a_header_declaring_a_unit_that_is_not_a_length_is_refused(tmp_path, capsys):
+    from torchskin.cli import main
+
+    hdr = _envi_by_hand(tmp_path, HEADER.format(il="bsq", wl="wavelength units = Index\n"
+                                                "wavelength = {1, 2, 3, 4}\n"), np.zeros(1600, "<f4").tobytes())
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(hdr), *CFG]))
+    assert "'Index'" in line, line
+
+
+def test_band_ranges_on_the_command_line():
+    from torchskin.bands import expand_band_items, parse_bands
+    from torchskin.io import parse_band_list
+
+    b = parse_bands("450:1650:10")
+    assert len(b) == 121 and b[0].center_nm == 450 and b[-1].center_nm == 1650 and b[60].center_nm == 1050
+    assert [(x.center_nm, x.fwhm_nm) for x in parse_bands("544,1000:1020:10/5")] == \
+        [(544.0, 0.0), (1000.0, 5.0), (1010.0, 5.0), (1020.0, 5.0)]
+    assert parse_band_list("1580,544:548:2") == [1580.0, 544.0, 546.0, 548.0]
+    assert expand_band_items("400:405:2") == ["400", "402", "404"]  # STOP off the step: not passed
+    for bad in ("450:1650:0", "1650:450:10", "450:1650", "a:b:c"):
+        with pytest.raises(ValueError, match="bad band range"):
+            parse_bands(bad)
+    with pytest.raises(ValueError, match="strictly ascending"):  # render's checks still apply
+        parse_bands("450:500:10,480")
+    fine = parse_bands("450.1:450.5:0.1")  # steps that are not exact in binary: STOP still reached, rounded
+    assert len(fine) == 5 and math.isclose(fine[-1].center_nm, 450.5, abs_tol=1e-12)
