@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -153,9 +153,8 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
         suns = Scene.from_dict(scene).suns
     if not isinstance(scene, dict):
         raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
-    from ..plots import band_image, mask_image, mask_png
-
     from ..cubefiles import QUANTITY_UNITS, WRITE_FORMATS, write_cube
+    from ..plots import band_image, mask_image, mask_png
 
     if fmt not in WRITE_FORMATS:
         raise ValueError(f"fmt must be one of {', '.join(WRITE_FORMATS)}, got {fmt!r}")  # before any file
