@@ -406,3 +406,43 @@ def test_band_ranges_on_the_command_line():
         parse_bands("450:500:10,480")
     fine = parse_bands("450.1:450.5:0.1")  # steps that are not exact in binary: STOP still reached, rounded
     assert len(fine) == 5 and math.isclose(fine[-1].center_nm, 450.5, abs_tol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------------- render
+@pytest.mark.parametrize("fmt", ["envi", "tiff"])
+def test_render_writes_its_cubes_in_the_format_asked_and_calibrate_detect_read_them(tmp_path, capsys, fmt):
+    """``render --format``: the reflectance and signal cubes with wavelengths, FWHM and units, listed in
+    render.json; ``calibrate`` on the signal cube through render.json's panel regions writes the input's
+    format, and ``detect`` on it finds what it finds on render's own reflectance cube."""
+    pytest.importorskip("open3d")
+    from torchskin.cli import main
+
+    out = tmp_path / "r"
+    assert main(["render", "--out", str(out), "--width", "48", "--height", "48", "--bands",
+                 "544,633,1000:1100:40/20,1580", "--format", fmt]) == 0
+    capsys.readouterr()
+    doc = json.loads((out / "render.json").read_text())
+    ext = {"envi": ["hdr", "img"], "tiff": ["tif"]}[fmt]
+    assert doc["cubes"] == {"format": fmt, **{q: {"files": [f"{q}.{e}" for e in ext], "units": u}
+                                              for q, u in (("reflectance", "1"), ("signal", "DN"))}}
+    assert not (out / "reflectance.npy").exists() and all((out / f).is_file() for q in ("reflectance", "signal")
+                                                          for f in doc["cubes"][q]["files"])
+    bands, fwhm = [544.0, 633.0, 1000.0, 1040.0, 1080.0, 1580.0], [0.0, 0.0, 20.0, 20.0, 20.0, 0.0]
+    for q in ("reflectance", "signal"):
+        cf = cubefiles.open_cube(out / doc["cubes"][q]["files"][0])
+        assert cf.bands == bands and cf.fwhm == fwhm and cf.shape == (6, 48, 48)
+    if fmt == "envi":
+        img = spectral.open_image(str(out / "signal.hdr"))
+        assert img.bands.centers == bands and img.metadata["data units"] == "DN"
+    regions = [doc["panels"][p]["region"] for p in ("panel_white", "panel_dark")]
+    cal = tmp_path / f"cal.{ext[0]}"
+    assert main(["calibrate", "--cube", str(out / doc["cubes"]["signal"]["files"][0]),
+                 "--panel", "{}:{}:{}:{}=0.97".format(*regions[0]), "--panel", "{}:{}:{}:{}=0.03".format(*regions[1]),
+                 "--out", str(cal)]) == 0
+    capsys.readouterr()
+    counts = []
+    for cube in (cal, out / doc["cubes"]["reflectance"]["files"][0]):
+        assert main(["detect", "--model", DET, "--cube", str(cube), "--sun-zenith", "45", "--camera-zenith", "90",
+                     "--relative-azimuth", "20", "--clip-negative", "--json"]) == 0
+        counts.append(json.loads(capsys.readouterr().out)["skin_pixels"])
+    assert counts[0] > 0 and abs(counts[0] - counts[1]) <= 0.02 * counts[1] + 1, counts

@@ -24,7 +24,7 @@ README = ROOT / "README.md"
 PAGES = [README] + sorted(p for p in (ROOT / "docs").rglob("*.md") if "_build" not in p.parts and "api" not in p.parts)
 #: command prefixes run here (every example starting with one of them, page by page, in page order)
 RUN = ("torchskin spectra", "torchskin light", "torchskin render --out out/frame --json",
-       "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin detect",
+       "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin render --out hs --width 256", "torchskin detect",
        "torchskin calibrate")
 #: a printed number: not part of a word or file name (r544, shard-00001), with decimals and exponent as shown
 NUMBER = r"(?<![\w.\-])[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?(?!\w)"
