@@ -446,3 +446,39 @@ def test_render_writes_its_cubes_in_the_format_asked_and_calibrate_detect_read_t
                      "--relative-azimuth", "20", "--clip-negative", "--json"]) == 0
         counts.append(json.loads(capsys.readouterr().out)["skin_pixels"])
     assert counts[0] > 0 and abs(counts[0] - counts[1]) <= 0.02 * counts[1] + 1, counts
+
+
+def test_a_memory_mapped_frame_streamed_does_not_stay_resident(tmp_path):
+    """Pages of a memory-mapped file count in the resident memory of the process that touched them: a 256 MB
+    frame read and written tile by tile would end up resident whole. ``detect`` and ``calibrate`` release each
+    tile's pages (``cubefiles.release_pages``): their peak resident memory on it (measured in a fresh process,
+    ``ru_maxrss``) exceeds the same command's on a 1-row frame by less than a quarter of the frame."""
+    import subprocess
+    import sys
+
+    H, W = 4000, 4000
+    for name, h in (("big", H), ("small", 1)):
+        mm = np.lib.format.open_memmap(tmp_path / f"{name}.npy", mode="w+", dtype=np.float32, shape=(4, h, W))
+        for r0 in range(0, h, 500):
+            mm[:, r0:r0 + 500] = 0.2
+        mm.flush()
+        del mm
+    (tmp_path / "one.json").write_text(json.dumps({"gain": [2.0] * 4, "offset": [0.0] * 4}))
+    code = ("import resource, sys; from torchskin.cli import main; rc = main(sys.argv[1:]); "
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024); sys.exit(rc)")
+
+    def peak(*argv):
+        r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=300,
+                           cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        return int(r.stdout.split()[-1])
+
+    frame = 4 * H * W * 4
+    for name in ("detect", "calibrate"):
+        def argv(cube, name=name):
+            return (["detect", "--model", DET, "--cube", f"{cube}.npy", *CFG, "--out", f"{cube}.png"]
+                    if name == "detect" else
+                    ["calibrate", "--cube", f"{cube}.npy", "--coefficients", "one.json", "--out", f"{cube}_r.npy"])
+        grown = peak(*argv("big")) - peak(*argv("small"))
+        assert grown < frame / 4, (name, grown, frame)
+    assert np.load(tmp_path / "big_r.npy", mmap_mode="r")[:, -1, -1].tolist() == pytest.approx([0.1] * 4, rel=1e-6)
