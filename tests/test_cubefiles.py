@@ -380,6 +380,27 @@ def test_a_band_the_121_band_cube_does_not_cover_is_named_with_the_cubes_range(t
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("command", ["detect", "calibrate"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_streamed_cube_with_nan_or_inf_in_a_late_tile_is_refused_with_nothing_written(tmp_path, capsys,
+                                                                                         command, bad):
+    """The value sits in the last tile, after earlier tiles' mask rows went to the temporary file."""
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    cube[:, 0:4, 0:4] = 0.9  # a bright panel for calibrate
+    cube[2, 18, 3] = bad
+    hdr = _save_envi(tmp_path / "c.hdr", cube, wavelength=MODEL_BANDS, **{"wavelength units": "Nanometers"})
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = (["detect", "--model", DET, "--cube", str(hdr), *CFG, "--out", str(out / "m.png")] if command == "detect"
+            else ["calibrate", "--cube", str(hdr), "--panel", "0:4:0:4=0.97", "--panel", "5:15:5:15=0.03",
+                  "--out", str(out / "r.hdr")])
+    line = _one_line(capsys, main([*argv, "--tile-rows", "4"]))
+    assert "NaN or infinite" in line and ("c.hdr" in line or "c.img" in line), line
+    assert list(out.iterdir()) == []
+
+
 def test_a_header_declaring_a_unit_that_is_not_a_length_is_refused(tmp_path, capsys):
     from torchskin.cli import main
 

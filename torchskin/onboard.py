@@ -875,6 +875,15 @@ def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list) -> Any:
     return PngRows(out, shape[0], shape[1])
 
 
+def _finite_rows(cf: Any, r0: int, r1: int, where: str) -> np.ndarray:
+    """``cf.read_rows(r0, r1)``, refused naming the file (``where``) when it holds NaN or infinite values (as
+    ``load_cube`` refuses a cube read whole)."""
+    block = cf.read_rows(r0, r1)
+    if not (np.isfinite(block.min()) and np.isfinite(block.max())):  # NaN propagates through both
+        raise ValueError(f"{where} holds NaN or infinite values")
+    return block
+
+
 def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath | None = None,
                 tile_rows: int | None = None, negative: str = "error", min_reflectance: float | None = None,
                 bands: Sequence[float] | None = None, option: str = "--cube") -> dict:
@@ -915,7 +924,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
     try:
         for r0 in range(0, H, tile_rows):
             r1 = min(r0 + tile_rows, H)
-            x = apply_plan(plan, cf.read_rows(r0, r1))
+            x = apply_plan(plan, _finite_rows(cf, r0, r1, where))
             t_lo, t_hi = float(x.min()), float(x.max())
             low, high = min(low, t_lo), max(high, t_hi)
             if t_hi > REFLECTANCE_MAX:
@@ -958,6 +967,7 @@ def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int]
     cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
     nb, H, W = cf.shape
     tile_rows = _check_tile_rows(tile_rows, cf.shape)
+    where = f"{option} {str(cf.path)!r}"
     fit = None
     if coefficients is not None:
         gain, offset = (np.asarray(v, np.float64) for v in coefficients)
@@ -975,7 +985,7 @@ def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int]
                 raise ValueError(f"panel region {y0}:{y1}:{x0}:{x1} must satisfy 0 <= Y0 < Y1 <= {H} and "
                                  f"0 <= X0 < X1 <= {W}")
             refs.append(panel_reference(rho, nb))
-            sig.append(panel_signal(cf.read_rows(y0, y1), (0, y1 - y0, x0, x1), erode))
+            sig.append(panel_signal(_finite_rows(cf, y0, y1, where), (0, y1 - y0, x0, x1), erode))
         fit = elm_line(np.stack(refs), np.stack(sig))
         gain, offset = fit["gain"], fit["offset"]
     if not np.all(np.isfinite(gain)) or np.any(gain <= 0) or not np.all(np.isfinite(offset)):
@@ -986,7 +996,7 @@ def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int]
                     {k: v for k, v in cf.envi_map.items()}) as w:
         for r0 in range(0, H, tile_rows):
             r1 = min(r0 + tile_rows, H)
-            refl = elm_apply(cf.read_rows(r0, r1), gain, offset)
+            refl = elm_apply(_finite_rows(cf, r0, r1, where), gain, offset)
             t_lo, t_hi = float(refl.min()), float(refl.max())
             if not (np.isfinite(t_lo) and np.isfinite(t_hi)):
                 raise ValueError("the calibrated cube holds NaN or infinite values (check the coefficients)")
