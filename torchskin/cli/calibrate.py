@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -151,11 +152,30 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res))
     else:
-        print(f"wrote {args.out} {tuple(refl.shape)}: reflectance {res['reflectance_range'][0]:.4f} .. "
-              f"{res['reflectance_range'][1]:.4f}; gain " + ", ".join(f"{v:.5g}" for v in gain)
-              + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
-              + ("" if fit is None else "; residual " + ", ".join(f"{v:.4f}" for v in fit["residual"])))
+        print(fit_summary(args.out, refl.shape, res["reflectance_range"], gain, offset,
+                          None if fit is None else fit["residual"]))
     return 0
+
+
+#: up to this many bands, calibrate's summary line lists gain, offset and residual band by band; above, their ranges
+LIST_BANDS = 8
+
+
+def fit_summary(out: Any, shape: Sequence[int], reflectance_range: Sequence[float], gain: np.ndarray,
+                offset: np.ndarray, residual: np.ndarray | None) -> str:
+    """calibrate's one summary line: the file written, its shape and reflectance range, and the line's gain,
+    offset and residual per band (``LIST_BANDS`` bands or fewer) or their ranges (a hyperspectral cube's 121
+    bands; ``--json`` and ``--save-coefficients`` give every band)."""
+    lo, hi = reflectance_range
+    head = f"wrote {out} {tuple(shape)}: reflectance {lo:.4f} .. {hi:.4f}; "
+    if len(gain) <= LIST_BANDS:
+        return (head + "gain " + ", ".join(f"{v:.5g}" for v in gain) + "; offset "
+                + ", ".join(f"{v:.5g}" for v in offset)
+                + ("" if residual is None else "; residual " + ", ".join(f"{v:.4f}" for v in residual)))
+    return (head + f"over its {len(gain)} bands gain {gain.min():.5g} .. {gain.max():.5g}, offset "
+            f"{offset.min():.5g} .. {offset.max():.5g}"
+            + ("" if residual is None else f", residual at most {np.max(residual):.4f}")
+            + " (every band: --json or --save-coefficients)")
 
 
 def _npy_shape(path: str) -> tuple[int, ...]:
@@ -183,8 +203,6 @@ def _calibrate_stream(args: argparse.Namespace, out: Any, save_coef: Any) -> int
     if args.json:
         print(json.dumps(doc))
     else:
-        lo, hi = res["reflectance_range"]
-        print(f"wrote {res['out']} {tuple(res['shape'])}: reflectance {lo:.4f} .. {hi:.4f}; gain "
-              + ", ".join(f"{v:.5g}" for v in gain) + "; offset " + ", ".join(f"{v:.5g}" for v in offset)
-              + ("" if fit is None else "; residual " + ", ".join(f"{v:.4f}" for v in fit["residual"])))
+        print(fit_summary(res["out"], res["shape"], res["reflectance_range"], gain, offset,
+                          None if fit is None else fit["residual"]))
     return 0
