@@ -552,7 +552,8 @@ def test_evaluate_warns_when_a_model_comes_from_another_world(tmp_path, capsys, 
 
 
 # ---------------------------------------------------------------------------------- a pip user without an extra
-@pytest.mark.parametrize("module", ["onnxruntime", "open3d", "pvlib", "anny", "earthlib", "ray"])
+@pytest.mark.parametrize("module", ["onnxruntime", "open3d", "pvlib", "anny", "earthlib", "ray", "spectral",
+                                    "tifffile"])
 def test_a_command_whose_extra_is_missing_names_the_extra(tmp_path, module):
     """A pip user without the extra ran ``detect`` (or ``render``) and got
     "unexpected ModuleNotFoundError: No module named 'onnxruntime'" with no hint: the line names the extra.
@@ -572,7 +573,19 @@ def test_a_command_whose_extra_is_missing_names_the_extra(tmp_path, module):
             "from torchskin.cli import main\n"
             "sys.exit(main(sys.argv[1:]))\n")
     np.save(tmp_path / "c.npy", _skin_cube())
+    inputs = ["c.npy"]
+    if module == "spectral":  # an ENVI cube, written by hand (the header is text)
+        (tmp_path / "c.hdr").write_text("ENVI\nsamples = 20\nlines = 20\nbands = 4\nheader offset = 0\n"
+                                        "data type = 4\ninterleave = bsq\nbyte order = 0\n"
+                                        "wavelength units = nm\nwavelength = {544, 633, 1080, 1580}\n")
+        (tmp_path / "c.img").write_bytes(_skin_cube().astype("<f4").tobytes())
+        inputs += ["c.hdr", "c.img"]
+    if module == "tifffile":  # a GeoTIFF cube, written here with tifffile, missed by the command
+        pytest.importorskip("tifffile").imwrite(tmp_path / "c.tif", _skin_cube())
+        inputs += ["c.tif"]
     argv = {"onnxruntime": ["detect", "--model", DET, "--cube", "c.npy", *CFG],  # the onboard path itself
+            "spectral": ["detect", "--model", DET, "--cube", "c.hdr", *CFG, "--out", "m.png"],
+            "tifffile": ["detect", "--model", DET, "--cube", "c.tif", *CFG, "--out", "m.png"],
             "open3d": ["render", "--out", "r", "--width", "16", "--height", "16"],
             "pvlib": ["render", "--out", "r", "--width", "16", "--height", "16"],
             "anny": ["render", "--out", "r", "--width", "16", "--height", "16", "--illumination", "thesis"],
@@ -590,7 +603,7 @@ def test_a_command_whose_extra_is_missing_names_the_extra(tmp_path, module):
         want = (f"this command needs {module}, a requirement of torchskin that is not installed: pip install "
                 f"{module} (an install with --no-deps leaves it out)")
     assert r.stderr.strip().splitlines() == [f"torchskin {command}: error: {want}"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.npy"]  # nothing written
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(inputs)  # nothing written
 
 
 def test_every_optional_package_is_in_the_extra_the_error_names():

@@ -80,13 +80,16 @@ WRITE_FORMATS = ("npy", "envi", "tiff")
 
 
 def _need(module: str, what: str) -> Any:
-    """Import the optional ``module`` (the ``formats`` extra), or a one-line ``ValueError`` with the install hint."""
+    """Import the optional ``module`` (the ``formats`` extra), or the ``ModuleNotFoundError`` of its top-level
+    package, saying what needed it (``what``), that the command line answers with ``errors.missing_extra``'s
+    one line and status 1, as for every other missing package."""
     import importlib
 
     try:
         return importlib.import_module(module)
     except ImportError:
-        raise ValueError(f"{what} needs the Python package {module!r}: {FORMAT_HINT}") from None
+        top = module.partition(".")[0]
+        raise ModuleNotFoundError(f"{what} needs the Python package {top!r}: {FORMAT_HINT}", name=top) from None
 
 
 def cube_format(path: StrPath) -> str:
