@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cubefiles import cube_format
+from ..cubefiles import CUBE_SUFFIXES, cube_format
 from ..errors import Parser, check_input_file, check_output_file, one_line
 from ..io import bands_sidecar_text, npy_header, read_bands_sidecar, save_npy, sidecar_path, write_text
 from ..onboard import calibrate_file, elm_apply, elm_fit
@@ -108,6 +108,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Run ``torchskin calibrate`` on parsed options."""
     if bool(args.panel) == bool(args.coefficients):
         raise ValueError("give either --panel (at least twice) or --coefficients")
+    check_input_file(args.cube, "--cube", CUBE_SUFFIXES)  # before --out's suffix, which follows the cube's
     fmt = cube_format(args.cube)
     suffixes = {"npy": (".npy",), "envi": (".hdr",), "tiff": (".tif", ".tiff")}[fmt]
     out = check_output_file(args.out, "--out", suffixes)
