@@ -503,3 +503,151 @@ def test_a_memory_mapped_frame_streamed_does_not_stay_resident(tmp_path):
         grown = peak(*argv("big")) - peak(*argv("small"))
         assert grown < frame / 4, (name, grown, frame)
     assert np.load(tmp_path / "big_r.npy", mmap_mode="r")[:, -1, -1].tolist() == pytest.approx([0.1] * 4, rel=1e-6)
+
+
+# ------------------------------------------------------------------ review of issue 24: what the field's files hold
+def test_scaled_integer_reflectance_reads_as_the_reflectance_factor(tmp_path, capsys, det):
+    """An int16 product storing 10000 x the reflectance factor (ENVI 'reflectance scale factor', GDAL's per-band
+    SCALE/OFFSET) gives the mask of the float cube (it was refused as 'per cent')."""
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    want = int(det(cube[None], CONFIG)["mask"].sum())
+    stored = np.round(cube * 10000).astype(np.int16)
+    hdr = _save_envi(tmp_path / "i.hdr", stored.astype(np.float32), dtype=np.int16, wavelength=MODEL_BANDS,
+                     **{"wavelength units": "nm", "reflectance scale factor": 10000})
+    np.testing.assert_allclose(cubefiles.open_cube(hdr).read(), stored / 10000.0, rtol=1e-6)
+    xml = cubefiles.gdal_metadata_xml(MODEL_BANDS, None).replace(
+        "</GDALMetadata>", "".join(f'<Item name="SCALE" sample="{i}" role="scale">0.0001</Item>'
+                                   f'<Item name="OFFSET" sample="{i}" role="offset">0.01</Item>' for i in range(4))
+        + "</GDALMetadata>")
+    tifffile.imwrite(str(tmp_path / "i.tif"), stored - 100, photometric="minisblack", planarconfig="separate",
+                     extratags=[(cubefiles.GDAL_METADATA_TAG, 2, 0, xml, True)])
+    np.testing.assert_allclose(cubefiles.open_cube(tmp_path / "i.tif").read(), (stored - 100) * 1e-4 + 0.01,
+                               rtol=1e-5)
+    for p in (hdr, tmp_path / "i.tif"):
+        assert main(["detect", "--model", DET, "--cube", str(p), *CFG, "--json"]) == 0, capsys.readouterr()
+        assert json.loads(capsys.readouterr().out)["skin_pixels"] == want == 100
+
+
+def test_bands_given_on_the_command_line_stand_in_for_a_header_without_wavelengths(tmp_path, capsys, det):
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    order = [2, 0, 3, 1]
+    hdr = _envi_by_hand(tmp_path, HEADER.format(il="bsq", wl=""), cube[order].astype("<f4").tobytes())
+    argv = ["detect", "--model", DET, "--cube", str(hdr), *CFG, "--json"]
+    assert "no 'wavelength'" in _one_line(capsys, main(argv))
+    assert main([*argv, "--bands", ",".join(f"{MODEL_BANDS[i]:g}" for i in order)]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+    tifffile.imwrite(str(tmp_path / "n.tif"), cube, photometric="minisblack", planarconfig="separate")
+    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "n.tif"), *CFG, "--json"]
+    assert "no band wavelengths" in _one_line(capsys, main(argv))
+    assert main([*argv, "--bands", "544,633,1080,1580"]) == 0
+    assert json.loads(capsys.readouterr().out)["skin_pixels"] == 100
+
+
+def test_an_envi_cubes_map_info_is_kept_by_an_envi_mask_and_refused_in_a_png(tmp_path, capsys, det):
+    from torchskin.cli import main
+
+    cube = _skin_cube()
+    info = ["UTM", "1", "1", "500000", "4649776", "0.05", "0.05", "33", "North", "WGS-84"]
+    hdr = _save_envi(tmp_path / "g.hdr", cube, wavelength=MODEL_BANDS, **{"wavelength units": "nm", "map info": info})
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("m.png", "m.tif"):
+        line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(hdr), *CFG, "--out", str(out / name)]))
+        assert "map info" in line and ".hdr" in line, line
+    assert list(out.iterdir()) == []
+    assert main(["detect", "--model", DET, "--cube", str(hdr), *CFG, "--out", str(out / "m.hdr")]) == 0
+    capsys.readouterr()
+    img = spectral.open_image(str(out / "m.hdr"))
+    assert img.metadata["map info"] == info and img.shape == (20, 20, 1) and np.dtype(img.dtype) == np.uint8
+    np.testing.assert_array_equal(np.asarray(img.load())[:, :, 0], det(cube[None], CONFIG)["mask"][0].astype(np.uint8) * 255)
+
+
+def test_a_data_file_a_reader_would_find_first_is_refused_as_an_envi_output(tmp_path, capsys):
+    """``S.hdr`` over ``S`` (no suffix: a reader's first choice), calibrated onto ``S.hdr``, wrote ``S.img`` and a
+    reflectance header that readers paired with the old signal in ``S``."""
+    from torchskin.cli import main
+
+    dn = np.full((4, 20, 20), 500.0, np.float32)
+    dn[:, :4, :4], dn[:, -4:, -4:] = 9700.0, 300.0
+    (tmp_path / "S.hdr").write_text(HEADER.format(il="bsq", wl=WL_NM))
+    (tmp_path / "S").write_bytes(dn.astype("<f4").tobytes())
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    line = _one_line(capsys, main(["calibrate", "--cube", str(tmp_path / "S.hdr"), "--panel", "0:4:0:4=0.97",
+                                   "--panel", "16:20:16:20=0.03", "--out", str(tmp_path / "S.hdr")]))
+    assert "would be read as its data file" in line, line
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+@pytest.mark.parametrize("fmt", ["envi", "npy"])
+def test_an_interrupted_header_write_leaves_the_old_cube_and_header_paired(tmp_path, monkeypatch, fmt):
+    import pathlib
+
+    old = np.zeros((4, 3, 5), np.float32)
+    p = cubefiles.write_cube(tmp_path / ("r.hdr" if fmt == "envi" else "r.npy"), old, fmt, MODEL_BANDS)
+    before = {f.name: f.read_bytes() for f in tmp_path.iterdir()}
+    real = pathlib.Path.write_text
+
+    def interrupted(self, *a, **k):
+        if self.name.startswith("."):  # the header's or sidecar's temporary file
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(pathlib.Path, "write_text", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cubefiles.write_cube(p, np.ones((4, 3, 5), np.float32), fmt, [500.0, 600.0, 700.0, 800.0])
+    assert {f.name: f.read_bytes() for f in tmp_path.iterdir()} == before
+
+
+def test_a_batch_of_npy_frames_synthesises_the_models_bands_as_one_frame_does(tmp_path, capsys):
+    from torchskin.cli import main
+
+    lam = np.arange(450.0, 1651.0, 10.0)
+    spec = np.interp(lam, MODEL_BANDS, SKIN).astype(np.float32)
+    one = np.broadcast_to(spec[:, None, None], (len(lam), 6, 6)).copy()
+    one[:, :2] = 0.2
+    res = []
+    for name, arr in (("one.npy", one), ("batch.npy", np.stack([one, one]))):
+        _save_npy(tmp_path / name, arr, lam)
+        assert main(["detect", "--model", DET, "--cube", str(tmp_path / name), *CFG, "--json"]) == 0
+        res.append(json.loads(capsys.readouterr().out))
+    assert res[1]["skin_pixels"] == 2 * res[0]["skin_pixels"] > 0
+
+
+@pytest.mark.parametrize("units,ok", [("Nanometre", True), ("Micrometres", True), ("Millimetres", True),
+                                      ("Wavenumber", False)])
+def test_british_spellings_of_the_wavelength_units_are_read(units, ok):
+    scale = {"Nanometre": 1.0, "Micrometres": 1e3, "Millimetres": 1e6}
+    if ok:
+        assert cubefiles.units_scale(units, "x") == scale[units]
+        assert cubefiles.to_nm([400.0], units, "x") == [400.0 * scale[units]]
+    else:
+        with pytest.raises(ValueError, match="Wavenumber"):
+            cubefiles.units_scale(units, "x")
+
+
+@pytest.mark.parametrize("fwhm", ["{nan, 10, 10, 10}", "{-1, 10, 10, 10}"])
+def test_a_header_fwhm_that_is_not_a_width_is_refused(tmp_path, capsys, fwhm):
+    from torchskin.cli import main
+
+    hdr = _envi_by_hand(tmp_path, HEADER.format(il="bsq", wl=WL_NM + f"fwhm = {fwhm}\n"),
+                        _skin_cube().astype("<f4").tobytes())
+    line = _one_line(capsys, main(["detect", "--model", DET, "--cube", str(hdr), *CFG]))
+    assert "fwhm" in line, line
+
+
+def test_max_megapixels_caps_a_compressed_geotiff_and_must_be_positive(tmp_path, capsys):
+    from torchskin.cli import main
+
+    tifffile.imwrite(str(tmp_path / "z.tif"), _skin_cube(), photometric="minisblack", planarconfig="separate",
+                     compression="zlib", extratags=[(cubefiles.GDAL_METADATA_TAG, 2, 0,
+                                                     cubefiles.gdal_metadata_xml(MODEL_BANDS, None), True)])
+    argv = ["detect", "--model", DET, "--cube", str(tmp_path / "z.tif"), *CFG]
+    assert main(argv) == 0
+    capsys.readouterr()
+    assert "above the cap of 0.0001" in _one_line(capsys, main([*argv, "--max-megapixels", "0.0001"]))
+    for bad in ("0", "-1", "nan"):
+        assert "--max-megapixels" in _one_line(capsys, main([*argv, "--max-megapixels", bad]))

@@ -50,7 +50,6 @@ from .io import (
     npy_header,
     read_bands_sidecar,
     sidecar_path,
-    write_text,
 )
 
 #: the suffixes of each format (``cube_format``)
@@ -64,10 +63,12 @@ ENVI_DATA_SUFFIXES = ("", ".img", ".dat", ".raw", ".bsq", ".bil", ".bip", ".sli"
 #: ModelTransformation, GeoKeyDirectory, GeoDoubleParams, GeoAsciiParams
 GEOTIFF_TAGS = (33550, 33922, 34264, 34735, 34736, 34737)
 GDAL_METADATA_TAG = 42112
-#: wavelength units a header may declare -> nm per unit (lower case, spaces and dots removed)
-WAVELENGTH_UNITS = {"nanometers": 1.0, "nanometer": 1.0, "nanometres": 1.0, "nm": 1.0, "micrometers": 1000.0,
-                    "micrometer": 1000.0, "micrometres": 1000.0, "micrometre": 1000.0, "microns": 1000.0,
-                    "micron": 1000.0, "um": 1000.0, "µm": 1000.0, "μm": 1000.0, "millimeters": 1e6, "mm": 1e6}
+#: wavelength units a header may declare -> nm per unit (lower case, spaces and dots removed, "metre" read as
+#: "meter")
+WAVELENGTH_UNITS = {"nanometers": 1.0, "nanometer": 1.0, "nm": 1.0, "micrometers": 1000.0,
+                    "micrometer": 1000.0, "microns": 1000.0,
+                    "micron": 1000.0, "um": 1000.0, "µm": 1000.0, "μm": 1000.0, "millimeters": 1e6, "millimeter": 1e6,
+                    "mm": 1e6}
 #: wavelengths given without units must reach this (nm): all below it they read as micrometres (0.4-2.5 um
 #: imagers, 8-14 um thermal ones), which no camera's nanometre centres are (the far ultraviolet)
 UNITLESS_MIN_NM = 100.0
@@ -111,7 +112,7 @@ def units_scale(units: str | None, where: str) -> float | None:
     ``ValueError`` naming ``where`` for a unit that is not a length (wavenumber, index)."""
     if units is None:
         return None
-    key = re.sub(r"[\s.]", "", str(units)).lower()
+    key = re.sub(r"[\s.]", "", str(units)).lower().replace("metre", "meter")  # British spellings
     if key in ("", "unknown"):
         return None
     if key not in WAVELENGTH_UNITS:
@@ -144,7 +145,8 @@ class CubeFile:
 
     def __init__(self, path: Path, fmt: str, data: np.ndarray, axes: str, bands: list[float] | None,
                  fwhm: list[float] | None, option: str, geotags: list | None = None,
-                 envi_map: dict | None = None, streaming: bool = True):
+                 envi_map: dict | None = None, streaming: bool = True, scale: Sequence[float] | None = None,
+                 offset: Sequence[float] | None = None):
         self.path, self.format, self.option = path, fmt, option
         self._data, self._axes = data, axes  # axes: the data's layout, "byx" (bsq), "ybx" (bil) or "yxb" (bip)
         n_b = data.shape[axes.index("b")]
@@ -158,6 +160,17 @@ class CubeFile:
             raise ValueError(f"{option} {str(path)!r} holds {n_b} bands but its wavelengths list {len(bands)}")
         if fwhm is not None and len(fwhm) != n_b:
             raise ValueError(f"{option} {str(path)!r} holds {n_b} bands but its fwhm lists {len(fwhm)}")
+        if fwhm is not None and not all(math.isfinite(f) and f >= 0 for f in fwhm):
+            raise ValueError(f"{option} {str(path)!r}: its bands' fwhm must be finite and not negative (nm), got "
+                             f"{', '.join(f'{f:g}' for f in fwhm[:6])}{', ...' if len(fwhm) > 6 else ''}")
+        # stored values -> the quantity: value * scale + offset per band (ENVI 'reflectance scale factor', GDAL's
+        # per-band SCALE and OFFSET: an int16 reflectance product stores 10000 x the factor)
+        self.scale = None if scale is None else np.asarray(scale, np.float64).reshape(-1)
+        self.offset = None if offset is None else np.asarray(offset, np.float64).reshape(-1)
+        for name, v in (("scale", self.scale), ("offset", self.offset)):
+            if v is not None and (v.size != n_b or not np.all(np.isfinite(v)) or (name == "scale" and np.any(v == 0))):
+                raise ValueError(f"{option} {str(path)!r}: its {name} must be {n_b} finite numbers"
+                                 + (" other than 0" if name == "scale" else ""))
 
     def __repr__(self) -> str:
         return f"CubeFile({str(self.path)!r}, {self.format}, shape={self.shape}, dtype={self.dtype})"
@@ -178,6 +191,10 @@ class CubeFile:
         except ValueError as e:
             raise ValueError(f"{self.option} {str(self.path)!r} {e}") from None
         release_pages(d)
+        if self.scale is not None:
+            out *= self.scale.astype(np.float32)[:, None, None]
+        if self.offset is not None:
+            out += self.offset.astype(np.float32)[:, None, None]
         return out
 
     def read(self) -> np.ndarray:
@@ -215,10 +232,13 @@ def release_pages(a: Any) -> None:
             m.madvise(mmap.MADV_DONTNEED)
 
 
-def open_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX_MEGAPIXELS) -> CubeFile:
+def open_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX_MEGAPIXELS,
+              need_wavelengths: bool = True) -> CubeFile:
     """The cube in ``path`` (``.npy`` + sidecar, ENVI ``.hdr`` or its data file, GeoTIFF) with its wavelengths,
     memory-mapped; every problem a one-line ``ValueError`` naming ``option`` and the file. ``max_megapixels``
-    caps only a cube that must be read whole (a compressed GeoTIFF)."""
+    caps only a cube that must be read whole (a compressed GeoTIFF). An ENVI or GeoTIFF cube without
+    wavelengths is refused unless ``need_wavelengths`` is False (``detect --bands`` gives them); a ``.npy``
+    without its sidecar is read as it is (``bands`` None)."""
     from .errors import check_input_file
 
     p = check_input_file(path, option, CUBE_SUFFIXES)
@@ -226,8 +246,8 @@ def open_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
     if fmt == "npy":
         return _open_npy(p, option)
     if fmt == "envi":
-        return _open_envi(p, option)
-    return _open_tiff(p, option, max_megapixels)
+        return _open_envi(p, option, need_wavelengths)
+    return _open_tiff(p, option, max_megapixels, need_wavelengths)
 
 
 def _open_npy(p: Path, option: str) -> CubeFile:
@@ -258,9 +278,12 @@ def _open_npy(p: Path, option: str) -> CubeFile:
     if bands is not None:
         import json
 
-        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
+        try:  # read_bands_sidecar has read the file as JSON with 'bands_nm'
             f = json.loads(sidecar_path(p).read_text()).get("fwhm_nm")
             fwhm = [float(x) for x in f] if f is not None else None
+        except (OSError, ValueError, TypeError):
+            raise ValueError(f"the band sidecar {str(sidecar_path(p))!r}: 'fwhm_nm' must be a list of numbers (nm)"
+                             ) from None
     return CubeFile(p, "npy", data, "byx", bands, fwhm, option)
 
 
@@ -284,7 +307,7 @@ def envi_paths(path: StrPath) -> tuple[Path, Path | None]:
 _ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8", 15: "u8"}
 
 
-def _open_envi(p: Path, option: str) -> CubeFile:
+def _open_envi(p: Path, option: str, need_wavelengths: bool = True) -> CubeFile:
     from .errors import one_line
 
     hdr, raw = envi_paths(p)
@@ -323,18 +346,22 @@ def _open_envi(p: Path, option: str) -> CubeFile:
         raise ValueError(f"{where}: the data file {str(raw)!r} is {what}: {size} bytes, but {interleave} "
                          f"{nb} bands x {lines} lines x {samples} samples of {dtype.itemsize}-byte "
                          f"{dtype.name} after a {offset}-byte offset need {need}")
-    if "wavelength" not in meta:
+    if "wavelength" not in meta and need_wavelengths:
         raise ValueError(f"{where} gives no 'wavelength' list: the bands' centres are needed to pick the model's "
-                         "bands (add 'wavelength = {...}' and 'wavelength units' to the header)")
+                         "bands (add 'wavelength = {...}' and 'wavelength units' to the header, or give --bands)")
     try:
-        wl = [float(v) for v in meta["wavelength"]]
-        fw = [float(v) for v in meta["fwhm"]] if "fwhm" in meta else None
+        wl = [float(v) for v in meta["wavelength"]] if "wavelength" in meta else None
+        fw = [float(v) for v in meta["fwhm"]] if "fwhm" in meta and wl is not None else None
+        rsf = float(meta["reflectance scale factor"]) if "reflectance scale factor" in meta else None
     except (TypeError, ValueError) as e:
-        raise ValueError(f"{where}: 'wavelength' and 'fwhm' must be lists of numbers ({one_line(e)})") from None
+        raise ValueError(f"{where}: 'wavelength', 'fwhm' and 'reflectance scale factor' must be numbers "
+                         f"({one_line(e)})") from None
+    if rsf is not None and not (math.isfinite(rsf) and rsf > 0):
+        raise ValueError(f"{where}: 'reflectance scale factor' must be a positive number, got {rsf:g}")
     units = meta.get("wavelength units")
-    bands = to_nm(wl, units, where)
-    scale = units_scale(units, where) or 1.0
-    fwhm = None if fw is None else [v * scale for v in fw]
+    bands = None if wl is None else to_nm(wl, units, where)
+    unit_nm = units_scale(units, where) or 1.0
+    fwhm = None if fw is None else [v * unit_nm for v in fw]
     try:
         img = envi.open(str(hdr), str(raw))
         data = img.open_memmap(interleave="source", writable=False)  # the file's own interleave: no copy
@@ -342,7 +369,9 @@ def _open_envi(p: Path, option: str) -> CubeFile:
         raise ValueError(f"cannot read {where}: {one_line(e)}") from None
     axes = {"bsq": "byx", "bil": "ybx", "bip": "yxb"}[interleave]
     envi_map = {k: meta[k] for k in ("map info", "coordinate system string") if k in meta}
-    return CubeFile(raw, "envi", data, axes, bands, fwhm, option, envi_map=envi_map)
+    # ENVI's 'reflectance scale factor': the stored value of a reflectance of 1 (10000 for int16 products)
+    scale = None if rsf is None or rsf == 1 else [1.0 / rsf] * nb
+    return CubeFile(raw, "envi", data, axes, bands, fwhm, option, envi_map=envi_map, scale=scale)
 
 
 def _gdal_items(xml: str) -> tuple[dict[str, str], dict[int, dict[str, str]]]:
@@ -360,6 +389,26 @@ def _gdal_items(xml: str) -> tuple[dict[str, str], dict[int, dict[str, str]]]:
         else:
             per.setdefault(int(item.get("sample") or 0), {})[name] = text
     return top, per
+
+
+def _tiff_scale_offset(xml: str | None, nb: int, where: str) -> tuple[list[float] | None, list[float] | None]:
+    """GDAL_METADATA's per-band ``SCALE`` and ``OFFSET`` (value = stored x SCALE + OFFSET); None when no band gives
+    one (a band without one: 1 and 0)."""
+    if not xml:
+        return None, None
+    with contextlib.suppress(Exception):  # a malformed tag is refused by _tiff_wavelengths
+        _, per = _gdal_items(xml)
+        out: list[list[float] | None] = []
+        for name, default in (("scale", 1.0), ("offset", 0.0)):
+            if not any(name in per.get(b, {}) for b in range(nb)):
+                out.append(None)
+                continue
+            try:
+                out.append([float(per.get(b, {}).get(name, default)) for b in range(nb)])
+            except ValueError:
+                raise ValueError(f"{where}: a band's {name.upper()} in GDAL_METADATA is not a number") from None
+        return out[0], out[1]
+    return None, None
 
 
 def _tiff_wavelengths(xml: str | None, nb: int, where: str) -> tuple[list[float] | None, list[float] | None]:
@@ -386,14 +435,16 @@ def _tiff_wavelengths(xml: str | None, nb: int, where: str) -> tuple[list[float]
         except ValueError:
             raise ValueError(f"{where}: band {b + 1}'s wavelength in GDAL_METADATA is not a number") from None
     scales = {s for _, s in centres}
-    if len(scales) != 1:
-        raise ValueError(f"{where}: its bands' wavelengths mix declared and undeclared units")
-    unit = {None: None, 1.0: "nm", 1000.0: "um", 1e6: "mm"}[next(iter(scales))]
-    bands = to_nm([c for c, _ in centres], unit, where)
+    if None in scales and len(scales) > 1:
+        raise ValueError(f"{where}: some bands declare their wavelength units and others do not")
+    if None in scales:
+        bands = to_nm([c for c, _ in centres], None, where)
+    else:  # each band in its declared unit (bands may declare different ones)
+        bands = to_nm([c * (s or 1.0) for c, s in centres], "nm", where)
     return bands, (None if any(f is None for f in fwhm) else [float(f) for f in fwhm if f is not None])
 
 
-def _open_tiff(p: Path, option: str, max_megapixels: float) -> CubeFile:
+def _open_tiff(p: Path, option: str, max_megapixels: float, need_wavelengths: bool = True) -> CubeFile:
     from .errors import one_line
 
     tifffile = _need("tifffile", f"{option} {str(p)!r} (GeoTIFF)")
@@ -419,7 +470,8 @@ def _open_tiff(p: Path, option: str, max_megapixels: float) -> CubeFile:
     lay = "yxb" if axes.endswith("S") and axes[0] == "Y" else "byx"
     nb = shape[lay.index("b")]
     bands, fwhm = _tiff_wavelengths(xml, nb, where)
-    if bands is None:
+    scale, offset = _tiff_scale_offset(xml, nb, where)
+    if bands is None and need_wavelengths:
         raise ValueError(f"{where} gives no band wavelengths: expected GDAL_METADATA items 'wavelength' (and "
                          "'wavelength_units') for every band")
     data = None
@@ -440,19 +492,21 @@ def _open_tiff(p: Path, option: str, max_megapixels: float) -> CubeFile:
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"cannot read {where}: {one_line(e)}") from None
     data = np.asarray(data).reshape(shape)
-    return CubeFile(p, "tiff", data, lay, bands, fwhm, option, geotags=geotags, streaming=streaming)
+    return CubeFile(p, "tiff", data, lay, bands, fwhm, option, geotags=geotags, streaming=streaming, scale=scale,
+                    offset=offset)
 
 
 # --------------------------------------------------------------------------------------------------- writing
 def envi_header_text(shape: tuple[int, int, int], bands: Sequence[float] | None, fwhm: Sequence[float] | None,
                      description: str = "torchskin", extra: dict | None = None, units: str | None = None,
-                     reflectance: bool = False) -> str:
-    """An ENVI header for a BSQ, little-endian float32 cube of ``shape`` (bands, H, W), wavelengths and FWHM in
+                     reflectance: bool = False, dtype: Any = np.float32) -> str:
+    """An ENVI header for a BSQ, little-endian ``dtype`` (float32) cube of ``shape`` (bands, H, W), wavelengths and FWHM in
     nm; ``units``: the values' (``data units``); ``reflectance``: a 0-1 reflectance factor (``reflectance scale
     factor = 1``)."""
     nb, h, w = shape
+    code = {np.dtype(v): k for k, v in _ENVI_DTYPES.items()}[np.dtype(dtype)]
     lines = ["ENVI", f"description = {{{description}}}", f"samples = {w}", f"lines = {h}", f"bands = {nb}",
-             "header offset = 0", "file type = ENVI Standard", "data type = 4", "interleave = bsq",
+             "header offset = 0", "file type = ENVI Standard", f"data type = {code}", "interleave = bsq",
              "byte order = 0"]
     if units is not None:
         lines.append(f"data units = {units}")
@@ -502,26 +556,35 @@ def tiff_extratags(bands: Sequence[float] | None, fwhm: Sequence[float] | None, 
 
 
 class CubeWriter:
-    """A float32 (bands, H, W) cube written rows by rows (``write_rows``) into a memory-mapped temporary file in
+    """A float32 (or ``dtype``: ENVI masks are uint8) (bands, H, W) cube written rows by rows (``write_rows``) into a memory-mapped temporary file in
     ``fmt`` ("npy": + the sidecar; "envi": ``.hdr`` + ``.img``; "tiff"), renamed onto ``path`` by ``close()``;
     ``abort()`` (or an exception inside ``with``) removes it and leaves ``path`` as it was."""
 
     def __init__(self, path: StrPath, shape: tuple[int, int, int], fmt: str, bands: Sequence[float] | None,
                  fwhm: Sequence[float] | None = None, quantity: str = "reflectance", geotags: Sequence = (),
-                 envi_extra: dict | None = None):
+                 envi_extra: dict | None = None, dtype: Any = np.float32):
         self.path, self.format = Path(path), fmt
         self.shape: tuple[int, int, int] = (int(shape[0]), int(shape[1]), int(shape[2]))
         self.bands = None if bands is None else [float(b) for b in bands]
         self.fwhm = None if fwhm is None else [float(f) for f in fwhm]
         self.quantity, self.geotags, self.envi_extra = quantity, list(geotags), envi_extra
+        self.dtype = np.dtype(dtype)
         self.data_path = self.path.with_suffix(".img") if fmt == "envi" else self.path
+        if fmt == "envi":  # a reader finds the header's data file by name, in ENVI_DATA_SUFFIXES' order
+            hdr = self.path.with_suffix(".hdr")
+            for suf in ENVI_DATA_SUFFIXES[:ENVI_DATA_SUFFIXES.index(".img")]:
+                other = Path(str(hdr.with_suffix("")) + suf)
+                if other.is_file() and other != hdr:
+                    raise ValueError(f"--out {str(hdr)!r}: {str(other)!r} beside it would be read as its data file "
+                                     f"instead of {str(self.data_path)!r} (the one written): remove it or "
+                                     "choose another name")
         self._ctx = atomic_path(self.data_path)
         tmp = self._ctx.__enter__()
         try:
             if fmt == "npy":
-                self._mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=self.shape)
+                self._mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=self.dtype, shape=self.shape)
             elif fmt == "envi":
-                self._mm = np.memmap(tmp, dtype="<f4", mode="w+", shape=self.shape)
+                self._mm = np.memmap(tmp, dtype=self.dtype.newbyteorder("<"), mode="w+", shape=self.shape)
             elif fmt == "tiff":
                 tifffile = _need("tifffile", f"writing {str(self.path)!r} (GeoTIFF)")
                 self._mm = tifffile.memmap(str(tmp), shape=self.shape, dtype=np.float32, photometric="minisblack",
@@ -540,20 +603,33 @@ class CubeWriter:
         release_pages(self._mm)
 
     def close(self) -> None:
-        """Flush, rename the data onto ``path`` and write the header or sidecar (atomically too)."""
+        """Flush; write the header or sidecar to its own temporary file; then rename the data and right after
+        it the header onto their names. Any failure before the renames leaves both files as they were; only
+        an interruption between the two renames (the header's fsync) can pair new data with an old header."""
         self._mm.flush()
         del self._mm
-        self._ctx.__exit__(None, None, None)
+        side: Path | None = None
+        text = ""
         if self.format == "envi":
-            write_text(self.path.with_suffix(".hdr"), envi_header_text(
+            side, text = self.path.with_suffix(".hdr"), envi_header_text(
                 self.shape, self.bands, self.fwhm, f"torchskin {self.quantity}", self.envi_extra,
-                QUANTITY_UNITS.get(self.quantity), self.quantity == "reflectance"))
-        elif self.format == "npy":
-            side = sidecar_path(self.path)
-            if self.bands is not None:
-                write_text(side, bands_sidecar_text(self.bands, self.fwhm, self.quantity))
-            elif side.is_file():  # an earlier output's wavelengths do not describe this one
-                side.unlink()
+                QUANTITY_UNITS.get(self.quantity), self.quantity == "reflectance", self.dtype)
+        elif self.format == "npy" and self.bands is not None:
+            side, text = sidecar_path(self.path), bands_sidecar_text(self.bands, self.fwhm, self.quantity)
+        if side is None:
+            self._ctx.__exit__(None, None, None)
+            stale = sidecar_path(self.path)
+            if self.format == "npy" and stale.is_file():  # an earlier output's wavelengths do not describe this one
+                stale.unlink()
+            return
+        try:
+            with atomic_path(side) as tmp_side:
+                tmp_side.write_text(text)
+                self._ctx.__exit__(None, None, None)  # the data renamed; the header's rename follows at once
+        except BaseException as e:
+            with contextlib.suppress(BaseException):
+                self._ctx.__exit__(type(e), e, e.__traceback__)
+            raise
 
     def abort(self, exc: BaseException | None = None) -> None:
         """Remove the temporary file (the target stays as it was)."""

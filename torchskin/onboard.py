@@ -759,16 +759,6 @@ def load_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
 MAX_SAMPLE_GAP_NM = 50.0
 
 
-def _interp_matrix(x: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """(len(g), len(x)) weights of linear interpolation from samples at increasing ``x`` onto ``g`` (within x)."""
-    i = np.clip(np.searchsorted(x, g, side="right"), 1, len(x) - 1)
-    t = (g - x[i - 1]) / (x[i] - x[i - 1])
-    m = np.zeros((len(g), len(x)))
-    m[np.arange(len(g)), i - 1] = 1 - t
-    m[np.arange(len(g)), i] += t
-    return m
-
-
 def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, model_bands: Sequence[float],
               model_fwhm: Sequence[float] | None = None) -> dict:
     """How to read the model's bands from a cube with bands ``cube_bands`` (nm): ``{"kind": "reorder", "order":
@@ -814,7 +804,8 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, mo
             raise ValueError(f"the cube's bands ({lo:g}..{hi:g} nm) leave a {gap:g} nm gap inside the model's {c:g} nm "
                              f"band (at most {MAX_SAMPLE_GAP_NM:g} nm between samples is interpolated)")
         grid = np.array([s_lo]) if f == 0 else np.linspace(s_lo, s_hi, max(math.ceil(s_hi - s_lo), 8) + 1)
-        w = response_weights(grid, s_lo if f == 0 else c, f) @ _interp_matrix(x, np.clip(grid, lo, hi))
+        interp = np.stack([response_weights(x, g, 0.0) for g in np.clip(grid, lo, hi)])  # cube samples -> grid
+        w = response_weights(grid, s_lo if f == 0 else c, f) @ interp
         row = np.zeros(len(x))
         row[order] = w
         rows.append(row)
@@ -861,17 +852,48 @@ def _check_tile_rows(tile_rows: int | None, shape: tuple[int, int, int] = (1, 1,
     return int(tile_rows)
 
 
-def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list) -> Any:
+class _EnviMaskRows:
+    """An ENVI uint8 mask (one band, skin 255) with the input's ``map info`` and ``coordinate system string``,
+    written rows by rows (``cubefiles.CubeWriter``)."""
+
+    def __init__(self, out: StrPath, shape: tuple[int, int], envi_map: dict):
+        from .cubefiles import CubeWriter
+
+        self.rows = 0
+        self._w = CubeWriter(out, (1, shape[0], shape[1]), "envi", None, quantity="skin mask", envi_extra=envi_map,
+                             dtype=np.uint8)
+
+    def write_rows(self, rows: np.ndarray) -> None:
+        self._w.write_rows(self.rows, rows[None])
+        self.rows += rows.shape[0]
+
+    def close(self) -> None:
+        self._w.close()
+
+    def abort(self, exc: BaseException | None = None) -> None:
+        self._w.abort(exc)
+
+
+def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list, envi_map: dict | None = None) -> Any:
+    """The mask's row writer by ``out``'s suffix: ``.png``; ``.tif`` (a GeoTIFF with the input's ``geotags``); or
+    ``.hdr`` (ENVI, with an ENVI input's ``map info``). A georeferenced input's mask must keep its georeferencing:
+    a GeoTIFF's in a ``.tif``, an ENVI header's ``map info`` in a ``.hdr`` (the two are not converted)."""
     from .cubefiles import PngRows, TiffMaskRows
 
     suf = os.path.splitext(str(out))[1].lower()
+    mapped = bool(envi_map and "map info" in envi_map)
+    if suf not in (".png", ".tif", ".tiff", ".hdr"):
+        raise ValueError(f"--out {str(out)!r} must be a .png, .tif or ENVI .hdr mask")
+    if mapped and suf != ".hdr":
+        raise ValueError(f"--out {str(out)!r}: the ENVI cube is georeferenced (its header's 'map info'); give a .hdr "
+                         "mask (an ENVI mask keeps its map info; a PNG or GeoTIFF mask here would drop it)")
+    if geotags and suf not in (".tif", ".tiff"):
+        raise ValueError(f"--out {str(out)!r}: the cube is georeferenced; give a .tif mask (a GeoTIFF keeps its "
+                         "transform and CRS; a PNG or ENVI mask here would drop them)")
     if suf in (".tif", ".tiff"):
         return TiffMaskRows(out, shape[0], shape[1], geotags)
-    if suf != ".png":
-        raise ValueError(f"--out {str(out)!r} must be a .png or .tif mask")
-    if geotags:
-        raise ValueError(f"--out {str(out)!r}: the cube is georeferenced; give a .tif mask (a GeoTIFF keeps its "
-                         "transform and CRS; a PNG would drop them)")
+    if suf == ".hdr":
+        return _EnviMaskRows(out, shape, dict(envi_map or {}))
     return PngRows(out, shape[0], shape[1])
 
 
@@ -886,12 +908,13 @@ def _finite_rows(cf: Any, r0: int, r1: int, where: str) -> np.ndarray:
 
 def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath | None = None,
                 tile_rows: int | None = None, negative: str = "error", min_reflectance: float | None = None,
-                bands: Sequence[float] | None = None, option: str = "--cube") -> dict:
+                bands: Sequence[float] | None = None, option: str = "--cube",
+                max_megapixels: float = MAX_MEGAPIXELS) -> dict:
     """Detect skin in a cube file of one frame (``cubefiles.open_cube``: ``.npy`` + sidecar, ENVI, GeoTIFF; or an
     open ``CubeFile``), ``tile_rows`` rows at a time (None: ``TILE_BYTES`` of the input): the model's bands read as they are or synthesised
     (``band_plan``; ``bands`` overrides the file's wavelengths; a cube without any must hold the model's four
-    bands in its order), the mask written rows by rows to ``out`` (``.png``, or ``.tif``: a GeoTIFF keeping the
-    input's georeferencing) through a temporary file renamed at the end. The reflectance range is checked over
+    bands in its order), the mask written rows by rows to ``out`` (``_mask_writer``: ``.png``; ``.tif``, a GeoTIFF
+    keeping a GeoTIFF input's georeferencing; ``.hdr``, ENVI keeping an ENVI input's map info) through a temporary file renamed at the end. The reflectance range is checked over
     the whole frame (``check_reflectance_range``) before the rename: on refusal nothing is written. The mask
     equals ``det`` on the whole frame in memory. Returns ``skin_pixels``, ``pixels``, ``shape`` (H, W),
     ``out_of_domain``, ``plan`` ("reorder" or "synthesis"), ``clipped_values`` (with ``negative="clip"``) and
@@ -899,7 +922,8 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
     from .cubefiles import CubeFile, open_cube
 
     _check_tile_rows(tile_rows)
-    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
+    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option, max_megapixels,
+                                                            need_wavelengths=bands is None)
     nb, H, W = cf.shape
     tile_rows = _check_tile_rows(tile_rows, cf.shape)
     cube_bands = list(bands) if bands is not None else cf.bands
@@ -918,7 +942,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
     c = np.asarray(config, dtype=np.float64).reshape(1, -1)
-    writer = None if out is None else _mask_writer(out, (H, W), cf.geotags)
+    writer = None if out is None else _mask_writer(out, (H, W), cf.geotags, cf.envi_map)
     low, high, over, skin, clipped = np.inf, -np.inf, 0, 0, 0
     ood = np.zeros(1, bool)
     try:
@@ -953,7 +977,8 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
 
 def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int], ArrayLike]] | None = None,
                    coefficients: tuple[ArrayLike, ArrayLike] | None = None, erode: int = 1,
-                   tile_rows: int | None = None, option: str = "--cube") -> dict:
+                   tile_rows: int | None = None, option: str = "--cube",
+                   max_megapixels: float = MAX_MEGAPIXELS) -> dict:
     """The empirical line of a signal cube file of one frame (``cubefiles.open_cube``), from reference
     ``panels`` (``elm_fit``'s (region, reflectance); only the panels' rows are read) or saved ``coefficients``
     (gain, offset), applied ``tile_rows`` rows at a time (None: ``TILE_BYTES`` of the input) and written to ``out`` in the input's format (``.npy`` +
@@ -964,7 +989,7 @@ def calibrate_file(cube: Any, out: StrPath, panels: Sequence[tuple[Sequence[int]
     from .cubefiles import CubeFile, CubeWriter, open_cube, output_path
 
     _check_tile_rows(tile_rows)
-    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option)
+    cf = cube if isinstance(cube, CubeFile) else open_cube(cube, option, max_megapixels)
     nb, H, W = cf.shape
     tile_rows = _check_tile_rows(tile_rows, cf.shape)
     where = f"{option} {str(cf.path)!r}"

@@ -111,6 +111,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     check_input_file(args.cube, "--cube", CUBE_SUFFIXES)  # before --out's suffix, which follows the cube's
     fmt = cube_format(args.cube)
     suffixes = {"npy": (".npy",), "envi": (".hdr",), "tiff": (".tif", ".tiff")}[fmt]
+    if not str(args.out).lower().endswith(suffixes):
+        raise ValueError(f"--out {args.out!r} must end in {' or '.join(suffixes)}: calibrate writes its input's "
+                         f"format ({ {'npy': '.npy', 'envi': 'ENVI', 'tiff': 'GeoTIFF'}[fmt] }, as --cube)")
     out = check_output_file(args.out, "--out", suffixes)
     save_coef = check_output_file(args.save_coefficients, "--save-coefficients", (".json",)) \
         if args.save_coefficients else None
@@ -191,7 +194,8 @@ def _calibrate_stream(args: argparse.Namespace, out: Any, save_coef: Any) -> int
     input's format."""
     coefficients = read_coefficients(args.coefficients) if args.coefficients else None
     panels = [parse_panel(p) for p in args.panel] if args.panel else None
-    res = calibrate_file(args.cube, out, panels, coefficients, args.erode, args.tile_rows)
+    res = calibrate_file(args.cube, out, panels, coefficients, args.erode, args.tile_rows,
+                         max_megapixels=args.max_megapixels)
     gain, offset, fit = res["gain"], res["offset"], res["fit"]
     coef: dict[str, Any] = {"gain": gain.tolist(), "offset": offset.tolist()}
     if fit is not None and panels is not None:

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file
 from ..io import npy_header, parse_band_list, read_bands_sidecar, sidecar_path
-from ..onboard import SHIPPED_DETECTOR, OnboardDetector, detect_file, match_bands
+from ..onboard import SHIPPED_DETECTOR, OnboardDetector, apply_plan, band_plan, detect_file, model_fwhm
 from .cubes import load_cube, write_mask_png
 from .options import add_bands, add_json, add_max_megapixels, add_out_file, add_tile_rows
 
@@ -37,8 +37,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--camera-zenith", type=float, help="degrees")
     ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
     ap.add_argument("--range", type=float, help="metres (if the model uses it)")
-    add_out_file(ap, "the mask of the first frame: .png, or .tif (a GeoTIFF; required for a georeferenced cube, "
-                     "whose transform and CRS it keeps)", required=False)
+    add_out_file(ap, "the mask of the first frame: .png; .tif (a GeoTIFF; required for a georeferenced GeoTIFF "
+                     "cube, whose transform and CRS it keeps); or .hdr (ENVI; required for an ENVI cube with 'map "
+                     "info', which it keeps)", required=False)
     add_tile_rows(ap)
     ap.add_argument("--clip-negative", action="store_true",
                     help="set negative reflectance (noise on dark pixels) to 0 and report how many values were "
@@ -80,25 +81,27 @@ def configuration_values(args: argparse.Namespace, features: list[str]) -> list[
     return values
 
 
-def model_bands(cube: np.ndarray, args: argparse.Namespace, bands_nm: list[float]) -> np.ndarray:
-    """The (B, bands, H, W) ``cube`` with the model's bands in the model's order: the cube's own wavelengths come
-    from ``--bands`` or the sidecar beside ``--cube`` (``io.read_bands_sidecar``); a cube that has neither must
-    hold the model's bands in its order. ``ValueError`` naming the option when the cube does not match."""
+def model_bands(cube: np.ndarray, args: argparse.Namespace, det: OnboardDetector) -> np.ndarray:
+    """The (B, bands, H, W) ``cube`` with the model's bands in the model's order, frame by frame by the plan of a
+    one-frame cube (``onboard.band_plan``: the bands used as they are, reordered, or synthesised from the
+    spectra): the cube's own wavelengths come from ``--bands`` or the sidecar beside ``--cube``
+    (``io.read_bands_sidecar``); a cube that has neither must hold the model's bands in its order. ``ValueError``
+    naming the option when the cube does not match."""
     cube_bands: list[float] | None
     if args.bands:
         cube_bands, where = parse_band_list(args.bands), "--bands"
     else:
         cube_bands, where = read_bands_sidecar(args.cube), f"the sidecar {str(sidecar_path(args.cube))!r}"
-    if cube_bands is None or not bands_nm:  # nothing to match (a model without bands_nm metadata: as given)
+    if cube_bands is None or not det.bands_nm:  # nothing to match (a model without bands_nm metadata: as given)
         return cube
     if len(cube_bands) != cube.shape[1]:
         raise ValueError(f"{where} gives {len(cube_bands)} bands, but --cube {args.cube!r} holds {cube.shape[1]} "
                          f"(shape {cube.shape[1:]} per frame)")
     try:
-        order = match_bands(cube_bands, bands_nm)
+        plan = band_plan(cube_bands, None, det.bands_nm, model_fwhm(det))
     except ValueError as e:
         raise ValueError(f"--cube {args.cube!r} ({where}): {e}") from None
-    return cube if order == list(range(cube.shape[1])) else cube[:, order]
+    return np.stack([apply_plan(plan, frame) for frame in cube])
 
 
 def cli_detect(argv: list[str]) -> int:
@@ -110,14 +113,14 @@ def cli_detect(argv: list[str]) -> int:
 def cmd_detect(args: argparse.Namespace) -> int:
     """Run ``torchskin detect`` on parsed options: a one-frame cube streams in row tiles (``onboard.detect_file``),
     a (B, bands, H, W) ``.npy`` is read whole."""
-    mask_path = check_output_file(args.out, "--out", (".png", ".tif", ".tiff")) if args.out else None
+    mask_path = check_output_file(args.out, "--out", (".png", ".tif", ".tiff", ".hdr")) if args.out else None
     det = OnboardDetector(check_input_file(SHIPPED_DETECTOR if args.model is None else args.model, "--model",
                                            (".onnx",)))
     negative = "clip" if args.clip_negative else "error"
     if not _batched_npy(args.cube):
         values = configuration_values(args, det.features)
         res = detect_file(det, args.cube, values, mask_path, args.tile_rows, negative, args.min_reflectance,
-                          parse_band_list(args.bands) if args.bands else None)
+                          parse_band_list(args.bands) if args.bands else None, max_megapixels=args.max_megapixels)
         n, total = res["skin_pixels"], res["pixels"]
         ood = res["out_of_domain"]
         clipped_list = res.get("clipped_values")
@@ -126,7 +129,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         if mask_path is not None and mask_path.suffix.lower() != ".png":
             raise ValueError(f"--out {args.out!r}: a .npy cube carries no georeferencing; give a .png mask")
         cube = load_cube(args.cube, "--cube", args.max_megapixels)
-        cube = model_bands(cube, args, det.bands_nm)
+        cube = model_bands(cube, args, det)
         values = configuration_values(args, det.features)
         out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
                   negative=negative, min_reflectance=args.min_reflectance)

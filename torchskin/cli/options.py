@@ -160,11 +160,26 @@ def add_frame(p: ArgumentTarget) -> None:
     add_max_megapixels(p)
 
 
+def positive_number(text: str) -> float:
+    """An argparse ``type``: a finite number above 0 (the usage error names the option)."""
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number above 0, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number above 0, got {text!r}")
+    return v
+
+
 def add_max_megapixels(p: ArgumentTarget) -> None:
     """``--max-megapixels``: the frame cap (``io.MAX_MEGAPIXELS``) that ``render`` and ``experiment`` make and
     ``detect`` and ``calibrate`` read within."""
-    p.add_argument("--max-megapixels", type=float, default=MAX_MEGAPIXELS,
-                   help=f"refuse frames larger than this many megapixels (default {MAX_MEGAPIXELS:g})")
+    p.add_argument("--max-megapixels", type=positive_number, default=MAX_MEGAPIXELS,
+                   help=f"refuse frames read whole (a batch of .npy frames, a compressed GeoTIFF) larger than this "
+                        f"many megapixels (default {MAX_MEGAPIXELS:g}); a frame streamed from a memory-mapped file "
+                        "has no cap")
 
 
 def add_tile_rows(p: ArgumentTarget) -> None:
