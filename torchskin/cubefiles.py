@@ -347,8 +347,9 @@ def _open_envi(p: Path, option: str, need_wavelengths: bool = True) -> CubeFile:
                          f"{nb} bands x {lines} lines x {samples} samples of {dtype.itemsize}-byte "
                          f"{dtype.name} after a {offset}-byte offset need {need}")
     if "wavelength" not in meta and need_wavelengths:
-        raise ValueError(f"{where} gives no 'wavelength' list: the bands' centres are needed to pick the model's "
-                         "bands (add 'wavelength = {...}' and 'wavelength units' to the header, or give --bands)")
+        raise ValueError(f"{where} gives no 'wavelength' list: the bands' centres are needed (detect picks the "
+                         "model's bands by them, calibrate writes them with its cube): add 'wavelength = {...}' and "
+                         "'wavelength units' to the header (detect: or give --bands)")
     try:
         wl = [float(v) for v in meta["wavelength"]] if "wavelength" in meta else None
         fw = [float(v) for v in meta["fwhm"]] if "fwhm" in meta and wl is not None else None
