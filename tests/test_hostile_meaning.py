@@ -659,6 +659,32 @@ def test_detect_reads_a_cube_in_another_band_order_by_its_wavelengths(tmp_path, 
     assert json.loads(capsys.readouterr().out)["skin_pixels"] == want
 
 
+@pytest.mark.parametrize("batch", [False, True], ids=["one frame", "a batch"])
+def test_a_cube_without_wavelengths_is_read_in_the_models_order_and_detect_says_so(tmp_path, capsys, batch):
+    """A user saves a cube in another band order with np.save and no sidecar: nothing can tell its order, so
+    detect reads it as the model's, and says so in one warning line (stderr and the JSON's "warnings"), naming the
+    bands it assumed; the same cube with its sidecar gets no warning."""
+    import json
+
+    from torchskin.cli import main
+    from torchskin.io import bands_sidecar_text, sidecar_path
+
+    path, bands = _reordered(tmp_path, (3, 0, 2, 1))
+    if batch:
+        np.save(path, np.load(path)[None])
+    assert main(["detect", "--model", DET, "--cube", path, *CFG, "--json"]) == 0
+    cap = capsys.readouterr()
+    lines = cap.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("torchskin detect: warning: ") and "544, 633, 1080, 1580 nm" in lines[0]
+    assert "no wavelengths" in lines[0] and path in lines[0], lines
+    doc = json.loads(cap.out)
+    assert doc["warnings"] == [lines[0].removeprefix("torchskin detect: warning: ")] and doc["skin_pixels"] == 0
+    sidecar_path(path).write_text(bands_sidecar_text(bands))
+    assert main(["detect", "--model", DET, "--cube", path, *CFG, "--json"]) == 0
+    cap = capsys.readouterr()
+    assert cap.err == "" and "warnings" not in json.loads(cap.out) and json.loads(cap.out)["skin_pixels"] == 100
+
+
 @pytest.mark.parametrize("bands,needle", [("544,633,1080", "gives 3 bands"), ("544,633,1080,1550", "1580 nm"),
                                           ("0.544,0.633,1.08,1.58", "micrometres"), ("544,544,1080,1580", "twice")],
                          ids=["count", "missing band", "micrometres", "duplicate"])

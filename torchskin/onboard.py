@@ -970,6 +970,8 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
         writer.close()
     doc = {"skin_pixels": skin, "pixels": H * W, "shape": [H, W], "out_of_domain": ood.tolist(),
            "plan": plan["kind"], "reflectance_range": [low, high]}
+    if cube_bands is None and det.bands_nm:  # read as the model's bands, in its order: say so (a sidecar-less .npy)
+        doc["bands_assumed"] = list(det.bands_nm)
     if negative == "clip":
         doc["clipped_values"] = [clipped]
     return doc

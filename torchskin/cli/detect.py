@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
@@ -125,6 +126,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         ood = res["out_of_domain"]
         clipped_list = res.get("clipped_values")
         shape = [1, *res["shape"]]
+        assumed = res.get("bands_assumed")
     else:
         if mask_path is not None and mask_path.suffix.lower() != ".png":
             raise ValueError(f"--out {args.out!r}: a .npy cube carries no georeferencing; give a .png mask")
@@ -140,9 +142,15 @@ def cmd_detect(args: argparse.Namespace) -> int:
         clipped = out.get("clipped_values")
         clipped_list = None if clipped is None else clipped.tolist()
         shape = list(out["mask"].shape)
+        assumed = det.bands_nm if det.bands_nm and not args.bands and read_bands_sidecar(args.cube) is None else None
     frac = n / total
+    warnings = [] if not assumed else [assumed_bands_warning(args.cube, assumed)]
+    for w in warnings:
+        print(f"{PROG}: warning: {w}", file=sys.stderr)
     if args.json:
         doc = {"skin_fraction": frac, "skin_pixels": n, "out_of_domain": ood, "shape": shape}
+        if warnings:
+            doc["warnings"] = warnings
         if clipped_list is not None:
             doc["clipped_values"] = clipped_list
         print(json.dumps(doc))
@@ -151,6 +159,13 @@ def cmd_detect(args: argparse.Namespace) -> int:
         clip = f"; {sum(clipped_list)} negative values clipped to 0" if clipped_list is not None else ""
         print(f"skin pixels {n} of {total} ({frac:.4f}){flag}{clip}")
     return 0
+
+
+def assumed_bands_warning(cube: str, bands: list[float]) -> str:
+    """The warning for a cube read without wavelengths (a ``.npy`` without its sidecar, no ``--bands``): its bands
+    were taken as the model's, in the model's order, which a cube in another order silently breaks."""
+    return (f"--cube {str(cube)!r} gives no wavelengths (no sidecar {str(sidecar_path(cube))!r}, no --bands): its "
+            f"{len(bands)} bands were read as the model's {', '.join(f'{b:g}' for b in bands)} nm, in that order")
 
 
 def _batched_npy(path: str) -> bool:
