@@ -82,19 +82,21 @@ def configuration_values(args: argparse.Namespace, features: list[str]) -> list[
     return values
 
 
-def model_bands(cube: np.ndarray, args: argparse.Namespace, det: OnboardDetector) -> np.ndarray:
+def model_bands(cube: np.ndarray, args: argparse.Namespace,
+                det: OnboardDetector) -> tuple[np.ndarray, list[float] | None]:
     """The (B, bands, H, W) ``cube`` with the model's bands in the model's order, frame by frame by the plan of a
     one-frame cube (``onboard.band_plan``: the bands used as they are, reordered, or synthesised from the
     spectra): the cube's own wavelengths come from ``--bands`` or the sidecar beside ``--cube``
     (``io.read_bands_sidecar``); a cube that has neither must hold the model's bands in its order. ``ValueError``
-    naming the option when the cube does not match."""
+    naming the option when the cube does not match. Also returns the bands assumed (the model's) when the cube
+    gives no wavelengths, else None."""
     cube_bands: list[float] | None
     if args.bands:
         cube_bands, where = parse_band_list(args.bands), "--bands"
     else:
         cube_bands, where = read_bands_sidecar(args.cube), f"the sidecar {str(sidecar_path(args.cube))!r}"
     if cube_bands is None or not det.bands_nm:  # nothing to match (a model without bands_nm metadata: as given)
-        return cube
+        return cube, (list(det.bands_nm) if det.bands_nm else None)
     if len(cube_bands) != cube.shape[1]:
         raise ValueError(f"{where} gives {len(cube_bands)} bands, but --cube {args.cube!r} holds {cube.shape[1]} "
                          f"(shape {cube.shape[1:]} per frame)")
@@ -102,7 +104,7 @@ def model_bands(cube: np.ndarray, args: argparse.Namespace, det: OnboardDetector
         plan = band_plan(cube_bands, None, det.bands_nm, model_fwhm(det))
     except ValueError as e:
         raise ValueError(f"--cube {args.cube!r} ({where}): {e}") from None
-    return np.stack([apply_plan(plan, frame) for frame in cube])
+    return np.stack([apply_plan(plan, frame) for frame in cube]), None
 
 
 def cli_detect(argv: list[str]) -> int:
@@ -131,7 +133,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
         if mask_path is not None and mask_path.suffix.lower() != ".png":
             raise ValueError(f"--out {args.out!r}: a .npy cube carries no georeferencing; give a .png mask")
         cube = load_cube(args.cube, "--cube", args.max_megapixels)
-        cube = model_bands(cube, args, det)
+        cube, assumed = model_bands(cube, args, det)
         values = configuration_values(args, det.features)
         out = det(cube, np.tile(np.array(values, dtype=np.float64), (cube.shape[0], 1)),
                   negative=negative, min_reflectance=args.min_reflectance)
@@ -142,7 +144,6 @@ def cmd_detect(args: argparse.Namespace) -> int:
         clipped = out.get("clipped_values")
         clipped_list = None if clipped is None else clipped.tolist()
         shape = list(out["mask"].shape)
-        assumed = det.bands_nm if det.bands_nm and not args.bands and read_bands_sidecar(args.cube) is None else None
     frac = n / total
     warnings = [] if not assumed else [assumed_bands_warning(args.cube, assumed)]
     for w in warnings:
