@@ -93,6 +93,27 @@ def test_band_image_says_what_it_clips(tmp_path, figures):
     assert "reflectance" in label and "clipped to [0, 1]" in label and "min -0.25" in label and "max 1.5" in label
 
 
+def test_band_images_of_a_frame_are_the_figures_drawn_one_by_one(tmp_path):
+    """A frame's bands drawn by ``band_images`` (a figure per colour-bar kind, laid out once and redrawn) are,
+    pixel for pixel, ``band_image``'s figure drawn for each band alone: bands whose titles and labels differ in
+    length, and every kind of bar (clipped at neither end, below, above, both), in an interleaved order."""
+    from matplotlib.image import imread
+
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(5, 7, generator=g)
+    shifts = [(0.0, 1.0), (-0.1, 1.0), (0.0, 1.2), (-0.2, 1.3), (0.0, 0.5), (-0.05, 1.0), (0.0, 1.01), (0.0, 0.9)]
+    imgs = [lo + (hi - lo) * base.roll(k, 1) for k, (lo, hi) in enumerate(shifts)]
+    titles = [f"{450 + 137 * k * k:g} nm reflectance (ELM)" for k in range(len(imgs))]
+    plots.band_images([tmp_path / f"many{k}.png" for k in range(len(imgs))], imgs, titles)
+    for k, (img, title) in enumerate(zip(imgs, titles)):
+        plots.band_image(tmp_path / f"one{k}.png", img, title)
+        np.testing.assert_array_equal(imread(tmp_path / f"many{k}.png"), imread(tmp_path / f"one{k}.png"))
+    with pytest.raises(ValueError, match="one shape"):
+        plots.band_images([tmp_path / "a.png", tmp_path / "b.png"], [base, base[:3] + 1], ["a", "b"])
+    with pytest.raises(ValueError, match="one path and title per image"):
+        plots.band_images([tmp_path / "a.png"], [base, base], ["a", "b"])
+
+
 @pytest.mark.slow
 def test_spectra_colour_key(tmp_path, figures):
     from torchskin import tissue

@@ -154,7 +154,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     if not isinstance(scene, dict):
         raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
     from ..cubefiles import QUANTITY_UNITS, WRITE_FORMATS, write_cube
-    from ..plots import band_image, mask_image, mask_png
+    from ..plots import band_images, mask_image, mask_png
 
     if fmt not in WRITE_FORMATS:
         raise ValueError(f"fmt must be one of {', '.join(WRITE_FORMATS)}, got {fmt!r}")  # before any file
@@ -174,9 +174,9 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
                               quantity)
             files = [path.name, f"{quantity}.img"] if fmt == "envi" else [path.name]
         cubes[quantity] = {"files": files, "units": QUANTITY_UNITS[quantity]}
-    for k, b in enumerate(result.bands):
-        band_image(out / f"band_{b.label}nm.png", result.reflectance[s, c, :, :, k],
-                   f"{b.center_nm:g} nm reflectance (ELM)")
+    band_images([out / f"band_{b.label}nm.png" for b in result.bands],
+                [result.reflectance[s, c, :, :, k] for k in range(len(result.bands))],
+                [f"{b.center_nm:g} nm reflectance (ELM)" for b in result.bands])
     mask_png(out / "mask.png", result.mask[s, c], result.skin[c])
     mask_image(out / "mask_annotated.png", result.mask[s, c], result.skin[c],
                f"rules detector mask ({result.mask.shape[-1]} x {result.mask.shape[-2]} px)")
