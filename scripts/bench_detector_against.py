@@ -1,13 +1,21 @@
 """The onboard detector against an earlier commit's, in one process, frame by frame alternately.
 
-    python scripts/bench_detector_against.py [COMMIT] [--threads N] [--rounds R] [--tile T]
+    python scripts/bench_detector_against.py [COMMIT] [--graphs shipped|default] [--threads N] [--rounds R]
+                                             [--tile T]
 
 COMMIT (default 2afa293, the four-edge graph before the NDVN rule and the brightness floor) is extracted with
-``git archive`` into a temporary directory and imported as the package ``torchskin_old``; its own export code
-builds its graph from a default ``BoundaryModel``, and this checkout's builds the current one (five edges, the
-shipped floor ``evaluate.MIN_REFLECTANCE``). Both run the benchmark frame of ``torchskin bench --only
-detector_onnx`` (1024 x 1024 x 4 float32) in alternating order; the read floor is one numpy sum of the frame.
-Prints the medians, the median of the paired ratios (new / old) and the ratio to the read floor.
+``git archive`` into a temporary directory and imported as the package ``torchskin_old``. Each side runs its own
+commit's onboard code on its own graph, 2afa293 without a brightness floor (it had none by default), this
+checkout with the shipped floor (the shipped model's ``min_reflectance``, ``evaluate.MIN_REFLECTANCE``):
+
+- ``--graphs shipped`` (default): the detector each commit shipped (``exports/detector.onnx`` at COMMIT; this
+  checkout's ``torchskin/data/detector.onnx``), the trained boxes a user runs;
+- ``--graphs default``: each commit's export code on a default ``BoundaryModel`` initialised from seed 0 (an
+  untrained model's boxes, so the share of a frame they take, and with it the floor's path, is chance).
+
+Both run the benchmark frame of ``torchskin bench --only detector_onnx`` (1024 x 1024 x 4 float32) in alternating
+order; the read floor is one numpy sum of the frame. Prints the medians, the median of the paired ratios
+(new / old), the ratio to the read floor and the share of the frame each detector takes.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("commit", nargs="?", default="2afa293")
+    ap.add_argument("--graphs", choices=("shipped", "default"), default="shipped")
     ap.add_argument("--threads", type=int, default=min(os.cpu_count() or 1, 8))
     ap.add_argument("--rounds", type=int, default=60)
     ap.add_argument("--tile", type=int, default=65536)
@@ -38,29 +47,44 @@ def main() -> int:
                                  capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", src], input=archive, check=True)
         # the old graph, exported by the old code (in a child, where its package is still named torchskin)
-        code = ("import sys; sys.path.insert(0, sys.argv[1]); from torchskin.export import export\n"
-                "try:\n from torchskin.detectors.boxes import BoundaryModel\n"
-                "except ImportError:\n from torchskin.boundaries import BoundaryModel\n"
-                "export(BoundaryModel(), sys.argv[2])")
-        subprocess.run([sys.executable, "-c", code, src, os.path.join(d, "old")], check=True, capture_output=True)
+        os.makedirs(os.path.join(d, "old"))
+        if args.graphs == "shipped":
+            with open(os.path.join(d, "old", "detector.onnx"), "wb") as f:
+                f.write(subprocess.run(["git", "-C", ROOT, "show", f"{args.commit}:exports/detector.onnx"],
+                                       check=True, capture_output=True).stdout)
+        else:
+            code = ("import sys; sys.path.insert(0, sys.argv[1]); import torch; torch.manual_seed(0)\n"
+                    "from torchskin.export import export\n"
+                    "try:\n from torchskin.detectors.boxes import BoundaryModel\n"
+                    "except ImportError:\n from torchskin.boundaries import BoundaryModel\n"
+                    "export(BoundaryModel(), sys.argv[2])")
+            subprocess.run([sys.executable, "-c", code, src, os.path.join(d, "old")], check=True,
+                           capture_output=True)
         os.rename(os.path.join(src, "torchskin"), os.path.join(src, "torchskin_old"))
         sys.path.insert(0, src)
+        import torch
         import torchskin_old.onboard as old_onboard  # type: ignore[import-not-found]
 
         from torchskin.detectors.boxes import BoundaryModel
         from torchskin.evaluate import MIN_REFLECTANCE
         from torchskin.export import export
-        from torchskin.onboard import OnboardDetector
+        from torchskin.onboard import SHIPPED_DETECTOR, OnboardDetector
 
-        paths = export(BoundaryModel(), os.path.join(d, "new"))
+        if args.graphs == "shipped":
+            path = str(SHIPPED_DETECTOR)
+        else:
+            torch.manual_seed(0)
+            path = export(BoundaryModel(), os.path.join(d, "new"))["detector"]
         Old = getattr(old_onboard, "OnboardDetector", None) or old_onboard.Detector
         old = Old(os.path.join(d, "old", "detector.onnx"), threads=args.threads)
-        new = OnboardDetector(paths["detector"], threads=args.threads, tile=args.tile)
+        new = OnboardDetector(path, threads=args.threads, tile=args.tile)
         rng = np.random.default_rng(0)
         cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
         cfg = np.array([[40.0, 30.0, 60.0]])
-        runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=MIN_REFLECTANCE),
+        floor = new.default_min_reflectance if args.graphs == "shipped" else MIN_REFLECTANCE
+        runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=floor),
                 "read": lambda: float(cube.sum())}
+        share = {k: float(runs[k]()["mask"].mean()) for k in ("old", "new")}
         for f in runs.values():
             for _ in range(5):
                 f()
@@ -74,7 +98,8 @@ def main() -> int:
     print(f"{args.threads} threads, {args.rounds} rounds: {args.commit} {1e3 * np.median(t['old']):.2f} ms, "
           f"this checkout {1e3 * np.median(t['new']):.2f} ms per 1 MP frame; median paired ratio "
           f"{np.median(t['new'] / t['old']):.3f}; read floor {1e3 * np.median(t['read']):.2f} ms, "
-          f"this checkout / floor {np.median(t['new']) / np.median(t['read']):.2f}")
+          f"this checkout / floor {np.median(t['new']) / np.median(t['read']):.2f}; {args.graphs} graphs, share "
+          f"taken {share['old']:.3f} (old), {share['new']:.3f} (new, floor {floor:g})")
     return 0
 
 

@@ -516,6 +516,28 @@ def test_learn_holds_the_scene_budget_on_its_own_non_skin_pixels():
         Bd.learn(X, Y, confusers=far, steps=1, scene=(Xs[:, :2], Ps))
 
 
+def test_a_detector_reused_across_calls_gives_a_fresh_ones_bits(trained, tmp_path):
+    """The tile buffers, bindings and weight buffers an OnboardDetector keeps between calls (``_TileBinding``)
+    carry nothing from one call to the next: frames of other sizes (another ragged last tile), other
+    configurations, batches and floors, in any order, give the bits of a detector made for each call."""
+    from torchskin.onboard import OnboardDetector
+
+    X, _, res = trained
+    paths = export(res.model, tmp_path)
+    rng = np.random.default_rng(3)
+    cubes = [(rng.random((1, 4, 40, 52)) * 0.7).astype(np.float32),  # 2 tiles of 1024 and a ragged one of 32
+             (rng.random((2, 4, 37, 61)) * 0.7).astype(np.float32)]  # a ragged 209 per frame
+    calls = [(0, 0, 0.0), (1, 1, 0.05), (0, 2, 0.05), (1, 3, 0.3), (0, 0, 0.0)]
+    kept = OnboardDetector(paths["detector"], threads=2, tile=1024)
+    for cube_k, cfg_k, floor in calls:
+        cube = cubes[cube_k]
+        cfg = X[cfg_k:cfg_k + len(cube)].numpy().astype(np.float64)
+        a = kept(cube, cfg, min_reflectance=floor)
+        b = OnboardDetector(paths["detector"], threads=2, tile=1024)(cube, cfg, min_reflectance=floor)
+        assert np.array_equal(a["mask"], b["mask"]) and np.array_equal(a["score"], b["score"])
+    assert len({float(v) for v in X[:4, 0]}) > 1  # the configurations differ
+
+
 def test_tile_head_takes_every_path_with_the_whole_graphs_bits(trained, tmp_path):
     """The rebuilt per-tile head (``onboard._EdgeHead``: two-band MatMuls for L1-L4, the minimum in numpy, the
     floor skipped, gathered or summed by tile) gives the bits of the whole graph run per tile, on tiles with no
@@ -547,6 +569,12 @@ def test_tile_head_takes_every_path_with_the_whole_graphs_bits(trained, tmp_path
     flat[:, 2048:2058] = flat[:, inside[:10]]  # a tile with few skin pixels
     flat[0, 3100] = REFLECTANCE_MAX * 1.01  # a glint: the slow check, still a valid cube
     flat[1, 4200] = -0.0  # sign bit set: the slow check, not negative
+    # tile 5 all bright skin (1080 nm reflectance 0.25-0.6): that band alone above the 0.05 floor (on the sum,
+    # 0.2) everywhere, so the floor is skipped there, and not above the 0.3 one (1.2), which is computed
+    pick = rng.choice(inside, 1024)
+    flat[:, 5120:6144] = (flat[:, pick] * rng.uniform(0.25, 0.6, 1024) / flat[2, pick]).astype(np.float32)
+    assert flat[2, 5120:6144].min() > 4 * 0.05 and not flat[2, 5120:6144].min() > 4 * 0.3
+    assert 16 * det(cube, cfg)["mask"].reshape(-1)[5120:6144].sum() > 1024  # dense: not the few-pixel path
     for floor in (0.0, 0.05, 0.3):
         a, b = det(cube, cfg, min_reflectance=floor), joined(cube, cfg, min_reflectance=floor)
         assert np.array_equal(a["mask"], b["mask"]) and np.array_equal(a["score"], b["score"])

@@ -194,6 +194,11 @@ def _split_box_graph(path: str, options: Any) -> tuple | None:
 _MAX_BITS = int(np.array(REFLECTANCE_MAX, dtype=np.float32).view(np.uint32))
 
 
+#: the band (1080 nm: bright for skin, vegetation and most materials) whose value, when above the brightness floor,
+#: proves a pixel's band sum above it (``OnboardDetector._apply_floor``)
+FLOOR_BAND = 2
+
+
 class _EdgeHead:
     """The per-pixel head of a box detector graph rebuilt for tiles: the edge forms, each one MatMul as in the
     graph, written into the rows of one (E, n) buffer, whose minimum over the rows (exact in any order) is the
@@ -201,9 +206,10 @@ class _EdgeHead:
     construction (``det_edge_M`` and ``det_edge_C`` zero for those bands: L1, L2 use only g and r, L3, L4 only n
     and s) is a (1, 2) MatMul over those two bands' rows of the tile, which the tile buffer holds contiguously,
     instead of a (1, 4) one over all four: half the reads, and the products it skips are exact zeros. The inputs
-    are views of one (4, n) tile buffer, the outputs rows of the edge buffer, all bound once per worker.
-    ``sums`` is a second session, the band sum (g + r + n + s, in band order, as a MatMul with ones) for the
-    brightness floor."""
+    are views of one (4, n) tile buffer, the outputs rows of the edge buffer, all bound once per worker
+    (``_TileBinding``). The same run gives the tile's minimum in ``FLOOR_BAND`` (``nir_min``): above the brightness
+    floor, it settles the floor for the whole tile without another pass. ``sums`` is a second session, the band
+    sum (g + r + n + s, in band order, as a MatMul with ones) for the floor where that does not settle it."""
 
     GROUPS = {"gr": (0, 2), "ns": (2, 4), "all": (0, 4)}
 
@@ -231,16 +237,20 @@ class _EdgeHead:
             return self.GROUPS[g][1] - self.GROUPS[g][0]
 
         self.session = session(
-            [helper.make_node("MatMul", [f"w{k}", g], [f"e{k}"]) for k, g in enumerate(self.groups)],
+            [helper.make_node("MatMul", [f"w{k}", g], [f"e{k}"]) for k, g in enumerate(self.groups)]
+            + [helper.make_node("ReduceMin", ["nir"], ["nir_min"], keepdims=0)],
             [helper.make_tensor_value_info(g, F, [rows(g), "N"]) for g in self.inputs]
-            + [helper.make_tensor_value_info(f"w{k}", F, [1, rows(g)]) for k, g in enumerate(self.groups)],
-            [helper.make_tensor_value_info(f"e{k}", F, [1, "N"]) for k in range(e)], [])
+            + [helper.make_tensor_value_info(f"w{k}", F, [1, rows(g)]) for k, g in enumerate(self.groups)]
+            + [helper.make_tensor_value_info("nir", F, [1, "N"])],
+            [helper.make_tensor_value_info(f"e{k}", F, [1, "N"]) for k in range(e)]
+            + [helper.make_tensor_value_info("nir_min", F, [])], [])
         self.sums = session([helper.make_node("MatMul", ["ones", "all"], ["bsum"])],
                             [helper.make_tensor_value_info("all", F, [4, "N"])],
                             [helper.make_tensor_value_info("bsum", F, [1, "N"])],
                             [numpy_helper.from_array(np.ones((1, 4), dtype=np.float32), "ones")])
 
-    def bind(self, io: Any, sums: Any, tile: np.ndarray, edges: np.ndarray, total: np.ndarray) -> None:
+    def bind(self, io: Any, sums: Any, tile: np.ndarray, edges: np.ndarray, total: np.ndarray,
+             nir_min: np.ndarray) -> None:
         """Bind a (4, n) tile buffer's band groups and the rows of an (E, n) edge buffer to ``io``, and the tile
         and an (n,) band-sum buffer to ``sums`` (the head's and the band sum's bindings)."""
         n = tile.shape[1]
@@ -249,18 +259,56 @@ class _EdgeHead:
             io.bind_cpu_input(g, tile[lo:hi])
         for k in range(self.e):
             io.bind_output(f"e{k}", "cpu", 0, np.float32, [1, n], edges[k].ctypes.data)
+        io.bind_cpu_input("nir", tile[FLOOR_BAND:FLOOR_BAND + 1])
+        io.bind_output("nir_min", "cpu", 0, np.float32, [], nir_min.ctypes.data)
         sums.bind_cpu_input("all", tile)
         sums.bind_output("bsum", "cpu", 0, np.float32, [1, n], total.ctypes.data)
 
-    def weights(self, io: Any, edges: list[np.ndarray]) -> list[np.ndarray]:
-        """Bind one frame's edge matrices (``det_w0..``, each (1, 1, 4)) as the head's weights; returns them
-        (to be kept referenced while bound)."""
+    def frame_weights(self, edges: list[np.ndarray]) -> list[np.ndarray]:
+        """One frame's edge matrices (``det_w0..``, each (1, 1, 4)) as the head's weights: per edge form the (1, 2)
+        or (1, 4) float32 row of its band group."""
         ws = []
-        for k, (g, w) in enumerate(zip(self.groups, edges, strict=True)):
+        for g, w in zip(self.groups, edges, strict=True):
             lo, hi = self.GROUPS[g]
             ws.append(np.ascontiguousarray(w.reshape(4)[lo:hi].reshape(1, hi - lo), dtype=np.float32))
+        return ws
+
+    def bind_weights(self, io: Any) -> list[np.ndarray]:
+        """Weight buffers bound to ``io`` once, which each frame's ``frame_weights`` are copied into (the binding
+        reads them in place); returns them (to be kept referenced while bound)."""
+        ws = []
+        for k, g in enumerate(self.groups):
+            lo, hi = self.GROUPS[g]
+            ws.append(np.zeros((1, hi - lo), dtype=np.float32))
             io.bind_cpu_input(f"w{k}", ws[-1])
         return ws
+
+
+class _TileBinding:
+    """One worker's buffers for tiles of ``n`` pixels and the onnxruntime bindings over them, made once and kept
+    by the detector between calls (binding costs ~0.1 ms a worker and a call otherwise): the (4, n) tile, the
+    (E, n) edge rows and (n,) band sum of a split box graph (``_EdgeHead``), its weight buffers, the floor's (n,)
+    bool scratch; ``frame``: the frame whose weights (or configuration) are bound, -1 at the start of a call."""
+
+    def __init__(self, det: OnboardDetector, n: int):
+        self.head = det._split[1] if det._split is not None else None
+        rows = self.head.e if self.head is not None else 0
+        self.t, self.edges = np.empty((4, n), dtype=np.float32), np.empty((rows, n), dtype=np.float32)
+        self.total, self.dark = np.empty(n, dtype=np.float32), np.empty(n, dtype=bool)
+        self.bits = self.t.view(np.uint32)  # the tile's values as unsigned integers (``_MAX_BITS``)
+        self.nir_min = np.zeros((), dtype=np.float32)  # the head's minimum of the tile's FLOOR_BAND
+        self.frame, self.ws = -1, []
+        if self.head is not None:
+            self.io, self.sums = self.head.session.io_binding(), self.head.sums.io_binding()
+            self.head.bind(self.io, self.sums, self.t, self.edges, self.total, self.nir_min)
+            self.ws = self.head.bind_weights(self.io)
+        else:  # a plain (4, n) array, bound as (1, 4, 1, n): numpy fills it faster than a 4-d view
+            self.io, self.sums = det.session.io_binding(), None
+            self.io.bind_cpu_input("cube", self.t.reshape(1, 4, 1, n))
+
+    def band_sum(self) -> None:
+        """The band sum of the tile into ``total`` (the head's ``sums`` session)."""
+        self.head.sums.run_with_iobinding(self.sums)  # type: ignore[union-attr]
 
 
 def _subgraph(m: Any, inputs: list[str], outputs: list[str]) -> Any:
@@ -326,7 +374,7 @@ class OnboardDetector(_Model):
         if tile < 1024:
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
         self.tile = int(tile)
-        self._buffers: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # per worker: tile, edges, sums
+        self._bindings: dict[int, dict[int, _TileBinding]] = {}  # per worker, per tile size (``_TileBinding``)
         self._split = _split_box_graph(self.path, self.session.get_session_options())
 
     @staticmethod
@@ -346,15 +394,25 @@ class OnboardDetector(_Model):
 
     @staticmethod
     def _apply_floor(t: np.ndarray, m: np.ndarray, floor: float, total: np.ndarray,
-                     band_sum: Callable[[], None] | None = None) -> None:
-        """``m &= t.sum(0) > floor`` (the band sum in band order, as float32) for a (4, n) tile ``t`` and its mask
-        ``m``: nothing where no pixel is masked, at the masked pixels alone when they are few (the same sums),
-        over the tile into ``total`` otherwise (by ``band_sum()`` when given: the head's ``sums`` session)."""
-        count = np.count_nonzero(m)
-        if not count:  # a tile without skin (most of a frame's)
+                     band_sum: Callable[[], None] | None = None, dark: np.ndarray | None = None) -> None:
+        """``m &= t.sum(0) > floor`` (the band sum in band order, as float32) for a non-negative (4, n) tile ``t``
+        and its mask ``m`` (``__call__`` refuses or clips negative values before the floor). A masked pixel whose
+        third band (1080 nm: bright for skin, vegetation and most materials) lies above the floor keeps its mask
+        without a sum: its sum is at least that band (the others are non-negative, and float32 addition of
+        non-negative terms never rounds below either), so only the masked pixels dark in that band (``dark``, an
+        (n,) bool scratch buffer) are summed: nothing more where there are none (most tiles: one comparison over
+        a quarter of the tile), at those pixels alone when they are few (the same sums), and over the tile into
+        ``total`` otherwise (by ``band_sum()`` when given: the head's ``sums`` session)."""
+        if not m.any():  # a tile without skin (most of a frame's)
+            return
+        dark = np.empty(len(m), dtype=bool) if dark is None else dark
+        np.less_equal(t[FLOOR_BAND], floor, out=dark)
+        np.logical_and(dark, m, out=dark)
+        count = np.count_nonzero(dark)
+        if not count:
             return
         if 16 * count < len(m):
-            idx = np.flatnonzero(m)
+            idx = np.flatnonzero(dark)
             s = t[0, idx]
             for k in range(1, t.shape[0]):
                 s += t[k, idx]
@@ -370,7 +428,8 @@ class OnboardDetector(_Model):
 
     def _run_tiles(self, flat: np.ndarray, c: np.ndarray, mask: np.ndarray, score: np.ndarray,
                    take: Callable[[], tuple[int, int, int] | None], slot: int = 0, clipped: np.ndarray | None = None,
-                   floor: float = 0.0) -> tuple[float, float, int]:
+                   floor: float = 0.0, frame_weights: Callable[[int], list[np.ndarray]] | None = None,
+                   ) -> tuple[float, float, int]:
         """Run the jobs (frame, first, last pixel) that ``take()`` hands out (None: done) with tile buffers
         ``slot``; return the smallest and largest reflectance seen before clipping (NaN if any) and how many values
         exceed ``REFLECTANCE_MAX`` (``_check_tile``; (0, 0, 0) when all lie within [0, ``REFLECTANCE_MAX``]).
@@ -380,67 +439,52 @@ class OnboardDetector(_Model):
         (``_EdgeHead``) per tile; other graphs run whole per tile."""
         from onnxruntime import OrtValue
 
-        head: _EdgeHead | None = None
-        if self._split is not None:
-            per_frame, head = self._split
-            session = head.session
-            sums = head.sums.io_binding()
-        else:
-            session = self.session
-        io = session.io_binding()
-        rows = head.e if head is not None else 0
-        bufs = self._buffers.get(slot)
-        if bufs is None:  # kept between calls: no fresh pages to fault in per frame
-            bufs = self._buffers[slot] = (np.empty((4, self.tile), dtype=np.float32),
-                                          np.empty((rows, self.tile), dtype=np.float32),
-                                          np.empty(self.tile, dtype=np.float32))
-
-        def bind(t: np.ndarray, edges: np.ndarray, total: np.ndarray) -> None:  # a tile's buffers
-            if head is not None:
-                head.bind(io, sums, t, edges, total)
-            else:  # a plain (4, n) array, bound as (1, 4, 1, n): numpy fills it faster than a 4-d view
-                io.bind_cpu_input("cube", t.reshape(1, 4, 1, t.shape[1]))
-
-        def band_sum() -> None:
-            head.sums.run_with_iobinding(sums)  # type: ignore[union-attr]
-
-        bind(*bufs)  # bound once and refilled
-        low, high, over, frame, weights = 0.0, 0.0, 0, -1, []
+        head = self._split[1] if self._split is not None else None
+        low, high, over = 0.0, 0.0, 0
+        run = head.session.run_with_iobinding if head is not None else self.session.run_with_iobinding
+        minimum, greater = np.minimum.reduce, np.greater
+        bindings = self._bindings.setdefault(slot, {})  # this worker's alone
+        for tb in bindings.values():
+            tb.frame = -1  # nothing of this call bound yet
         for b, lo, hi in iter(take, None):
             n = hi - lo
-            if n != self.tile:  # the ragged last tile of a frame: its own buffers
-                t, edges, total = (np.empty((4, n), dtype=np.float32), np.empty((rows, n), dtype=np.float32),
-                                   np.empty(n, dtype=np.float32))
-                bind(t, edges, total)
-            else:
-                t, edges, total = bufs
+            tb = bindings.get(n) or self._binding(bindings, n)
+            t, edges = tb.t, tb.edges
             t[...] = flat[b, :, lo:hi]
-            checked = self._check_tile(t, b, clipped)
+            # the usual tile's one pass (``_check_tile``'s first test, inlined): every value within range
+            checked = None if int(tb.bits.max()) <= _MAX_BITS else self._check_tile(t, b, clipped)
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
-            if b != frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if head is not None:  # kept referenced while bound: the binding does not copy them
-                    weights = head.weights(io, per_frame.run(None, {"config": c[b:b + 1]}))
+            if b != tb.frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
+                if head is not None:  # copied into the bound weight buffers
+                    for w, v in zip(tb.ws, frame_weights(b), strict=True):  # type: ignore[misc]
+                        w[...] = v
                 else:
-                    io.bind_cpu_input("config", c[b:b + 1])
-                frame = b
+                    tb.io.bind_cpu_input("config", c[b:b + 1])
+                tb.frame = b
             m, sc = mask[b, lo:hi], score[b, lo:hi]
             if head is not None:
-                session.run_with_iobinding(io)
-                np.minimum.reduce(edges, axis=0, out=sc)  # the graph's Min
-                np.greater(sc, 0, out=m)  # and its Greater
+                run(tb.io)
+                minimum(edges, axis=0, out=sc)  # the graph's Min
+                greater(sc, 0, out=m)  # and its Greater
             else:  # outputs written in place (an OrtValue over the result arrays binds faster than bind_output)
-                io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(m.reshape(1, 1, n)))
-                io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(sc.reshape(1, 1, n)))
-                session.run_with_iobinding(io)
+                tb.io.bind_ortvalue_output("mask", OrtValue.ortvalue_from_numpy(m.reshape(1, 1, n)))
+                tb.io.bind_ortvalue_output("score", OrtValue.ortvalue_from_numpy(sc.reshape(1, 1, n)))
+                run(tb.io)
             if checked is not None and not np.isfinite(sc.min()):  # +inf in a band gives a -inf (or NaN) score
                 low = np.nan
-            if floor > 0:
-                self._apply_floor(t, m, floor, total, band_sum if head is not None else None)
-            if t is not bufs[0]:
-                bind(*bufs)
-        del weights
+            if floor > 0 and not (head is not None and tb.nir_min > floor):  # (one band above the floor: so is
+                self._apply_floor(t, m, floor, tb.total, tb.band_sum if head is not None else None, tb.dark)  # the sum)
         return low, high, over
+
+    def _binding(self, bindings: dict[int, _TileBinding], n: int) -> _TileBinding:
+        """A worker's buffers and bindings for tiles of ``n`` pixels, made on first use and kept in its
+        ``bindings``: the full tile's and one ragged size's (a frame's last tile; another size replaces it)."""
+        if n != self.tile:
+            for k in [k for k in bindings if k != self.tile]:
+                del bindings[k]
+        tb = bindings[n] = _TileBinding(self, n)
+        return tb
 
     def pixels(self, reflectance: ArrayLike, config: ArrayLike, chunk: int = 65536) -> dict:
         """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, 4) and
@@ -585,15 +629,26 @@ class OnboardDetector(_Model):
             with lock:
                 return next(queue, None)
 
+        weights: dict[int, list[np.ndarray]] = {}  # per frame: its edge matrices as the head's weights
+
+        def frame_weights(b: int) -> list[np.ndarray]:  # from the frame's configuration alone (batch 1, as the
+            if b not in weights:  # whole graph), once per frame (two workers on a new frame: the same values)
+                per_frame, head = cast(tuple, self._split)
+                weights[b] = head.frame_weights(per_frame.run(None, {"config": c[b:b + 1]}))
+            return weights[b]
+
+        if self._split is not None:
+            frame_weights(0)  # before the workers start, which all begin on frame 0
         if k > 1 and self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="torchskin-detect")
-        futures = [cast("ThreadPoolExecutor", self._pool).submit(self._run_tiles, flat, c, mask, score, take, i, counts[i], floor)
+        futures = [cast("ThreadPoolExecutor", self._pool).submit(self._run_tiles, flat, c, mask, score, take, i,
+                                                                 counts[i], floor, frame_weights)
                    for i in range(1, k)]
         ranges = []
         try:  # the calling thread is worker 0
-            ranges.append(self._run_tiles(flat, c, mask, score, take, 0, counts[0], floor))
+            ranges.append(self._run_tiles(flat, c, mask, score, take, 0, counts[0], floor, frame_weights))
         finally:  # never return (or raise) while a worker still writes into the outputs
             ranges += [f.result() for f in futures]
         lows, highs, overs = zip(*ranges)
