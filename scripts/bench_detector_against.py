@@ -1,7 +1,7 @@
 """The onboard detector against an earlier commit's, in one process, frame by frame alternately.
 
     python scripts/bench_detector_against.py [COMMIT] [--graphs shipped|default] [--threads N] [--rounds R]
-                                             [--tile T]
+                                             [--tile T] [--dark SHARE]
 
 COMMIT (default 2afa293, the four-edge graph before the NDVN rule and the brightness floor) is extracted with
 ``git archive`` into a temporary directory and imported as the package ``torchskin_old``. Each side runs its own
@@ -36,6 +36,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("commit", nargs="?", default="2afa293")
     ap.add_argument("--graphs", choices=("shipped", "default"), default="shipped")
+    ap.add_argument("--dark", type=float, default=0.0,
+                    help="share of the frame's pixels made dark in every band (reflectance 0-0.004, below the "
+                         "floor: shadows), scattered over every tile (default 0: the benchmark frame)")
     ap.add_argument("--threads", type=int, default=min(os.cpu_count() or 1, 8))
     ap.add_argument("--rounds", type=int, default=60)
     ap.add_argument("--tile", type=int, default=65536)
@@ -80,6 +83,9 @@ def main() -> int:
         new = OnboardDetector(path, threads=args.threads, tile=args.tile)
         rng = np.random.default_rng(0)
         cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
+        if args.dark > 0:
+            dark = rng.random((1024, 1024)) < args.dark
+            cube[0][:, dark] = rng.random((4, int(dark.sum())), dtype=np.float32) * 0.004
         cfg = np.array([[40.0, 30.0, 60.0]])
         floor = new.default_min_reflectance if args.graphs == "shipped" else MIN_REFLECTANCE
         runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=floor),
