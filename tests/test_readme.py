@@ -131,51 +131,105 @@ def readme_json(lines: list[str]):
     return json.loads(text, parse_float=Shown, parse_int=Shown)
 
 
-@pytest.mark.anny
-@pytest.mark.slow
-def test_page_examples_run_and_print_what_the_page_shows(tmp_path):
-    (tmp_path / "exports").symlink_to(ROOT / "exports")
-    runs: dict[tuple[str, ...], subprocess.CompletedProcess] = {}  # one run per distinct command line
-    ran, wrong = 0, []
+def page_commands() -> list[tuple[Path, str, list[str], list[str]]]:
+    """(page, command line, argv after ``torchskin``, printed lines) of every example run here, in page order;
+    ``torchskin detect ... --flag`` is the page's last full example of that command, then these flags."""
+    out = []
     for page in PAGES:
         last: dict[str, list[str]] = {}
-        name = page.relative_to(ROOT)
         for cmd, printed in readme_examples(page):
             if not cmd.startswith(RUN):
                 continue
             argv = shlex.split(cmd.split(" | ")[0])[1:]
-            if "..." in argv:  # "torchskin detect ... --flag": the page's last full example of that command, then these
+            if "..." in argv:
                 k = argv.index("...")
                 argv = last[argv[0]] + argv[k + 1:]
             else:
                 last[argv[0]] = argv
-            if tuple(argv) not in runs:
-                runs[tuple(argv)] = subprocess.run([sys.executable, "-m", "torchskin.cli", *argv], cwd=tmp_path,
-                                                   capture_output=True, text=True, timeout=600)
-            r = runs[tuple(argv)]
-            got = (r.stdout if r.returncode == 0 else r.stderr).strip().splitlines()
-            if " | tail -1" in cmd:
-                got = got[-1:]
-            want = [ln for ln in printed if ln.strip() and not ln.startswith("(")]
-            assert "Traceback" not in r.stderr, (name, cmd, r.stderr)
-            if want and want[0].lstrip().startswith("{"):  # JSON: the page's keys and values
-                assert r.returncode == 0, (name, cmd, r.stderr)
-                wrong += [f"{name}: {cmd}: {e}" for e in compare_json(readme_json(want), json.loads(r.stdout))]
-            elif want:
-                assert len(got) == len(want), (name, cmd, got, want)
-                for g, w in zip(got, want):
-                    pattern, shown = line_pattern(w.strip())
-                    m = pattern.fullmatch(g.strip())
-                    if m is None:
-                        wrong.append(f"{name}: {cmd}: page {w.strip()!r}, output {g.strip()!r}")
-                        continue
-                    wrong += [f"{name}: {cmd}: page {s}, output {v} in {g.strip()!r}"
-                              for s, v in zip(shown, m.groups()) if not agrees(float(v), s)]
-                if any("error:" in w for w in want):
-                    assert r.returncode == 2 and not r.stdout, (name, cmd, r.returncode)  # an error: exit 2, stderr only
-            else:
-                assert r.returncode == 0, (name, cmd, r.stderr)
-            ran += 1
+            out.append((page, cmd, argv, printed))
+    return out
+
+
+def command_chains(argvs: list[list[str]]) -> list[list[int]]:
+    """The commands (indices into ``argvs``, in order) as chains that can run side by side: two commands are in
+    one chain when one reads or writes what the other writes (an ``--out`` or ``--save-coefficients`` path, a
+    file under it), or both are the same command without an ``--out`` (which may write its default file)."""
+    parent = list(range(len(argvs)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    def writes(argv: list[str]) -> list[str]:
+        return [argv[k + 1].rstrip("/") for k, a in enumerate(argv[:-1]) if a in ("--out", "--save-coefficients")]
+
+    for j, b in enumerate(argvs):
+        for i, a in enumerate(argvs[:j]):
+            shared = any(x == w or x.rstrip("/").startswith(w + "/") or x.rstrip("/") == w
+                         for w in writes(a) for x in b) or any(
+                x == w or x.startswith(w + "/") for w in writes(b) for x in a)
+            if shared or (not writes(a) and not writes(b) and a[0] == b[0] and a[0] in ("spectra", "light")):
+                parent[root(j)] = root(i)
+    chains: dict[int, list[int]] = {}
+    for i in range(len(argvs)):
+        chains.setdefault(root(i), []).append(i)
+    return list(chains.values())
+
+
+def test_command_chains_keep_a_command_after_what_it_reads():
+    argvs = [["render", "--out", "frame"], ["render", "--out", "hs"], ["detect", "--cube", "frame/r.npy"],
+             ["calibrate", "--cube", "hs/s.hdr", "--out", "hs/refl.hdr"], ["generate", "--out", "data/"],
+             ["dataset", "verify", "data/"], ["spectra"], ["spectra", "--all-presets"], ["light"]]
+    assert sorted(command_chains(argvs)) == [[0, 2], [1, 3], [4, 5], [6, 7], [8]]
+
+
+@pytest.mark.anny
+@pytest.mark.slow
+def test_page_examples_run_and_print_what_the_page_shows(tmp_path):
+    """Each distinct command runs once; chains of commands that share no file run two at a time (the output is
+    each command's own, so the comparison is the same as one after another)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    (tmp_path / "exports").symlink_to(ROOT / "exports")
+    examples = page_commands()
+    distinct = list(dict.fromkeys(tuple(argv) for _, _, argv, _ in examples))
+    runs: dict[tuple[str, ...], subprocess.CompletedProcess] = {}  # one run per distinct command line
+
+    def run_chain(chain: list[int]) -> None:
+        for i in chain:
+            runs[distinct[i]] = subprocess.run([sys.executable, "-m", "torchskin.cli", *distinct[i]], cwd=tmp_path,
+                                               capture_output=True, text=True, timeout=600)
+
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(run_chain, command_chains([list(a) for a in distinct])))
+    ran, wrong = 0, []
+    for page, cmd, argv, printed in examples:
+        name = page.relative_to(ROOT)
+        r = runs[tuple(argv)]
+        got = (r.stdout if r.returncode == 0 else r.stderr).strip().splitlines()
+        if " | tail -1" in cmd:
+            got = got[-1:]
+        want = [ln for ln in printed if ln.strip() and not ln.startswith("(")]
+        assert "Traceback" not in r.stderr, (name, cmd, r.stderr)
+        if want and want[0].lstrip().startswith("{"):  # JSON: the page's keys and values
+            assert r.returncode == 0, (name, cmd, r.stderr)
+            wrong += [f"{name}: {cmd}: {e}" for e in compare_json(readme_json(want), json.loads(r.stdout))]
+        elif want:
+            assert len(got) == len(want), (name, cmd, got, want)
+            for g, w in zip(got, want):
+                pattern, shown = line_pattern(w.strip())
+                m = pattern.fullmatch(g.strip())
+                if m is None:
+                    wrong.append(f"{name}: {cmd}: page {w.strip()!r}, output {g.strip()!r}")
+                    continue
+                wrong += [f"{name}: {cmd}: page {s}, output {v} in {g.strip()!r}"
+                          for s, v in zip(shown, m.groups()) if not agrees(float(v), s)]
+            if any("error:" in w for w in want):
+                assert r.returncode == 2 and not r.stdout, (name, cmd, r.returncode)  # an error: exit 2, stderr only
+        else:
+            assert r.returncode == 0, (name, cmd, r.stderr)
+        ran += 1
     assert not wrong, "\n".join(wrong)
     assert ran >= 14  # every listed example was found and run (README and pages)
 
