@@ -43,6 +43,10 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=60)
     ap.add_argument("--tile", type=int, default=65536)
     args = ap.parse_args()
+    if not 0.0 <= args.dark <= 1.0:
+        ap.error(f"--dark must be a share in [0, 1], got {args.dark}")
+    if args.rounds < 1 or args.threads < 1:
+        ap.error("--rounds and --threads must be at least 1")
     with tempfile.TemporaryDirectory() as d:
         src = os.path.join(d, "src")
         os.makedirs(src)

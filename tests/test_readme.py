@@ -164,11 +164,12 @@ def command_chains(argvs: list[list[str]]) -> list[list[int]]:
     def writes(argv: list[str]) -> list[str]:
         return [argv[k + 1].rstrip("/") for k, a in enumerate(argv[:-1]) if a in ("--out", "--save-coefficients")]
 
+    def touches(argv: list[str], written: list[str]) -> bool:  # an argument that is a written path or under one
+        return any(x.rstrip("/") == w or x.startswith(w + "/") for w in written for x in argv)
+
     for j, b in enumerate(argvs):
         for i, a in enumerate(argvs[:j]):
-            shared = any(x == w or x.rstrip("/").startswith(w + "/") or x.rstrip("/") == w
-                         for w in writes(a) for x in b) or any(
-                x == w or x.startswith(w + "/") for w in writes(b) for x in a)
+            shared = touches(b, writes(a)) or touches(a, writes(b))
             if shared or (not writes(a) and not writes(b) and a[0] == b[0] and a[0] in ("spectra", "light")):
                 parent[root(j)] = root(i)
     chains: dict[int, list[int]] = {}

@@ -378,13 +378,11 @@ class OnboardDetector(_Model):
         self._split = _split_box_graph(self.path, self.session.get_session_options())
 
     @staticmethod
-    def _check_tile(t: np.ndarray, b: int, clipped: np.ndarray | None) -> tuple[float, float, int] | None:
+    def _check_tile(t: np.ndarray, b: int, clipped: np.ndarray | None) -> tuple[float, float, int]:
         """Validate a (4, n) tile while it is in cache: its smallest and largest value and how many exceed
         ``REFLECTANCE_MAX`` (NaN propagates), clipping negative values to 0 (counted in ``clipped[b]``) when
-        ``clipped`` is given. A tile whose integer maximum shows every value within [0, ``REFLECTANCE_MAX``]
-        (``_MAX_BITS``, the usual calibrated tile) costs that one pass and returns None: nothing to flag."""
-        if int(t.view(np.uint32).max()) <= _MAX_BITS:
-            return None
+        ``clipped`` is given. Only for a tile that failed the one-pass test of ``_run_tiles`` (its values' integer
+        maximum at most ``_MAX_BITS``: every value within [0, ``REFLECTANCE_MAX``], the usual calibrated tile)."""
         low, top = t.min(), t.max()
         over = int(np.count_nonzero(t > REFLECTANCE_MAX)) if top > REFLECTANCE_MAX else 0
         if clipped is not None:
@@ -451,7 +449,7 @@ class OnboardDetector(_Model):
             tb = bindings.get(n) or self._binding(bindings, n)
             t, edges = tb.t, tb.edges
             t[...] = flat[b, :, lo:hi]
-            # the usual tile's one pass (``_check_tile``'s first test, inlined): every value within range
+            # the usual tile's one pass: every value within range (``_MAX_BITS``), else the full check
             checked = None if int(tb.bits.max()) <= _MAX_BITS else self._check_tile(t, b, clipped)
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
