@@ -8,8 +8,9 @@
 see ``torchskin.export.BoxDetector``).
 
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance, and values far outside
-[0, 1.2] (below ``REFLECTANCE_MIN``, or above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE`` of the
-values: digital numbers, per cent; a glint is allowed) raise ``ValueError``;
+[0, 1.2] (below ``REFLECTANCE_MIN``, above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE`` of the
+values: digital numbers, per cent; a glint is allowed; or any value above ``REFLECTANCE_CEILING``, which no camera
+records) raise ``ValueError``;
 float64, float16 and big-endian cubes are converted to float32 (``io.as_float32``);
 configurations outside the training domain are flagged per frame in ``out_of_domain`` (never silently used).
 Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative reflectance from sensor noise:
@@ -44,8 +45,16 @@ if TYPE_CHECKING:
 #: glint (water, glass, a car), which is why a few such values are allowed. Digital numbers (up to 2^bits) and per cent (up to 100) put
 #: nearly every value above it
 REFLECTANCE_MAX = 1.5
-#: the share of a cube's values that may read above ``REFLECTANCE_MAX`` (glints, sun-facing surfaces)
+#: the share of a cube's values that may read above ``REFLECTANCE_MAX`` (glints, sun-facing surfaces), each at
+#: most ``REFLECTANCE_CEILING``
 REFLECTANCE_MAX_SHARE = 0.01
+#: no value of a calibrated cube, glint or not, reads above this: reflectance is (signal - offset) / gain after
+#: the empirical line, whose white panel (0.97-0.99) sits between the sensor's full scale and 1/16 of it (the range
+#: of the sensor model: ``REFLECTANCE_MIN``, ``render.elm.panel_median_noise_dn``), so a saturated pixel, the most
+#: light a camera records, reads at most about 16 x 0.99 = 16; 50 leaves a factor 3 (a panel set darker still, an
+#: offset below 0). A value above it is not light but a corrupt or fill value (1e30, 65535) or a digital number:
+#: refused whatever its share
+REFLECTANCE_CEILING = 50.0
 #: reflectance below this anywhere in a frame is refused too: the ELM's noise on a black pixel is σ_DN / gain, about
 #: 1e-4 with the white panel near full scale and 1e-3 with it at 1/16 of it (read noise 20-80 e-, 14-bit ADC:
 #: ``render.elm.panel_median_noise_dn``), so -0.2 is hundreds of σ away: an offset or a line that is wrong, not noise
@@ -84,24 +93,34 @@ def match_bands(cube_bands: Sequence[float], model_bands: Sequence[float], tol_n
     return order
 
 
-def check_reflectance_range(low: float, high: float, above: float = 1.0) -> None:
+def check_reflectance_range(low: float, high: float, above: float = 1.0, where: str = "cube") -> None:
     """``ValueError`` with a hint when a cube's reflectance lies out of meaning: its smallest value ``low`` below
-    ``REFLECTANCE_MIN``, or its largest ``high`` above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE``
-    of its values (``above``: that share; 1 when not counted). Values far outside [0, 1.2] are not calibrated
-    reflectance.
+    ``REFLECTANCE_MIN``, its largest ``high`` above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE``
+    of its values (``above``: that share; 1 when not counted), or ``high`` above ``REFLECTANCE_CEILING`` at all
+    (one value is enough: no camera records it). Values far outside [0, 1.2] are not calibrated reflectance.
+    ``where`` names the cube in the message (a file: ``--cube 'x.npy'``).
 
     >>> check_reflectance_range(0.0, 4.0, above=0.0005)  # a glint: fine
+    >>> check_reflectance_range(0.0, 49.0, above=0.0005)  # brighter than a glint, but a camera could record it
     >>> check_reflectance_range(0.0, 97.0, above=0.9)
     Traceback (most recent call last):
     ...
     ValueError: cube reads reflectance above 1.5 in 90.0 % of its values (up to 97; refused above 1 %): is this uncalibrated signal (digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?
+    >>> check_reflectance_range(0.0, 1e30, above=0.0001, where="--cube 'c.npy'")
+    Traceback (most recent call last):
+    ...
+    ValueError: --cube 'c.npy' reads reflectance 1e+30, which no camera records (refused above 50: a saturated pixel reads at most about 16 times the white panel's reflectance): a corrupt or fill value, or uncalibrated signal?
     """
     if high > REFLECTANCE_MAX and above > REFLECTANCE_MAX_SHARE:
-        raise ValueError(f"cube reads reflectance above {REFLECTANCE_MAX:g} in {100 * above:.1f} % of its values (up "
-                         f"to {high:.4g}; refused above {100 * REFLECTANCE_MAX_SHARE:g} %): is this uncalibrated signal "
-                         "(digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?")
+        raise ValueError(f"{where} reads reflectance above {REFLECTANCE_MAX:g} in {100 * above:.1f} % of its values "
+                         f"(up to {high:.4g}; refused above {100 * REFLECTANCE_MAX_SHARE:g} %): is this uncalibrated "
+                         "signal (digital numbers; torchskin calibrate converts it)? per cent (divide by 100)?")
+    if high > REFLECTANCE_CEILING:
+        raise ValueError(f"{where} reads reflectance {high:.4g}, which no camera records (refused above "
+                         f"{REFLECTANCE_CEILING:g}: a saturated pixel reads at most about 16 times the white panel's "
+                         "reflectance): a corrupt or fill value, or uncalibrated signal?")
     if low < np.float32(REFLECTANCE_MIN):  # cubes are float32: -0.2 as a float32 is at the bound, not below it
-        raise ValueError(f"cube reads reflectance down to {low:.4g}, far below 0 (refused below "
+        raise ValueError(f"{where} reads reflectance down to {low:.4g}, far below 0 (refused below "
                          f"{REFLECTANCE_MIN:g}; sensor noise reaches about -0.001): is this uncalibrated signal "
                          "with an offset, or calibrated with swapped panels?")
 
@@ -382,7 +401,8 @@ class OnboardDetector(_Model):
         """Validate a (4, n) tile while it is in cache: its smallest and largest value and how many exceed
         ``REFLECTANCE_MAX`` (NaN propagates), clipping negative values to 0 (counted in ``clipped[b]``) when
         ``clipped`` is given. Only for a tile that failed the one-pass test of ``_run_tiles`` (its values' integer
-        maximum at most ``_MAX_BITS``: every value within [0, ``REFLECTANCE_MAX``], the usual calibrated tile)."""
+        maximum at most ``_MAX_BITS``: every value within [0, ``REFLECTANCE_MAX``], the usual calibrated tile); the
+        largest value goes to ``check_reflectance_range`` (``REFLECTANCE_CEILING``) with the frame's."""
         low, top = t.min(), t.max()
         over = int(np.count_nonzero(t > REFLECTANCE_MAX)) if top > REFLECTANCE_MAX else 0
         if clipped is not None:
@@ -505,13 +525,14 @@ class OnboardDetector(_Model):
         return {"mask": mask, "score": score}
 
     @staticmethod
-    def _check_low(low: float, high: float = 0.0, clip: bool = False, above: float = 1.0) -> None:
+    def _check_low(low: float, high: float = 0.0, clip: bool = False, above: float | None = 1.0) -> None:
         """``ValueError`` for a cube whose smallest and largest values (before clipping) are ``low`` and
         ``high``, with a share ``above`` of its values above ``REFLECTANCE_MAX``: NaN, out of meaning
-        (``check_reflectance_range``), or negative unless ``clip``."""
+        (``check_reflectance_range``), or negative unless ``clip``. ``above`` None: the upper bounds (the share
+        and ``REFLECTANCE_CEILING``) are the caller's (``range_check=False``)."""
         if not (np.isfinite(low) and np.isfinite(high)):
             raise ValueError("cube holds NaN or infinite reflectance")
-        check_reflectance_range(low, high, above)
+        check_reflectance_range(low, 0.0 if above is None else high, 0.0 if above is None else above)
         if low < 0 and not clip:
             raise ValueError(f"cube holds negative reflectance (min {float(low):.3g}); noise on dark pixels? "
                              "negative='clip' (torchskin detect --clip-negative) sets it to 0")
@@ -558,7 +579,8 @@ class OnboardDetector(_Model):
         Args:
             cube: reflectance (float32; other float and integer dtypes are converted), bands (544, 633, 1080,
                 1580 nm: the model's ``bands_nm``) on axis 1; finite, within [``REFLECTANCE_MIN``,
-                ``REFLECTANCE_MAX``], and non-negative unless ``negative="clip"``.
+                ``REFLECTANCE_MAX``] (up to ``REFLECTANCE_CEILING`` in at most ``REFLECTANCE_MAX_SHARE`` of its
+                values), and non-negative unless ``negative="clip"``.
             config: each frame's configuration features in the model's order and units (``features``).
             out: optional preallocated (mask, score) arrays, bool and float32, C-contiguous, that receive the
                 result (an onboard loop reuses them; their content is undefined if the call raises).
@@ -568,8 +590,9 @@ class OnboardDetector(_Model):
                 (at the noise floor the indices are ratios of noise; e.g. 0.005 for ~3e-4 noise); 0 keeps the
                 rules alone; None (default): the floor the model was evaluated with (``default_min_reflectance``,
                 from its metadata).
-            range_check: False leaves the share of values above ``REFLECTANCE_MAX`` to the caller, who checks it
-                over a whole frame cut into calls (``detect_file``'s row tiles); the smallest value, NaN and
+            range_check: False leaves the share of values above ``REFLECTANCE_MAX`` and the bound
+                ``REFLECTANCE_CEILING`` to the caller, who checks them over a whole frame cut into calls
+                (``detect_file``'s row tiles, so that a cube in per cent gets its hint); the smallest value, NaN and
                 negative values are still refused per call.
 
         Shape:
@@ -600,7 +623,7 @@ class OnboardDetector(_Model):
         if B * n <= self.tile:  # small frames: one call
             top = x.max()
             share = np.count_nonzero(x > REFLECTANCE_MAX) / x.size if top > REFLECTANCE_MAX else 0.0
-            self._check_low(x.min(), top, clipped is not None, share if range_check else 0.0)
+            self._check_low(x.min(), top, clipped is not None, share if range_check else None)
             if clipped is not None:
                 clipped += np.count_nonzero(x < 0, axis=(1, 2, 3))
                 x = np.maximum(x, 0)
@@ -651,7 +674,8 @@ class OnboardDetector(_Model):
             ranges += [f.result() for f in futures]
         lows, highs, overs = zip(*ranges)
         # NaN propagates; the outputs are discarded: no mask comes back from an invalid cube
-        self._check_low(np.min(lows), np.max(highs), clipped is not None, sum(overs) / x.size if range_check else 0.0)
+        self._check_low(np.min(lows), np.max(highs), clipped is not None,
+                        sum(overs) / x.size if range_check else None)
         if clipped is not None:
             clipped += np.sum(cast(list[np.ndarray], counts), axis=0)
         if out is not None:
@@ -968,7 +992,8 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
     (``band_plan``; ``bands`` overrides the file's wavelengths; a cube without any must hold the model's four
     bands in its order), the mask written rows by rows to ``out`` (``_mask_writer``: ``.png``; ``.tif``, a GeoTIFF
     keeping a GeoTIFF input's georeferencing; ``.hdr``, ENVI keeping an ENVI input's map info) through a temporary file renamed at the end. The reflectance range is checked over
-    the whole frame (``check_reflectance_range``) before the rename: on refusal nothing is written. The mask
+    the whole frame (``check_reflectance_range``, naming the file; a value above ``REFLECTANCE_CEILING`` too)
+    before the rename: on refusal nothing is written. The mask
     equals ``det`` on the whole frame in memory. Returns ``skin_pixels``, ``pixels``, ``shape`` (H, W),
     ``out_of_domain``, ``plan`` ("reorder" or "synthesis"), ``clipped_values`` (with ``negative="clip"``) and
     ``reflectance_range``."""
@@ -1014,7 +1039,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
                 clipped += int(res["clipped_values"][0])
             if writer is not None:
                 writer.write_rows(m.view(np.uint8) * np.uint8(255))
-        check_reflectance_range(low, high, over / (4 * H * W))
+        check_reflectance_range(low, high, over / (4 * H * W), where)
     except BaseException as e:
         if writer is not None:
             writer.abort(e)
