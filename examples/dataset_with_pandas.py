@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 from torchskin.dataset.config import resolve_config
-from torchskin.dataset.files import open_dataset
+from torchskin.dataset.files import manifest, open_dataset
 from torchskin.dataset.generate import generate
 from torchskin.render.meshes import sphere_mesh
 
@@ -44,7 +44,9 @@ def main() -> None:
     man = generate(cfg, args.configs, args.seed, data, overwrite=True, quiet=True)
     print(f"{man['n_shards']} shards, {sum(s['rows'] for s in man['shards'])} rows in {data}")
 
-    # the folder reads as one table: Parquet readers skip _manifest.json (leading underscore)
+    # the folder reads as one table: Parquet readers skip _manifest.json (leading underscore), so read it first:
+    # manifest() refuses, in one line, a dataset of a schema this torchskin does not read (a newer one's)
+    manifest(data)
     df = pd.read_parquet(data, columns=["label", "skin_type", "ndgri", "ndsi", "elm_valid"])
     df = df[df.elm_valid].copy()  # frames whose reference panels were sunlit: their ELM reflectance is physical
     df["pixel"] = df.label.map({True: "skin", False: "non-skin"})

@@ -291,7 +291,9 @@ def test_learn_refuses_a_model_that_left_the_data():
     shrinks every box to nothing) is an error, not a silent detector that finds nothing. (A normal run's
     coverage, over seeds and thread counts: tests/test_reproducibility.py.)"""
     X, Y, C = diagonal(3000, seed=2)
-    with pytest.raises(ValueError, match="training failed"):
+    from torchskin.errors import Failure
+
+    with pytest.raises(Failure, match="training failed"):  # a failure, not bad input (ValueError)
         Bd.learn(X, Y, confusers=C, steps=200, batch=1000, width_cost=50.0)
 
 

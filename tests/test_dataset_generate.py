@@ -177,9 +177,9 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj, mon
     """Every Parquet row is its configuration's cube pixel, found by the row's local angles and material.
 
     The rows come from a pixel render (``render_pixels``) and the cubes from a full-frame render of the same
-    G-buffer; each sets its own automatic exposure (brightest pixel rendered) and draws its own noise, so
-    the sensor's noise and DN quantization differ between them by design. Both are switched off here
-    (noise through the config, quantization by wrapping ``group_sensor``): what is left is float16 storage."""
+    G-buffer. Noise and quantization are switched off here (noise through the config, quantization by wrapping
+    ``group_sensor``): what is left is float16 storage. With them on, the cubes reuse the rows' exposure, noise and
+    empirical line (``generate.frame_cubes``; tests/test_dataset_user_mistakes.py)."""
     import dataclasses
 
     import pandas as pd

@@ -471,7 +471,7 @@ def test_render_calls_a_grazing_sun_frame_invalid_as_the_dataset_does(tmp_path, 
     assert min(doc["panel_sunlit_fraction"]) >= 0.5 and doc["elm_line_valid"] and not doc["elm_valid"]
     assert doc["panel_irradiance_ratio"] > ELM_MAX_IRRADIANCE_RATIO
     assert "times their irradiance" in cap.err and "not sunlit" not in cap.err
-    assert main([*argv, "--source-zenith", "30"]) == 0
+    assert main([*argv, "--source-zenith", "30", "--overwrite"]) == 0  # the same folder: the earlier frame replaced
     cap = capsys.readouterr()
     assert json.loads(cap.out)["elm_valid"] and "warning" not in cap.err
 

@@ -7,7 +7,7 @@ the source yourself when it matters). Shapes: spectra are ``(..., n_grid)``, ban
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -59,6 +59,11 @@ INDEX_BANDS_NM: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
 
 #: The thesis's detection system: the ``INDEX_BANDS_NM`` bands, monochromatic by default.
 DEFAULT_BANDS: tuple[Band, ...] = tuple(Band(c) for c in INDEX_BANDS_NM)
+
+
+#: a per-band setting (``per_band``): one number, one value per band, four values at the ``INDEX_BANDS_NM``, or a
+#: spectrum given at wavelengths (``at_wavelengths``)
+PerBand = float | Sequence[float] | Mapping[str, Sequence[float]]
 
 
 def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tuple[Band, ...]:
@@ -324,32 +329,103 @@ def band_sampling(bands: Sequence[Band], step_nm: float = 1.0, dtype: torch.dtyp
     return grid, torch.stack(cols, dim=-1)
 
 
-def per_band(values: float | Sequence[float], bands: Sequence[Band], what: str) -> list[float]:
-    """One value per band from a per-band setting (e.g. a sensor's path radiance).
+#: the keys of a spectrum given at wavelengths (``at_wavelengths``), a per-band setting that ``per_band``
+#: interpolates in wavelength for any bands
+SPECTRUM_KEYS = ("wavelengths_nm", "values")
+
+
+def at_wavelengths(values: Sequence[float], wavelengths_nm: Sequence[float] = INDEX_BANDS_NM) -> dict[str, list[float]]:
+    """A per-band setting given as a spectrum at ``wavelengths_nm`` (default the ``INDEX_BANDS_NM``), as JSON data:
+    ``{"wavelengths_nm": [...], "values": [...]}``. ``per_band`` interpolates it linearly in wavelength for any
+    bands, whatever their number, so it means the same under every ``--bands``: the built-in four-value spectra
+    (the default scene's clothing and ground, the sensor's defaults) are written this way. ``ValueError`` unless
+    the wavelengths strictly ascend and there is one value for each.
+
+    >>> at_wavelengths([0.12, 0.10, 0.35, 0.30])
+    {'wavelengths_nm': [544.0, 633.0, 1080.0, 1580.0], 'values': [0.12, 0.1, 0.35, 0.3]}
+    """
+    spec = {"wavelengths_nm": [float(w) for w in wavelengths_nm], "values": [float(v) for v in values]}
+    _spectrum_nodes(spec, "a spectrum")
+    return spec
+
+
+def _spectrum_nodes(spec: object, what: str) -> tuple[list[float], list[float]]:
+    """(wavelengths, values) of a spectrum given at wavelengths (``at_wavelengths``); ``ValueError`` naming
+    ``what`` when it is malformed."""
+    if not isinstance(spec, Mapping) or set(spec) != set(SPECTRUM_KEYS):
+        raise ValueError(f"{what} given at wavelengths needs exactly the keys {' and '.join(SPECTRUM_KEYS)}, got "
+                         f"{sorted(spec) if isinstance(spec, Mapping) else type(spec).__name__}")
+    try:
+        wl, vals = ([float(x) for x in spec[k]] for k in SPECTRUM_KEYS)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} given at wavelengths needs lists of numbers, got {spec!r}") from None
+    if not wl or len(wl) != len(vals):
+        raise ValueError(f"{what} given at wavelengths needs one value for each of at least one wavelength, got "
+                         f"{len(wl)} wavelengths and {len(vals)} values")
+    if not all(math.isfinite(w) and w > 0 for w in wl) or any(b <= a for a, b in zip(wl, wl[1:])):
+        raise ValueError(f"{what} given at wavelengths needs positive wavelengths (nm) in strictly ascending order, "
+                         f"got {wl}")
+    return wl, vals
+
+
+def setting_values(values: PerBand, what: str = "a per-band setting") -> list[float]:
+    """The numbers of a per-band setting (``per_band``'s ``values``), for range checks: the one number, the list,
+    or a spectrum's values.
+
+    >>> setting_values(at_wavelengths([0.1, 0.2, 0.3, 0.4])), setting_values(0.5)
+    ([0.1, 0.2, 0.3, 0.4], [0.5])
+    """
+    if isinstance(values, Mapping):
+        return _spectrum_nodes(values, what)[1]
+    if isinstance(values, (list, tuple)):
+        return [float(v) for v in values]
+    return [float(values)]  # type: ignore[arg-type]  # a number, or anything float() takes
+
+
+def per_band(values: PerBand, bands: Sequence[Band], what: str) -> list[float]:
+    """One value per band from a per-band setting (e.g. a sensor's path radiance, a material's reflectance).
 
     Args:
-        values: one number for every band, one value per band, or four values at the ``INDEX_BANDS_NM``
-            wavelengths (544, 633, 1080, 1580 nm), interpolated linearly in wavelength (held constant outside)
-            for other bands.
+        values: one of
+
+            - one number, for every band;
+            - a spectrum given at wavelengths (``at_wavelengths``: ``{"wavelengths_nm": [...], "values": [...]}``),
+              interpolated linearly in wavelength (held constant outside) at each band centre, whatever the number
+              of bands: how the built-in four-value spectra are given, at the ``INDEX_BANDS_NM``;
+            - a list of one value per band, taken in band order;
+            - for another number of bands than four, a list of four values at the ``INDEX_BANDS_NM`` wavelengths
+              (544, 633, 1080, 1580 nm), interpolated like a spectrum.
+
         bands: the bands.
         what: the quantity's name, for the error message.
 
     Returns:
-        ``len(bands)`` floats; ``ValueError`` for any other number of values.
+        ``len(bands)`` floats; ``ValueError`` for any other number of values or a malformed spectrum.
 
+    Four bands that are not the index bands take a built-in spectrum by wavelength, a list of four by position:
+
+    >>> four = [Band(450.0), Band(550.0), Band(650.0), Band(750.0)]
+    >>> [round(x, 4) for x in per_band(at_wavelengths([0.1, 0.2, 0.3, 0.4]), four, "path radiance")]
+    [0.1, 0.1067, 0.2038, 0.2262]
+    >>> per_band([0.1, 0.2, 0.3, 0.4], four, "path radiance")
+    [0.1, 0.2, 0.3, 0.4]
     >>> [round(x, 4) for x in per_band([0.1, 0.2, 0.3, 0.4], [Band(600.0), Band(1300.0)], "path radiance")]
     [0.1629, 0.344]
     """
+    import numpy as np
+
     n = len(bands)
-    if isinstance(values, (list, tuple)):
-        vals = [float(v) for v in values]
-    else:
-        vals = [float(values)] * n  # type: ignore[arg-type]  # a number, or anything float() takes
+    centres = [b.center_nm for b in bands]
+    if isinstance(values, Mapping):
+        wl, vals = _spectrum_nodes(values, what)
+        return [float(v) for v in np.interp(centres, wl, vals)]
+    vals = setting_values(values, what)
+    if not isinstance(values, (list, tuple)):
+        vals = vals * n
     if len(vals) == n:
         return vals
     if len(vals) == len(INDEX_BANDS_NM):
-        import numpy as np
-
-        return [float(v) for v in np.interp([b.center_nm for b in bands], INDEX_BANDS_NM, vals)]
-    raise ValueError(f"{what} needs one value, one per band ({n}) or four (at "
-                     f"{', '.join(f'{c:g}' for c in INDEX_BANDS_NM)} nm, interpolated), got {len(vals)}")
+        return [float(v) for v in np.interp(centres, INDEX_BANDS_NM, vals)]
+    raise ValueError(f"{what} needs one value, one per band ({n}), four (at "
+                     f"{', '.join(f'{c:g}' for c in INDEX_BANDS_NM)} nm, interpolated) or a spectrum at wavelengths "
+                     f"(bands.at_wavelengths), got {len(vals)}")

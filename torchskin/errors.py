@@ -2,8 +2,9 @@
 
 Every command runs inside ``run_command``: bad input (``ValueError``, argparse usage) prints one line,
 ``torchskin <command>: error: <what, which file or parameter, what was expected>``, and exits with status 2;
-a failure while working (a full disk, a permission refused while writing, an unexpected exception) prints one
-line the same way and exits with status 1; never a traceback unless ``--debug`` (or ``TORCHSKIN_DEBUG=1``) asks
+a failure while working (a full disk, a permission refused while writing, a ``Failure`` such as a training
+that left its data, an unexpected exception) prints one line the same way and exits with status 1; never a
+traceback unless ``--debug`` (or ``TORCHSKIN_DEBUG=1``) asks
 for it. Output paths are checked before any work (``check_output_file``, ``check_output_folder``), so a failed
 command leaves its output location as it found it.
 """
@@ -51,6 +52,11 @@ def missing_extra(e: ModuleNotFoundError) -> str | None:
     return f"this command needs {dist}: pip install 'torchskin[{extra}]' (or 'torchskin[all]' for every command)"
 
 
+class Failure(RuntimeError):
+    """A command's work failed through no fault of its input (a training whose boxes left the data, say): one line
+    and exit status 1 in ``run_command``, where a ``ValueError`` (bad input) exits with status 2."""
+
+
 class Parser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose usage errors are one line, ``<prog>: error: <message> (see <prog> --help)``,
     with exit status 2 (argparse prints the whole usage block first)."""
@@ -93,7 +99,7 @@ def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) ->
 
     Returns:
         The exit status: ``fn``'s, 2 (``EXIT_USAGE``) for bad input, 1 (``EXIT_FAILURE``) for a failure while
-        working, 130 when interrupted.
+        working (``Failure``, ``OSError``, ...), 130 when interrupted.
 
     >>> run_command("demo", lambda: 0)
     0
@@ -102,6 +108,12 @@ def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) ->
     ...     status = run_command("demo", lambda: int("x"))
     >>> status, err.getvalue()
     (2, "torchskin demo: error: invalid literal for int() with base 10: 'x'\\n")
+    >>> def diverged():
+    ...     raise Failure("training failed: the optimisation left the data")
+    >>> with contextlib.redirect_stderr(io.StringIO()) as err:
+    ...     status = run_command("demo", diverged)
+    >>> status, err.getvalue()
+    (1, 'torchskin demo: error: training failed: the optimisation left the data\\n')
     """
     debug = debug or os.environ.get("TORCHSKIN_DEBUG", "") not in ("", "0")
     try:
@@ -120,6 +132,11 @@ def run_command(name: str, fn: Callable[[], int | None], debug: bool = False) ->
             raise
         print(f"torchskin {name}: error: {one_line(e)}", file=sys.stderr)
         return EXIT_USAGE
+    except Failure as e:  # the work failed, not the input: one line, status 1
+        if debug:
+            raise
+        print(f"torchskin {name}: error: {one_line(e)}", file=sys.stderr)
+        return EXIT_FAILURE
     except MemoryError:
         if debug:
             raise
@@ -192,13 +209,35 @@ def check_output_file(path: StrPath | None, option: str, suffixes: tuple[str, ..
     return p
 
 
-def check_output_folder(path: StrPath | None, option: str) -> Path:
+def check_folder_empty(path: StrPath, option: str, overwrite: bool, instead: str = "") -> None:
+    """``ValueError`` naming ``option`` when ``path`` is an existing folder that holds anything and ``overwrite`` is
+    False: a command that writes a folder of files writes into a new or empty folder, and replaces what is there
+    only when asked (``--overwrite``; ``instead``: another way the command offers, e.g. "--resume to continue").
+
+    >>> import tempfile
+    >>> d = tempfile.mkdtemp()
+    >>> _ = (Path(d) / "render.json").write_text("{}")
+    >>> check_folder_empty(d, "--out", overwrite=False)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    ValueError: --out folder '...' is not empty: pass --overwrite to replace its files, or choose another folder
+    """
+    p = Path(path)
+    if overwrite or not p.is_dir() or not any(p.iterdir()):
+        return
+    how = f"{instead} or --overwrite" if instead else "--overwrite to replace its files"
+    raise ValueError(f"{option} folder {str(p)!r} is not empty: pass {how}, or choose another folder")
+
+
+def check_output_folder(path: StrPath | None, option: str, overwrite: bool | None = None) -> Path:
     """Check before any work that ``path`` can be (or is) a writable folder: an existing folder, or a new one
     whose nearest existing ancestor is a writable folder (not a file). Nothing is created here.
 
     Args:
         path: the folder a command will write into.
         option: the command-line option that named it, for the message.
+        overwrite: for a command with ``--overwrite``, its value: False refuses an existing folder that is not
+            empty (``check_folder_empty``); None (a command without the option) does not look inside.
 
     Returns:
         ``path`` as a Path; ``ValueError`` naming ``option`` when it cannot be written.
@@ -211,6 +250,8 @@ def check_output_folder(path: StrPath | None, option: str) -> Path:
             raise ValueError(f"{option} {str(p)!r} is an existing file; a folder is expected")
         if not os.access(p, os.W_OK | os.X_OK) or not _can_create_in(p):
             raise ValueError(f"{option} folder {str(p)!r} is not writable")
+        if overwrite is not None:
+            check_folder_empty(p, option, overwrite)
         return p
     q = p.parent
     while not q.exists() and q != q.parent:
@@ -250,5 +291,5 @@ def check_input_file(path: StrPath, option: str, suffixes: tuple[str, ...] = ())
     return p
 
 
-__all__ = ["EXIT_FAILURE", "EXIT_USAGE", "Parser", "check_input_file", "check_output_file", "check_output_folder", "one_line",
+__all__ = ["EXIT_FAILURE", "EXIT_USAGE", "Failure", "Parser", "check_folder_empty", "check_input_file", "check_output_file", "check_output_folder", "one_line",
            "run_command"]

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .bands import at_wavelengths
 from .detect import DEFAULT_BOX, bhattacharyya, histogram2d
 from .io import write_text
 from .optics import DEFAULT_SURFACE, SURFACE_MODELS, check_surface
@@ -47,7 +48,7 @@ def experiment_scene(angles: Sequence[float] = ANGLES_DEG, skin: str | dict = "I
     subject's facing direction, degrees)."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
-        "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
+        "clothing": Material("lambertian", reflectance=at_wavelengths([0.12, 0.10, 0.35, 0.30])),  # INDEX_BANDS_NM
         **panel_materials(panels),
     }
     meshes = [

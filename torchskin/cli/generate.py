@@ -6,7 +6,7 @@ import argparse
 import json
 
 from ..errors import check_input_file, check_output_folder
-from .options import add_device, add_json, add_out_folder, add_seed, add_surface
+from .options import add_device, add_json, add_out_folder, add_overwrite, add_seed, add_surface
 
 #: ``generate --compile`` choices -> ``dataset.generate.generate(compile=...)``
 COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": False}
@@ -64,7 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     add_seed(gp, "the dataset's draws, its master seed")
     add_out_folder(gp, "the Parquet shards and their manifest")
     gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")
-    gp.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
+    add_overwrite(gp, "an existing dataset")
     gp.add_argument("--quiet", action="store_true", help="no progress bar (the one-line summary is still printed)")
     add_device(gp)
     gp.add_argument("--images", action="store_true", help="also store full reflectance cubes (images-*.npy)")

@@ -89,6 +89,14 @@ def add_out_folder(p: ArgumentTarget, contents: str) -> None:
     p.add_argument("--out", required=True, help=f"output folder: {contents}")
 
 
+def add_overwrite(p: ArgumentTarget, what: str) -> None:
+    """``--overwrite``: write into an ``--out`` folder that is not empty, replacing ``what`` (without it the
+    command refuses such a folder: ``errors.check_output_folder(..., overwrite=...)``)."""
+    p.add_argument("--overwrite", action="store_true",
+                   help=f"write into an --out folder that is not empty, replacing {what}; without it such a folder "
+                        "is refused")
+
+
 def add_out_file(p: ArgumentTarget, contents: str, required: bool = True) -> None:
     """``--out``: the file a command writes (``contents`` says what and in which format)."""
     p.add_argument("--out", required=required, help=f"output file: {contents}")
@@ -147,10 +155,26 @@ def add_sky(p: ArgumentTarget) -> None:
                    help="thesis: sky irradiance / sun irradiance, 0-1 (default 0.1; spectrl2 computes its sky)")
 
 
+def band_list_text(text: str) -> str:
+    """An argparse ``type`` for ``--bands``: the text as given, unless it names no band at all (empty or blank),
+    which is a usage error rather than the default bands (the commands read an absent ``--bands`` as None).
+
+    >>> band_list_text("544,1580")
+    '544,1580'
+    >>> band_list_text(" ")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: expected at least one band (centre[/fwhm],... in nm), got ' '
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected at least one band (centre[/fwhm],... in nm), got {text!r}")
+    return text
+
+
 def add_bands(p: ArgumentTarget, default: str = "544,633,1080,1580") -> None:
     """``--bands``: band centres (and FWHM) in nm (``bands.parse_bands``); ``default`` says what is used
-    without it."""
-    p.add_argument("--bands", metavar=BANDS_METAVAR, help=f"{BANDS_HELP} (default: {default})")
+    without it; an empty value is refused (``band_list_text``)."""
+    p.add_argument("--bands", type=band_list_text, metavar=BANDS_METAVAR, help=f"{BANDS_HELP} (default: {default})")
 
 
 def add_frame(p: ArgumentTarget) -> None:
@@ -261,7 +285,7 @@ def check_frame(args: argparse.Namespace, bands: int, suns: int = 1) -> None:
 
 
 __all__ = ["ATMOSPHERE_OPTIONS", "BANDS_HELP", "DEVICE_HELP", "JSON_HELP", "MAX_MEGAPIXELS", "SURFACE_HELP", "add_atmosphere",
-           "add_bands", "add_device", "add_tile_rows", "add_frame", "add_illumination", "add_json", "add_max_megapixels", "add_no_noise", "add_out_file",
-           "add_out_folder", "add_panels", "add_seed", "add_sky", "add_surface", "atmosphere_from_args",
+           "add_bands", "add_device", "band_list_text", "add_tile_rows", "add_frame", "add_illumination", "add_json", "add_max_megapixels", "add_no_noise", "add_out_file",
+           "add_out_folder", "add_overwrite", "add_panels", "add_seed", "add_sky", "add_surface", "atmosphere_from_args",
            "check_angle", "check_atmosphere", "check_frame", "check_number", "light_models", "panel_kinds",
            "surface_models"]

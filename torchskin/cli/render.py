@@ -23,6 +23,7 @@ from .options import (
     add_json,
     add_no_noise,
     add_out_folder,
+    add_overwrite,
     add_panels,
     add_seed,
     add_sky,
@@ -57,11 +58,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     """Run ``torchskin render``: every option checked before any work, then one frame rendered, calibrated
     and written to ``--out`` (``render.outputs.write_outputs``)."""
     from ..devices import check_device
-    from ..render.outputs import elm_warning, write_outputs
+    from ..render.outputs import elm_warning, previous_outputs, write_outputs
     from ..render.pipeline import render
     from ..render.sensor import Sensor
 
-    check_output_folder(args.out, "--out")
+    check_output_folder(args.out, "--out", overwrite=args.overwrite)
     check_angle("--source-zenith", args.source_zenith, 0, 90)
     check_angle("--camera-zenith", args.camera_zenith, 0, 180)
     check_number("--source-azimuth", args.source_azimuth, -360, 360)
@@ -87,6 +88,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         path = path_terms(sc.suns[0].atmosphere, scene_light(sc, torch.float64).sky[0].tolist(), sc.bands, args.range)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed, **path)
     res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile)
+    for old in previous_outputs(args.out) if args.overwrite else []:  # the folder then holds this render only
+        old.unlink()
     info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor, fmt=args.format)
     warning = elm_warning(info)
     if warning:
@@ -114,6 +117,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         description="Ray-cast a subject between two reference panels under a sun, through the "
                                     "sensor chain, calibrate with ELM and run the rules detector.")
     add_out_folder(rp, "the frame's cubes, masks, figures and render.json")
+    add_overwrite(rp, "an earlier render's files (those its render.json lists; other files are kept)")
     src = rp.add_mutually_exclusive_group()
     src.add_argument("--mesh", metavar="PATH", help="OBJ/PLY subject (all skin)")
     src.add_argument("--subject", choices=["anny"], default="anny", help="parametric anny body (default)")

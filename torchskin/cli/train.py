@@ -12,6 +12,10 @@ from ..dataset.files import FRAME_SETS
 from ..errors import check_output_file
 from .options import add_json, add_out_file, add_seed, check_number
 
+#: ``--scene-budget``'s default (the parser's default is None, so that an explicit budget with ``--no-scene`` is
+#: refused rather than ignored)
+SCENE_BUDGET = 1e-4
+
 
 def cmd_train(args: argparse.Namespace) -> int:
     from ..detectors import registry
@@ -21,9 +25,13 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise ValueError(f"--steps must be >= 1 (0 would write an untrained model), got {args.steps}")
     check_number("--pfa-budget", args.pfa_budget, 0, 0.999, "a false-alarm probability")
-    check_number("--scene-budget", args.scene_budget, 0, 0.999, "a false-alarm probability")
+    if args.scene_budget is not None and args.no_scene:  # None: not given (the parser's default)
+        raise ValueError(f"--scene-budget {args.scene_budget:g} and --no-scene exclude each other: --no-scene holds no "
+                         "budget on the dataset's non-skin pixels, so the budget would be ignored (drop one)")
+    scene_budget = SCENE_BUDGET if args.scene_budget is None else args.scene_budget
+    check_number("--scene-budget", scene_budget, 0, 0.999, "a false-alarm probability")
     model, info, text = registry.train(TrainRequest(
-        args.data, args.method, pfa_budget=args.pfa_budget, scene_budget=args.scene_budget,
+        args.data, args.method, pfa_budget=args.pfa_budget, scene_budget=scene_budget,
         use_scene=not args.no_scene, sunlit_only=args.sunlit_only, hidden=args.hidden, steps=args.steps,
         seed=args.seed, ndvn_rule=not args.no_ndvn_rule, q=args.q, margin=args.margin,
         width_cost=args.width_cost, spread_cost=args.spread_cost, frames=args.frames))
@@ -71,12 +79,13 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     add_seed(tp, "the initial weights and batches")
     tp.add_argument("--pfa-budget", type=float, default=1e-3,
                     help="false-alarm budget on the earthlib train partition (default 1e-3)")
-    tp.add_argument("--scene-budget", type=float, default=1e-4,
+    tp.add_argument("--scene-budget", type=float, default=None,
                     help="the largest share of the training dataset's own non-skin pixels "
                          "(clothing, ground and confusers, sunlit and shadowed) the boxes may call skin, held in "
-                         "training and tuning (default 1e-4)")
+                         f"training and tuning (default {SCENE_BUDGET:g}; refused with --no-scene)")
     tp.add_argument("--no-scene", action="store_true",
-                    help="hold only the earthlib spectra to a budget, not the dataset's non-skin pixels")
+                    help="hold only the earthlib spectra to a budget, not the dataset's non-skin pixels (no "
+                         "--scene-budget)")
     tp.add_argument("--sunlit-only", action="store_true",
                     help="learn from sunlit skin only (default: sunlit and shadowed skin)")
     tp.add_argument("--frames", choices=list(FRAME_SETS), default="line",

@@ -23,6 +23,11 @@ MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when 
 #: light a surface facing the sun and sky does, ``render.elm.ELM_MAX_IRRADIANCE_RATIO``; 1 or missing: before).
 #: ``elm_valid``'s noise and gain checks (``render.elm.elm_line_valid``) change no row of the default datasets
 RENDER_REVISION = 4
+#: the dataset schema this torchskin writes (``dataset.generate`` lists what each version changed)
+SCHEMA_VERSION = 6
+#: the schemas this torchskin reads: every one it ever wrote (a reader checks the columns it needs,
+#: ``open_dataset``); a manifest of any other version, such as a newer torchskin's, is refused (``manifest``)
+READ_SCHEMAS = range(1, SCHEMA_VERSION + 1)
 
 
 def sha256_file(path: StrPath) -> str:
@@ -42,16 +47,43 @@ def sha256_file(path: StrPath) -> str:
 
 
 def manifest(data_dir: StrPath) -> dict[str, Any] | None:
-    """The dataset's manifest.
+    """The dataset's manifest, checked: every reader of a dataset (``open_dataset``, ``read_valid``, evaluate,
+    train, ``dataset verify``) reads it here.
 
     Args:
         data_dir: the dataset folder.
 
     Returns:
-        The parsed ``_manifest.json``, or None when the folder has none.
+        The parsed ``_manifest.json``, or None when the folder has none; a one-line ``ValueError`` naming the file
+        when it is not a JSON object or its ``schema_version`` is not one this torchskin reads (``READ_SCHEMAS``:
+        a dataset of a newer schema is not read as if it were this one's). A manifest without the key (not written
+        by ``torchskin generate``) is read as it is.
+
+    >>> import json, tempfile
+    >>> d = tempfile.mkdtemp()
+    >>> _ = (Path(d) / MANIFEST).write_text(json.dumps({"schema_version": 99}))
+    >>> manifest(d)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    ValueError: dataset manifest '.../_manifest.json' has schema_version 99; this torchskin reads schema versions 1 to 6 ...
     """
     p = Path(data_dir) / MANIFEST
-    return json.loads(p.read_text()) if p.is_file() else None
+    if not p.is_file():
+        return None
+    try:
+        man = json.loads(p.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"dataset manifest {str(p)!r} is not valid JSON ({e}): not a torchskin dataset") from None
+    if not isinstance(man, dict):
+        raise ValueError(f"dataset manifest {str(p)!r} holds a JSON {type(man).__name__}, not an object: not a "
+                         "torchskin dataset")
+    v = man.get("schema_version")
+    if "schema_version" in man and (type(v) is not int or v not in READ_SCHEMAS):
+        why = ("a newer torchskin wrote it: upgrade torchskin to read it, or regenerate the dataset with this one"
+               if type(v) is int and v > SCHEMA_VERSION else "not a schema torchskin writes")
+        raise ValueError(f"dataset manifest {str(p)!r} has schema_version {v!r}; this torchskin reads schema "
+                         f"versions {READ_SCHEMAS[0]} to {READ_SCHEMAS[-1]} ({why})")
+    return man
 
 
 def dataset_surface(data_dir: StrPath) -> str:
@@ -77,8 +109,8 @@ def open_dataset(data_dir: StrPath, columns: Sequence[str] = ()) -> ds.Dataset:
         columns: the columns the caller will read.
 
     Returns:
-        The ``pyarrow.dataset.Dataset``; a one-line ``ValueError`` for a missing folder, a folder without shards
-        or a foreign schema.
+        The ``pyarrow.dataset.Dataset``; a one-line ``ValueError`` for a missing folder, a folder without shards,
+        a manifest of a schema this torchskin does not read (``manifest``) or missing columns.
     """
     import pyarrow.dataset as ds
 
@@ -89,6 +121,7 @@ def open_dataset(data_dir: StrPath, columns: Sequence[str] = ()) -> ds.Dataset:
         raise ValueError(f"dataset folder {str(folder)!r} does not exist (torchskin generate writes one)")
     if not any(folder.glob("*.parquet")):
         raise ValueError(f"{str(folder)!r} holds no Parquet shards: not a torchskin dataset (torchskin generate)")
+    manifest(folder)  # a manifest of a schema this torchskin does not read is refused here
     try:
         d = ds.dataset(str(folder), format="parquet", exclude_invalid_files=True)
     except Exception as e:  # pyarrow raises its own types
@@ -136,4 +169,5 @@ def read_valid(data_dir: StrPath, columns: Sequence[str], frames: str = "physica
     return t.filter(valid).select(list(columns)), excluded
 
 
-__all__ = ["FRAME_SETS", "MANIFEST", "dataset_surface", "manifest", "open_dataset", "manifest_sha256", "read_valid", "sha256_file"]
+__all__ = ["FRAME_SETS", "MANIFEST", "READ_SCHEMAS", "RENDER_REVISION", "SCHEMA_VERSION", "dataset_surface", "manifest",
+           "manifest_sha256", "open_dataset", "read_valid", "sha256_file"]

@@ -27,8 +27,10 @@ import torch
 
 from .. import __version__, tissue
 from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
-from ..bands import INDEX_BANDS_NM
+from ..bands import DEFAULT_BANDS, INDEX_BANDS_NM, PerBand, at_wavelengths, per_band
+from ..detect import DEFAULT_BOX
 from ..detectors.features import BAND_COLUMNS
+from ..errors import check_folder_empty
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
 from ..render.elm import (
@@ -42,18 +44,20 @@ from ..render.elm import (
     panel_subset,
 )
 from ..render.kernels import cos_to
-from ..render.light import LightTables, path_terms
+from ..render.light import LightTables, path_terms, uses_atmosphere
 from ..render.meshes import anny_batch
-from ..render.pipeline import RenderResult, render, render_pixels, scene_light
+from ..render.pipeline import PIXEL_MULTIPLE, RenderResult, calibrate_detect, render, render_pixels, scene_light
 from ..render.raycast import GBuffer, Raycaster
 from ..render.rtlsr import RHO_MAX
 from ..render.scene import Atmosphere, Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
-from ..render.sensor import Sensor
+from ..render.sensor import Sensor, sensor_signal
 from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
-from .files import MANIFEST, RENDER_REVISION, sha256_file
+from .files import MANIFEST, RENDER_REVISION, SCHEMA_VERSION, sha256_file
+from .files import manifest as read_manifest
 
-SCHEMA_VERSION = 6  # 2: elm_valid column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface,
-# clothing and material columns, clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
+# SCHEMA_VERSION (in dataset.files: readers import it without torch; readers refuse other versions): 2: elm_valid
+# column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface, clothing and material columns,
+# clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
 # (sky_view, direct_share_*, light, backlit), sky_fraction derived; 5: one set of pixels per pose group (every sun x
 # skin of a group shades the same 2 x pixels_per_class pixels), panel medians from a capped sample (PANEL_SAMPLE);
 # 6: panel_irradiance_ratio column, elm_valid false where it exceeds render.elm.ELM_MAX_IRRADIANCE_RATIO, and
@@ -74,6 +78,10 @@ SHARE_BANDS = (0, 3)
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
 FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
 
+#: ``day_of_year`` of the rows of a light model without an atmosphere ("thesis"; the float atmosphere columns are
+#: NaN there): no day of year is 0
+NO_DAY_OF_YEAR = 0
+
 #: Parquet columns: name -> (pyarrow type name, description, unit)
 COLUMNS: dict[str, tuple[str, str, str]] = {
     "group": ("int32", "pose group index", ""),
@@ -87,11 +95,13 @@ COLUMNS: dict[str, tuple[str, str, str]] = {
     "relative_azimuth_deg": ("float32", "|sun azimuth - camera azimuth| folded to [0, 180]", "deg"),
     "range_m": ("float32", "camera range to the subject", "m"),
     "backlit": ("bool", "the camera looks towards the sun: relative azimuth >= 120 deg (BACKLIT_MIN_DEG)", ""),
-    "aerosol_500nm": ("float32", "light model atmosphere: aerosol optical depth at 500 nm", ""),
-    "precipitable_water_cm": ("float32", "light model atmosphere: precipitable water", "cm"),
-    "ozone_atm_cm": ("float32", "light model atmosphere: total ozone", "atm-cm"),
-    "pressure_pa": ("float32", "light model atmosphere: surface pressure", "Pa"),
-    "day_of_year": ("int16", "light model atmosphere: day of year", ""),
+    "aerosol_500nm": ("float32", "light model atmosphere: aerosol optical depth at 500 nm (NaN: a light model "
+                      "without an atmosphere, thesis)", ""),
+    "precipitable_water_cm": ("float32", "light model atmosphere: precipitable water (NaN: thesis)", "cm"),
+    "ozone_atm_cm": ("float32", "light model atmosphere: total ozone (NaN: thesis)", "atm-cm"),
+    "pressure_pa": ("float32", "light model atmosphere: surface pressure (NaN: thesis)", "Pa"),
+    "day_of_year": ("int16", "light model atmosphere: day of year, 1-366 (0: thesis, a light model without an "
+                    "atmosphere)", ""),
     "sky_fraction": ("float32", "derived: diffuse horizontal / direct normal irradiance at 544 nm", ""),
     "atmosphere_transmittance": ("float32", "sensor path transmittance at 544 nm", ""),
     "path_radiance_scale": ("float32", "path radiance scale (spectrl2: of Koschmieder's airlight; thesis: of the "
@@ -177,9 +187,11 @@ def group_scene(group: PoseGroup) -> Scene:
     from ..confusers import spectrum
 
     clothing = spectrum(group.clothing, INDEX_BANDS_NM) if group.clothing else FIXED_CLOTHING
+    # the spectra are at the INDEX_BANDS_NM: interpolated in wavelength for any bands (bands.at_wavelengths)
     mats = {"skin": Material("skin", skin="I-II", surface=group.surface),
-            "clothing": Material("lambertian", reflectance=clothing),
-            "ground": Material(group.ground_brdf, reflectance=GROUND_REFLECTANCE), **panel_materials(group.panels)}
+            "clothing": Material("lambertian", reflectance=at_wavelengths(clothing)),
+            "ground": Material(group.ground_brdf, reflectance=at_wavelengths(GROUND_REFLECTANCE)),
+            **panel_materials(group.panels)}
     if subject["kind"] == "anny":
         phenotype, pose = group_body(group)
         body = MeshSpec("subject", "anny", "skin", params={"phenotype": phenotype, "pose": pose, "cache": False},
@@ -194,7 +206,7 @@ def group_scene(group: PoseGroup) -> Scene:
         refl = spectrum(c["name"], INDEX_BANDS_NM)
         # "rtlsr" where its energy bound allows (rtlsr.RHO_MAX): brighter spectra stay Lambertian
         kind = group.ground_brdf if max(refl) <= RHO_MAX else "lambertian"
-        mats[f"confuser{k}"] = Material(kind, reflectance=refl)
+        mats[f"confuser{k}"] = Material(kind, reflectance=at_wavelengths(refl))
         confusers.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}",
                                   params={"width": c["size"], "height": c["size"]},
                                   position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
@@ -217,12 +229,15 @@ def group_sensor(group: PoseGroup, light: LightTables | None = None) -> Sensor:
     group's suns' mean isotropic sky, ``light``: the scene's light tables) and the airlight is scaled by
     ``path_radiance_scale``; under "thesis" the drawn transmittance and the sensor default's airlight, scaled."""
     scale = group.atmosphere["path_radiance_scale"]
+    path: PerBand
     if group.light["model"] == "spectrl2" and light is not None:
         atm = Atmosphere(**{k: group.light[k] for k in LIGHT_ATMOSPHERE})
         p = path_terms(atm, light.sky.double().mean(0).tolist(), INDEX_BANDS, group.camera["range_m"])
         tau, path = p["atmosphere_transmittance"], [x * scale for x in p["path_radiance"]]
     else:
-        tau, path = group.atmosphere["transmittance"], [p * scale for p in cast(list, Sensor().path_radiance)]
+        default = cast(dict, Sensor().path_radiance)  # a spectrum at the INDEX_BANDS_NM (bands.at_wavelengths)
+        tau = group.atmosphere["transmittance"]
+        path = at_wavelengths([p * scale for p in default["values"]], default["wavelengths_nm"])
     return Sensor(noise=group.sensor["noise"], read_noise_e=group.sensor["read_noise_e"], seed=group.sensor["seed"],
                   atmosphere_transmittance=tau, path_radiance=path)
 
@@ -284,7 +299,8 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     """Rows for every sun x skin of a pose group, as column -> list of numpy chunks: ``pixels_per_class`` skin
     and as many non-skin pixels (fewer if fewer are visible; balanced), drawn once for the group, under every
     configuration (sun x skin). With a list ``images``, the full reflectance cubes of the group, (skins, suns,
-    bands, H, W) float16, are appended to it. Shadow and sky rays are cast only for the sampled pixels and the
+    bands, H, W) float16, are appended to it, made with the rows' sensor draw (``frame_cubes``: a row is its
+    cube's pixel). Shadow and sky rays are cast only for the sampled pixels and the
     panels' capped sample (``PANEL_SAMPLE``; every pixel with ``images``). ``compile``: the renderer's compiled
     kernels (``render.kernels``)."""
     scene = group_scene(group)
@@ -303,18 +319,21 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     skins = group.skins
     if skins is None:
         raise ValueError(f"pose group {group.index} has no skins")
-    if images is not None:  # full frames of every skin x sun in one batch
-        full = render(scene, device=device, sensor=sensor, gbuffer=gb, raycaster=rc, skins=skins, panel_pixels=pix,
-                      compile=compile)
-        cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
-        images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     if m == 0:
+        if images is not None:  # no rows to agree with: the frames' own exposure and noise
+            full = render(scene, device=device, sensor=sensor, gbuffer=gb, raycaster=rc, skins=skins,
+                          panel_pixels=pix, compile=compile)
+            cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
+            images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
         return out
     # one set of pixels for the whole group (m skin, m other), shaded under every sun x skin in one batch: only the
     # kept pixels are shaded (each configuration's rows are these pixels under its sun and skin)
     picks = np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
     res = render_pixels(scene, torch.from_numpy(picks), device=device, sensor=sensor, gbuffer=gb, skins=skins,
                         panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS, light=light)
+    if images is not None:  # full frames of every skin x sun in one batch, with the rows' exposure, noise and ELM
+        cube = frame_cubes(scene, gb, rc, sensor, skins, pix, picks, res, device, compile)
+        images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
     sub = res.gbuffer  # the rendered pixels' G-buffer, shadows cast; rows skin-major, the first n_suns: skin 0
     sunlit = panels_sunlit(dataclasses.replace(sub, shadow=cast(torch.Tensor, sub.shadow)[:n_suns]).to("cpu"),
                            list(scene.panels), sun_dirs, pixels=[[ix.cpu() for ix in p] for p in res.panel_pixels])
@@ -326,6 +345,41 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     rows = configuration_rows(group, res, np.tile(picks, n_cfg), np.tile(np.arange(2 * m), n_cfg), gb, sun_dirs,
                               labels, elm_valid, light, sensor, ratio, line_ok)
     return {k: [v] for k, v in rows.items()}
+
+
+def frame_cubes(scene: Scene, gb: GBuffer, rc: Raycaster, sensor: Sensor, skins: tissue.SkinParams,
+                pix: list[list[torch.Tensor]], picks: np.ndarray, res: RenderResult, device: torch.device | str = "cpu",
+                compile: bool = False) -> np.ndarray:
+    """The full reflectance frames of a group's configurations, (skins·suns, bands, H, W) float16, made with the
+    draw of its rows (``res``: ``render_pixels`` of the flat pixels ``picks`` and the panels' sample ``pix``): the
+    same automatic exposure (the brightest of those pixels, per configuration and band), the same sensor noise at
+    those pixels (fresh draws from the same stream elsewhere) and the same empirical line (``res``'s panel
+    medians). So a row is its cube's pixel: its reflectance columns are the cube's value there (float16-rounded),
+    and the rows are the bytes they are without ``--images``. The frames' radiance is ``render``'s (a pixel's
+    shading and sky view do not depend on which other pixels are rendered)."""
+    full = render(scene, device=device, sensor=None, gbuffer=gb, raycaster=rc, skins=skins, panel_pixels=pix,
+                  compile=compile)
+    rad = full.radiance  # (S·K, 1, H, W, B)
+    n_cfg, n_bands = rad.shape[0], rad.shape[-1]
+    flat = rad.view(n_cfg, 1, -1, n_bands)
+    # the pixels render_pixels rendered, in its order (before its padding to PIXEL_MULTIPLE: copies of the first)
+    drawn = torch.cat([torch.from_numpy(picks).long(), *[per_cam[0].cpu().long() for per_cam in pix]]).to(rad.device)
+    reference = flat.index_select(2, drawn).amax(2)  # render_pixels' exposure: its brightest pixel, (S·K, 1, B)
+    noise = None
+    if sensor.noise:  # render_pixels' draws (render_gbuffer: a generator seeded with the sensor's seed), then more
+        gen = torch.Generator(device=rad.device)
+        gen.manual_seed(int(sensor.seed))
+        rendered = len(drawn) + (-len(drawn) % PIXEL_MULTIPLE)
+        rows_z = torch.randn((n_cfg, 1, 1, rendered, n_bands), generator=gen, dtype=rad.dtype, device=rad.device)
+        noise = torch.randn(rad.shape, generator=gen, dtype=rad.dtype, device=rad.device)
+        noise.view(n_cfg, 1, -1, n_bands)[:, :, drawn] = rows_z[:, :, 0, :len(drawn)]
+    signal = sensor_signal(rad, sensor, scene.band_list, scene.cameras[0].focal, reference=reference,
+                           compile=compile, noise=noise)
+    panels = [[res.panels[p][k] for p in res.panels] for k in ("signal", "reference")]  # (P, S·K, C, B) each
+    pv, refs = (torch.tensor(x, dtype=signal.dtype, device=signal.device).permute(1, 2, 0, 3).contiguous()
+                for x in panels)
+    refl = calibrate_detect(signal, pv, refs, full.gbuffer.hit, scene.band_list, DEFAULT_BOX, compile)[0]
+    return refl[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
 
 
 def line_valid(res: RenderResult, sensor: Sensor) -> np.ndarray:
@@ -360,9 +414,9 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     skins = cast(tissue.SkinParams, group.skins)
     const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
              "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
-             "atmosphere_transmittance": float(np.atleast_1d(sensor.atmosphere_transmittance)[0]),
+             "atmosphere_transmittance": per_band(sensor.atmosphere_transmittance, DEFAULT_BANDS, "transmittance")[0],
              "path_radiance_scale": group.atmosphere["path_radiance_scale"],
-             **{k: group.light[k] for k in LIGHT_ATMOSPHERE},
+             **atmosphere_columns(group.light),
              "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
              "head_yaw_deg": group.subject.get("head_yaw_deg", math.nan),
              "head_pitch_deg": group.subject.get("head_pitch_deg", math.nan),
@@ -408,6 +462,20 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
     rows["direct_share_544"], rows["direct_share_1580"] = share[:, 0], share[:, 1]
     return {k: rows[k] for k in COLUMNS}
+
+
+def atmosphere_columns(light: dict) -> dict[str, float | int]:
+    """The light-model atmosphere columns of a pose group's rows (``LIGHT_ATMOSPHERE``): the drawn atmosphere
+    under a light model that reads one (``light.uses_atmosphere``: "spectrl2"); under one that does not
+    ("thesis"), empty: NaN, and ``NO_DAY_OF_YEAR`` for the integer ``day_of_year``.
+
+    >>> atmosphere_columns({"model": "thesis", "aerosol_500nm": 0.2, "precipitable_water_cm": 1.0,
+    ...                     "ozone_atm_cm": 0.3, "pressure_pa": 9e4, "day_of_year": 100})
+    {'aerosol_500nm': nan, 'precipitable_water_cm': nan, 'ozone_atm_cm': nan, 'pressure_pa': nan, 'day_of_year': 0}
+    """
+    if uses_atmosphere(light["model"]):
+        return {k: light[k] for k in LIGHT_ATMOSPHERE}
+    return {k: NO_DAY_OF_YEAR if k == "day_of_year" else math.nan for k in LIGHT_ATMOSPHERE}
 
 
 def strings(codes: np.ndarray, vocabulary: Sequence[str] | np.ndarray):
@@ -531,12 +599,12 @@ def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], i
 
 def verify(out_dir: str | os.PathLike) -> dict:
     """Check a dataset folder against its manifest: missing, partial (temporary leftovers or unreadable)
-    and corrupted (checksum mismatch) shards. ``ok`` is True when everything matches."""
+    and corrupted (checksum mismatch) shards. ``ok`` is True when everything matches. A manifest of a schema this
+    torchskin does not read is a ``ValueError`` (``dataset.files.manifest``)."""
     out = Path(out_dir)
-    mpath = out / MANIFEST
-    if not mpath.is_file():
+    man = read_manifest(out)  # a schema this torchskin does not read is refused (dataset.files.manifest)
+    if man is None:
         raise ValueError(f"{str(out)!r} has no {MANIFEST}: not a torchskin dataset")
-    man = json.loads(mpath.read_text())
     listed = {s["name"]: s for s in man["shards"]}
     missing, corrupted = [], []
     for k in range(man["n_shards"]):
@@ -689,8 +757,7 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
     if out.exists() and not out.is_dir():
         raise ValueError(f"output {str(out)!r} exists and is not a folder")
     existing = [p for p in out.iterdir()] if out.is_dir() else []
-    if existing and not (resume or overwrite):
-        raise ValueError(f"output folder {str(out)!r} is not empty: pass --resume to continue or --overwrite")
+    check_folder_empty(out, "output", resume or overwrite, "--resume to continue")
     reclaim = sum(p.stat().st_size for p in _dataset_files(out)) if existing and overwrite and not resume else 0
     if not resume:  # a resumed run checks once it knows which shards are still to write
         check_disk_space(out, estimate_bytes(cfg, n_configs, images), reclaim)

@@ -48,6 +48,7 @@ import torch
 from torch import nn
 
 from ..detect import rules_detector
+from ..errors import Failure
 from .features import (
     BAND_COLUMNS,
     FEATURE_DOMAIN,
@@ -684,8 +685,8 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         The model (eval mode) and a summary: method, rows, loss, scale, ndvn_min, pfa_budget, pfa_train_worst,
         train_coverage, calibration_configs (the number of tuning configurations), options.
 
-    Raises ``ValueError`` on a bad method or budget, or when the boxes hold less than ``MIN_TRAIN_COVERAGE`` of
-    the training skin pixels. (No doctest: even a tiny run trains for seconds; see tests/test_boundaries_onnx.py.)
+    Raises ``ValueError`` on a bad method or budget, and ``errors.Failure`` (a failure, not bad input: exit status
+    1 on the command line) when the boxes hold less than ``MIN_TRAIN_COVERAGE`` of the training skin pixels. (No doctest: even a tiny run trains for seconds; see tests/test_boundaries_onnx.py.)
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -717,7 +718,7 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
         pfa_scene = scene_rate(res.model, *scene) if scene is not None else None
         coverage = train_coverage(res.model, X, Y)
     if coverage < MIN_TRAIN_COVERAGE:
-        raise ValueError(f"training failed: the learned boxes hold only {coverage:.3f} of the training skin pixels "
+        raise Failure(f"training failed: the learned boxes hold only {coverage:.3f} of the training skin pixels "
                          f"(< {MIN_TRAIN_COVERAGE}); the optimisation left the data. Try another seed (--seed) or "
                          "fewer hidden units (--hidden), or check the dataset and the false-alarm budget")
     return res.model, {"method": method, "rows": res.rows, "loss": res.loss, "scale": scale,

@@ -24,7 +24,9 @@ Built-in models:
   be above the horizon (zenith < 90°).
 - ``"thesis"``: the thesis's lamp, a ``Sun.temperature_k`` blackbody scaled to the solar disc's solid angle
   (thesis Fig 1, eq 2.1.8) times ``Sun.scale``, the same at every sun height, and a grey sky of ``sky_fraction``
-  times it; no circumsolar part and no ground-reflected light (``torchskin experiment`` renders with it).
+  times it; no circumsolar part, no ground-reflected light and no atmosphere: ``Sun.atmosphere`` is not read, and
+  ``render.json`` and the dataset's rows leave it empty (``uses_atmosphere``; ``torchskin experiment`` renders with
+  it).
 
 >>> import torch
 >>> from torchskin.render.scene import Sun
@@ -90,10 +92,24 @@ class LightSpectra:
 @dataclass(frozen=True)
 class LightModel:
     """A registry entry: ``spectra(suns, grid)`` -> ``LightSpectra``; ``check(sun)``: ``ValueError`` naming what a
-    sun lacks for this model, before anything is computed."""
+    sun lacks for this model, before anything is computed; ``atmosphere``: whether the model reads
+    ``Sun.atmosphere`` (``uses_atmosphere``: what ``render.json`` and the dataset's rows record; a model that reads
+    none, as "thesis", leaves it empty there)."""
 
     spectra: Callable[[Sequence[Sun], torch.Tensor], LightSpectra]
     check: Callable[[Sun], None] | None = None
+    atmosphere: bool = True
+
+
+def uses_atmosphere(name: str) -> bool:
+    """Whether the light model ``name`` reads its suns' ``scene.Atmosphere`` ("spectrl2": yes; "thesis": no; a
+    name not registered: yes, so nothing is dropped from a record). Reports record the atmosphere only then.
+
+    >>> uses_atmosphere("spectrl2"), uses_atmosphere("thesis")
+    (True, False)
+    """
+    model = MODELS.get(name)
+    return model is None or model.atmosphere
 
 
 MODELS: dict[str, LightModel] = {}
@@ -292,4 +308,4 @@ def _spectrl2(suns: Sequence[Sun], grid: torch.Tensor) -> LightSpectra:
 
 
 register("spectrl2", LightModel(_spectrl2, _check_spectrl2))
-register("thesis", LightModel(_thesis))
+register("thesis", LightModel(_thesis, atmosphere=False))

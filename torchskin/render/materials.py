@@ -33,7 +33,7 @@ from typing import cast
 import torch
 
 from .. import data, tissue
-from ..bands import Band, as_bands, band_sampling, per_band
+from ..bands import Band, PerBand, as_bands, band_sampling, per_band, setting_values
 from ..optics import SURFACE_MODELS, THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
 from .light import check_light
 from .rtlsr import DEFAULT_KERNELS, check_rtlsr, kernel_weights, rtlsr_brdf_cos
@@ -149,7 +149,7 @@ def check_material(material: Material, bands: Sequence[Band] | None = None) -> M
         if entry.check is not None:
             entry.check(material)
         if bands is not None and name == "lambertian":
-            per_band(cast(float | list[float], material.reflectance), bands, "a lambertian reflectance")
+            per_band(cast(PerBand, material.reflectance), bands, "a lambertian reflectance")
     except TypeError as e:
         raise ValueError(f"malformed {material.kind} material: {e}") from None
     return entry
@@ -168,15 +168,15 @@ def check_materials(materials: dict[str, Material], bands: Sequence[Band] | None
 # ------------------------------------------------------------------------------------------ built-in kinds
 def _check_lambertian(m: Material) -> None:
     if m.reflectance is None:
-        raise ValueError("a lambertian material needs reflectance (one value or one per band)")
-    vals = list(m.reflectance) if isinstance(m.reflectance, (list, tuple)) else [m.reflectance]
-    for v in vals:
+        raise ValueError("a lambertian material needs reflectance (one value, one per band or a spectrum at "
+                         "wavelengths)")
+    for v in setting_values(m.reflectance, "reflectance"):
         if not (0.0 <= float(v) <= 1.0):
             raise ValueError(f"reflectance must lie in [0, 1], got {v}")
 
 
 def _lambertian(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
-    r = torch.tensor(per_band(cast(float | list[float], m.reflectance), sp.bands, "a lambertian reflectance"),
+    r = torch.tensor(per_band(cast(PerBand, m.reflectance), sp.bands, "a lambertian reflectance"),
                      dtype=torch.float64)  # checked: not None
     return Compiled(albedo=r[None])
 
@@ -255,15 +255,16 @@ def _skin_brdf(ci: torch.Tensor, cr: torch.Tensor, c2b: torch.Tensor, p: dict[st
 
 def _check_rtlsr(m: Material) -> None:
     if m.reflectance is None:
-        raise ValueError("an rtlsr material needs reflectance (its white-sky albedo: one value or one per band)")
+        raise ValueError("an rtlsr material needs reflectance (its white-sky albedo: one value, one per band or a "
+                         "spectrum at wavelengths)")
     _check_lambertian(m)
-    check_rtlsr(m.reflectance, m.params)
+    check_rtlsr(setting_values(cast(PerBand, m.reflectance)), m.params)
 
 
 def _rtlsr(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
     """The white-sky albedo per band is the albedo; the Roy et al. (2016) kernel weights scaled to it
     (``rtlsr.kernel_weights``) are the BRDF's parameters."""
-    rho = torch.tensor(per_band(cast(float | list[float], m.reflectance), sp.bands, "an rtlsr reflectance"),
+    rho = torch.tensor(per_band(cast(PerBand, m.reflectance), sp.bands, "an rtlsr reflectance"),
                        dtype=torch.float64)
     f_iso, f_vol, f_geo = kernel_weights(rho, sp.wavelengths, m.params.get("kernels", DEFAULT_KERNELS))
     return Compiled(albedo=rho[None], params={"f_iso": f_iso[None], "f_vol": f_vol[None], "f_geo": f_geo[None]})

@@ -24,8 +24,9 @@ from .elm import (
     panel_regions,
     panel_sunlit_fraction,
 )
+from .light import uses_atmosphere
 from .pipeline import RenderResult
-from .scene import Scene
+from .scene import DEFAULT_ILLUMINATION, Scene
 from .sensor import Sensor
 
 
@@ -131,6 +132,25 @@ def elm_warning(info: dict) -> str | None:
             "their reflectance and the reflectance is not physical (elm_valid false)")
 
 
+def previous_outputs(out_dir: str | Path) -> list[Path]:
+    """The files an earlier ``write_outputs`` left in ``out_dir`` as its ``render.json`` lists them: the cubes and
+    their sidecars (``cubes``), the band PNGs (``bands_nm``), the mask PNGs and ``render.json`` itself; those that
+    exist. ``torchskin render --overwrite`` removes them before writing, so that the folder holds one render (not
+    an earlier render's cubes of another ``--format`` or PNGs of other ``--bands``). [] without a readable
+    ``render.json``; other files are never listed."""
+    out = Path(out_dir)
+    try:
+        doc = json.loads((out / "render.json").read_text())
+        names = ["render.json", "mask.png", "mask_annotated.png"]
+        names += [f"band_{float(b[0]):g}nm.png" for b in doc.get("bands_nm", [])]
+        for quantity in ("reflectance", "signal"):
+            names += [str(f) for f in doc.get("cubes", {}).get(quantity, {}).get("files", [])]
+    except (OSError, ValueError, TypeError, AttributeError, IndexError, KeyError):
+        return []
+    paths = [out / n for n in dict.fromkeys(names) if Path(n).name == n]  # plain names inside out_dir only
+    return [p for p in paths if p.is_file()]
+
+
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
                   sensor: Sensor | None = None, fmt: str = "npy") -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
@@ -139,8 +159,9 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     RGB PNG of exactly the frame's H x W pixels (one per frame pixel, no axes or title; ``plots.mask_png``),
     detected skin green (26, 217, 51), missed skin red (230, 38, 26), false alarms yellow (255, 230, 26),
     everything else black; the same mask as an annotated figure with a colour key, ``mask_annotated.png``; and
-    ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``; timing, panels with their pixel regions,
-    detections) in ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
+    ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``, each sun's ``atmosphere`` null under a light
+    model that reads none, ``light.uses_atmosphere``; timing, panels with their pixel regions, detections) in
+    ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
     model judges the empirical line, ``summary``). ``fmt``: the cubes' format, "npy" (the default, above), "envi"
     (``reflectance.hdr`` over ``reflectance.img``, ``signal.hdr`` over ``signal.img``) or "tiff"
     (``reflectance.tif``, ``signal.tif``), each with its wavelengths, FWHM and units in the header
@@ -153,6 +174,8 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
         suns = Scene.from_dict(scene).suns
     if not isinstance(scene, dict):
         raise TypeError(f"scene must be a Scene or its to_dict(), got {type(scene).__name__}")  # before any file
+    if not uses_atmosphere(scene.get("illumination", DEFAULT_ILLUMINATION)):  # record what the light used
+        scene = {**scene, "suns": [{**sun, "atmosphere": None} for sun in scene["suns"]]}
     from ..cubefiles import QUANTITY_UNITS, WRITE_FORMATS, write_cube
     from ..plots import band_images, mask_image, mask_png
 

@@ -27,7 +27,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..bands import INDEX_BANDS_NM, Band, as_bands, check_ascending
+from ..bands import INDEX_BANDS_NM, Band, as_bands, at_wavelengths, check_ascending
 from ..io import write_text
 
 
@@ -54,7 +54,9 @@ class Material:
 
     Built-in kinds (``render.materials`` checks the parameters when the scene is compiled):
 
-    - ``kind="lambertian"``: ``reflectance`` is one value or one per band;
+    - ``kind="lambertian"``: ``reflectance`` is one value, one per band, or a spectrum given at wavelengths
+      (``bands.at_wavelengths``: ``{"wavelengths_nm": [...], "values": [...]}``, interpolated linearly in
+      wavelength at each band, as the default scene's clothing and ground are given at ``INDEX_BANDS_NM``);
     - ``kind="spectralon"``: the Table 3 DHR of ``panel`` ("white" or "dark"), Lambertian, or with
       ``brdf=True`` the Spectralon-like BRDF of ``optics.spectralon_brdf_cos`` (a weak forward lobe growing
       with incidence, Appendix B);
@@ -65,7 +67,7 @@ class Material:
       front surface included, as the thesis defines it and as its measured images support) or "conserving"
       (the subsurface part only: energy-conserving).
     - ``kind="rtlsr"``: the MODIS kernel-driven Ross-Thick / Li-Sparse-Reciprocal BRDF (``render.rtlsr``) with
-      ``reflectance`` its white-sky albedo (one value or one per band, at most ``rtlsr.RHO_MAX``) and the shape
+      ``reflectance`` its white-sky albedo (as a lambertian reflectance, at most ``rtlsr.RHO_MAX``) and the shape
       of Roy et al. (2016)'s global Landsat kernel weights; ``params`` may name the table, ``{"kernels":
       "roy2016"}`` (the default and only one).
 
@@ -73,7 +75,7 @@ class Material:
     """
 
     kind: str = "lambertian"
-    reflectance: float | list[float] | None = None
+    reflectance: float | list[float] | dict[str, list[float]] | None = None
     panel: str | None = None
     skin: str | dict | None = None
     specular: bool = True
@@ -434,8 +436,9 @@ def default_scene(
     z up."""
     mats = {
         "skin": Material("skin", skin=skin, specular=not diffuse_only, surface=surface),
-        "clothing": Material("lambertian", reflectance=[0.12, 0.10, 0.35, 0.30]),
-        "ground": Material("lambertian", reflectance=[0.15, 0.18, 0.30, 0.25]),
+        # four-value spectra at the INDEX_BANDS_NM: interpolated in wavelength for any --bands (bands.per_band)
+        "clothing": Material("lambertian", reflectance=at_wavelengths([0.12, 0.10, 0.35, 0.30])),
+        "ground": Material("lambertian", reflectance=at_wavelengths([0.15, 0.18, 0.30, 0.25])),
     }
     mats.update(panel_materials(panels))
     if isinstance(subject, MeshSpec):

@@ -17,14 +17,16 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..bands import Band, per_band
+from ..bands import Band, PerBand, at_wavelengths, per_band
 from .kernels import KERNELS, aperture_radiance, band_tiles, sensor_dn, tile
 from .light import C_LIGHT, H_PLANCK
 
 
 @dataclass
 class Sensor:
-    """Radiometric chain of eq 2.5.2 and the atmosphere of eq 2.5.1, per band (lists or one value).
+    """Radiometric chain of eq 2.5.2 and the atmosphere of eq 2.5.1, per band: each per-band field is one value,
+    one per band or a spectrum at wavelengths (``bands.per_band``); the defaults are spectra at the
+    ``INDEX_BANDS_NM`` (``bands.at_wavelengths``), interpolated in wavelength for other bands.
 
     L_aperture = τ_atm L + L_path; photoelectrons = L_aperture Ω_pixel A_optic τ_filter Δλ (λ/hc) t_int η;
     then shot noise (Gaussian approximation of Poisson, valid above ~100 e-), read noise, full-well
@@ -38,11 +40,11 @@ class Sensor:
     aperture_diameter_m: float = 0.05
     integration_time_s: float | str = "auto"
     auto_fill: float = 0.8
-    quantum_efficiency: float | list = field(default_factory=lambda: [0.55, 0.65, 0.75, 0.70])
-    filter_transmittance: float | list = 0.9
-    band_width_nm: float | list | None = None  # default: each band's FWHM, or 10 nm for monochromatic bands
-    atmosphere_transmittance: float | list = field(default_factory=lambda: [0.95, 0.96, 0.97, 0.93])
-    path_radiance: float | list = field(default_factory=lambda: [0.004, 0.003, 0.001, 0.0003])
+    quantum_efficiency: PerBand = field(default_factory=lambda: at_wavelengths([0.55, 0.65, 0.75, 0.70]))
+    filter_transmittance: PerBand = 0.9
+    band_width_nm: PerBand | None = None  # default: each band's FWHM, or 10 nm for monochromatic bands
+    atmosphere_transmittance: PerBand = field(default_factory=lambda: at_wavelengths([0.95, 0.96, 0.97, 0.93]))
+    path_radiance: PerBand = field(default_factory=lambda: at_wavelengths([0.004, 0.003, 0.001, 0.0003]))
     read_noise_e: float = 50.0
     full_well_e: float = 2.0e6
     adc_bits: int = 14
@@ -98,13 +100,14 @@ def band_max(x: torch.Tensor) -> torch.Tensor:
 
 def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands: Sequence[Band], focal_px: float,
                   generator: torch.Generator | None = None, reference: torch.Tensor | None = None,
-                  compile: bool = False) -> torch.Tensor:
+                  compile: bool = False, noise: torch.Tensor | None = None) -> torch.Tensor:
     """Digital numbers from at-surface radiance (W m^-2 sr^-1 nm^-1) of shape ``(S, C, ..., B)``.
     ``sensor=None`` returns the radiance unchanged (an ideal linear sensor). ``reference`` (S, C, B): the
     radiance that automatic exposure maps to ``auto_fill`` of the full well (default: the frame's maximum).
 
     Shot and read noise are independent Gaussians, drawn as one: σ² = N_e + σ_read² (electrons), from
-    ``generator`` in eager mode. ``compile``: the rest as one fused compiled kernel (``kernels.sensor_dn``).
+    ``generator`` in eager mode, or given: ``noise``, standard normal draws of the radiance's shape (another
+    render's draws, reused). ``compile``: the rest as one fused compiled kernel (``kernels.sensor_dn``).
     """
     if sensor is None:
         return radiance
@@ -124,8 +127,10 @@ def sensor_signal(radiance: torch.Tensor, sensor: Sensor | None, bands: Sequence
         k = k * float(sensor.integration_time_s)
     levels = 2 ** int(sensor.adc_bits)
     g = levels / sensor.full_well_e  # DN per electron
-    z = torch.randn(radiance.shape, generator=generator, dtype=radiance.dtype, device=radiance.device) \
-        if sensor.noise else None  # drawn eagerly, whichever path computes the rest
+    if noise is not None and noise.shape != radiance.shape:
+        raise ValueError(f"noise must have the radiance's shape {tuple(radiance.shape)}, got {tuple(noise.shape)}")
+    z = None if not sensor.noise else noise.to(radiance) if noise is not None else \
+        torch.randn(radiance.shape, generator=generator, dtype=radiance.dtype, device=radiance.device)  # eagerly
     gain = k * g
     x, gain, tiles = band_tiles(radiance, gain if gain.dim() == 1 else gain.reshape(S, C, B))
     dn_per_e, read2 = (torch.tensor(v, dtype=radiance.dtype, device=radiance.device)
