@@ -1,7 +1,8 @@
 """Generate a tiny labelled-pixel dataset and read it with pandas (and, with ``--ray``, with Ray Data).
 
 The subject is an icosphere OBJ (``subject.meshes``) rather than an anny body, and the frames are 64 x 64, so
-generation takes seconds; the rows are sampled skin / non-skin pixels with their ELM reflectance and indices.
+generation takes seconds; the rows are sampled skin / non-skin pixels with their ELM reflectance and indices. The
+columns are ``torchskin.dataset.schema.COLUMNS``; ``torchskin.dataset.files.read_rows`` is torchskin's own reader.
 
     .venv/bin/python examples/dataset_with_pandas.py                 # about 10 s on 2 CPU cores
     .venv/bin/python examples/dataset_with_pandas.py --configs 48 --ray
@@ -13,11 +14,13 @@ The command line does the same from a TOML file of these settings: ``torchskin g
 import argparse
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from torchskin.dataset.config import resolve_config
-from torchskin.dataset.files import manifest, open_dataset
+from torchskin.dataset.files import manifest, open_dataset, read_rows
 from torchskin.dataset.generate import generate
+from torchskin.dataset.schema import BAND_COLUMNS
 from torchskin.render.meshes import sphere_mesh
 
 
@@ -55,6 +58,13 @@ def main() -> None:
 
     # pyarrow directly, with a check that the columns exist (a one-line error for a folder that is not a dataset)
     print("pyarrow rows:", open_dataset(data, ["label", "ndsi"]).count_rows())
+
+    # torchskin's own reader (what training and evaluation read): the rows of frames with a physical ELM as numpy
+    # columns, and any band pair's normalized difference as the detectors compute it (NDVN: visible against NIR)
+    rows = read_rows(data, ["label", *BAND_COLUMNS])
+    ndvn, skin = rows.index("ndvn"), rows["label"]
+    print(f"read_rows: {len(rows)} rows ({rows.excluded} of frames without a physical ELM left out); mean NDVN "
+          f"of skin {np.nanmean(ndvn[skin]):.3f}, of the rest {np.nanmean(ndvn[~skin]):.3f}")
 
     if args.ray:  # the same folder as a Ray dataset: one read task per shard, on a local cluster here
         import ray

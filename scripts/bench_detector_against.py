@@ -10,8 +10,9 @@ checkout with the shipped floor (the shipped model's ``min_reflectance``, ``eval
 
 - ``--graphs shipped`` (default): the detector each commit shipped (``exports/detector.onnx`` at COMMIT; this
   checkout's ``torchskin/data/detector.onnx``), the trained boxes a user runs;
-- ``--graphs default``: each commit's export code on a default ``BoundaryModel`` initialised from seed 0 (an
-  untrained model's boxes, so the share of a frame they take, and with it the floor's path, is chance).
+- ``--graphs default``: each commit's export code on a default box model (``BoxModel``; ``BoundaryModel`` in
+  older commits) initialised from seed 0 (an untrained model's boxes, so the share of a frame they take, and with
+  it the floor's path, is chance).
 
 Both run the benchmark frame of ``torchskin bench --only detector_onnx`` (1024 x 1024 x 4 float32) in alternating
 order; the read floor is one numpy sum of the frame. Prints the medians, the median of the paired ratios
@@ -62,9 +63,9 @@ def main() -> int:
         else:
             code = ("import sys; sys.path.insert(0, sys.argv[1]); import torch; torch.manual_seed(0)\n"
                     "from torchskin.export import export\n"
-                    "try:\n from torchskin.detectors.boxes import BoundaryModel\n"
-                    "except ImportError:\n from torchskin.boundaries import BoundaryModel\n"
-                    "export(BoundaryModel(), sys.argv[2])")
+                    "try:\n from torchskin.detectors import boxes as B\n"
+                    "except ImportError:\n from torchskin import boundaries as B\n"  # commits before the kinds
+                    "export((getattr(B, 'BoxModel', None) or B.BoundaryModel)(), sys.argv[2])")
             subprocess.run([sys.executable, "-c", code, src, os.path.join(d, "old")], check=True,
                            capture_output=True)
         os.rename(os.path.join(src, "torchskin"), os.path.join(src, "torchskin_old"))
@@ -72,7 +73,7 @@ def main() -> int:
         import torch
         import torchskin_old.onboard as old_onboard  # type: ignore[import-not-found]
 
-        from torchskin.detectors.boxes import BoundaryModel
+        from torchskin.detectors.boxes import BoxModel
         from torchskin.evaluate import MIN_REFLECTANCE
         from torchskin.export import export
         from torchskin.onboard import SHIPPED_DETECTOR, OnboardDetector
@@ -81,7 +82,7 @@ def main() -> int:
             path = str(SHIPPED_DETECTOR)
         else:
             torch.manual_seed(0)
-            path = export(BoundaryModel(), os.path.join(d, "new"))["detector"]
+            path = export(BoxModel(), os.path.join(d, "new"))["detector"]
         Old = getattr(old_onboard, "OnboardDetector", None) or old_onboard.Detector
         old = Old(os.path.join(d, "old", "detector.onnx"), threads=args.threads)
         new = OnboardDetector(path, threads=args.threads, tile=args.tile)

@@ -68,10 +68,10 @@ def run(argv=None) -> int:
     import onnx
     import torch
 
-    from torchskin import boundaries as Bd
     from torchskin import tissue
+    from torchskin.detectors import boxes as Bx
     from torchskin.detectors import registry
-    from torchskin.onboard import Boundaries, OnboardDetector
+    from torchskin.onboard import OnboardBoxes, OnboardDetector
 
     out = Path(a.exports)
     missing = [f for f in FILES if not (out / f).is_file()]
@@ -93,14 +93,14 @@ def run(argv=None) -> int:
               and len(meta.get("training_manifest_sha256", "")) == 64 and meta.get("torchskin_version")
               and meta.get("skin_surface_model") == "thesis" and len(json.loads(meta["box_order"])) == 5,
               f"{name}.onnx: checker, opset >= 17, metadata (skin surface model {meta.get('skin_surface_model')!r})")
-    model = Bd.load(out / "boundaries.pt")
+    model = Bx.load(out / "boundaries.pt")
     lo, hi = model.domain[:, 0], model.domain[:, 1]
     cfg = lo + (hi - lo) * torch.rand(4096, len(model.features), generator=torch.Generator().manual_seed(0))
     for name in ("boundaries", "baseline_box"):
-        m = Bd.load(out / f"{name}.pt")
+        m = Bx.load(out / f"{name}.pt")
         with torch.no_grad():
             ref = m(cfg).numpy()
-        got = Boundaries(out / f"{name}.onnx")(cfg.numpy())
+        got = OnboardBoxes(out / f"{name}.onnx")(cfg.numpy())
         err = float(np.abs(got["boxes"] - ref).max())
         check(err < 1e-5 and not got["out_of_domain"].any(), f"{name}.onnx vs {name}.pt: max |diff| {err:.1e}")
     sel = json.loads((out / "selection.json").read_text())

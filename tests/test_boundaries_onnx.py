@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchskin import boundaries as Bd
-from torchskin.export import BoxDetector, export
+from torchskin.detectors import boxes as Bx
+from torchskin.detectors.boxes import BoxDetector
+from torchskin.detectors.features import FEATURES, ratio_indices, tuning_configs
+from torchskin.export import export
 
 pytestmark = pytest.mark.slow  # most tests train boundaries or share the module fixture that does
 
@@ -27,7 +29,7 @@ def synthetic(n=4000, seed=0):
 @pytest.fixture(scope="module")
 def trained():
     X, Y = synthetic()
-    return X, Y, Bd.train_quantiles(X, Y, q=0.05, steps=1500)
+    return X, Y, Bx.train_quantiles(X, Y, q=0.05, steps=1500)
 
 
 def test_learned_boxes_are_accurate_conditional_quantiles(trained):
@@ -47,10 +49,10 @@ def test_learned_boxes_are_accurate_conditional_quantiles(trained):
 
 def test_checkpoint_round_trip(trained, tmp_path):
     X, _, res = trained
-    Bd.save(res.model, tmp_path / "m.pt", {"note": "test"})
-    Bd.save(res.model, tmp_path / "m2.pt", {"note": "test"})
+    Bx.save(res.model, tmp_path / "m.pt", {"note": "test"})
+    Bx.save(res.model, tmp_path / "m2.pt", {"note": "test"})
     assert (tmp_path / "m.pt").read_bytes() == (tmp_path / "m2.pt").read_bytes()  # reproducible bytes
-    back = Bd.load(tmp_path / "m.pt")
+    back = Bx.load(tmp_path / "m.pt")
     torch.testing.assert_close(back(X[:50]), res.model(X[:50]))
 
 
@@ -61,7 +63,7 @@ def test_onnx_matches_torch_and_runs_without_torch(trained, tmp_path):
     paths = export(res.model, tmp_path, manifest_sha256="abc123")
     m = onnx.load(paths["detector"])
     meta = {p.key: p.value for p in m.metadata_props}
-    assert m.opset_import[0].version >= 17 and json.loads(meta["features"]) == list(Bd.FEATURES)
+    assert m.opset_import[0].version >= 17 and json.loads(meta["features"]) == list(FEATURES)
     assert meta["training_manifest_sha256"] == "abc123" and json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0]
     g = torch.Generator().manual_seed(3)
     cube = (torch.rand(3, 4, 17, 23, generator=g) * 0.6 + 0.02).float()
@@ -76,8 +78,8 @@ def test_onnx_matches_torch_and_runs_without_torch(trained, tmp_path):
 import sys, json
 sys.modules["torch"] = None  # importing torch must fail here
 import numpy as np
-from torchskin.onboard import Boundaries, OnboardDetector
-d = OnboardDetector({paths['detector']!r}); b = Boundaries({paths['boundaries']!r})
+from torchskin.onboard import OnboardBoxes, OnboardDetector
+d = OnboardDetector({paths['detector']!r}); b = OnboardBoxes({paths['boundaries']!r})
 out = d(np.load({str(tmp_path / 'cube.npy')!r}), np.load({str(tmp_path / 'cfg.npy')!r}))
 np.save({str(tmp_path / 'mask.npy')!r}, out["mask"]); np.save({str(tmp_path / 'score.npy')!r}, out["score"])
 np.save({str(tmp_path / 'boxes.npy')!r}, b(np.load({str(tmp_path / 'x.npy')!r}))["boxes"])
@@ -135,15 +137,15 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
                  "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"] > 100
     # the training domain is the dataset's declared ranges, not the extremes of its few draws
-    assert Bd.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
+    assert Bx.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
     # calibration to the budgets on a validation set: one scale, never looser than training's; the record kept
     from torchskin.evaluate import calibrate_to_budget, evaluate
 
     loose = calibrate_to_budget(tmp_path / "m.pt", tmp_path / "data", tmp_path / "loose.pt", scene_budget=0.5)
-    assert loose["after"] == loose["before"] == float(Bd.load(tmp_path / "m.pt").scale)
+    assert loose["after"] == loose["before"] == float(Bx.load(tmp_path / "m.pt").scale)
     tight = calibrate_to_budget(tmp_path / "m.pt", tmp_path / "data", tmp_path / "tight.pt", scene_budget=0.0)
     assert tight["knob"] == "scale" and tight["after"] <= tight["before"] and tight["pfa_scene"] == 0.0
-    assert float(Bd.load(tmp_path / "tight.pt").scale) == tight["after"]
+    assert float(Bx.load(tmp_path / "tight.pt").scale) == tight["after"]
     assert torch.load(tmp_path / "tight.pt", weights_only=True)["meta"]["calibration"] == tight
     judged = evaluate(tmp_path / "data", [tmp_path / "tight.pt"])["models"][0]["overall"]
     assert judged["pfa_scene"] == 0.0 and judged["pfa"] <= 1e-3
@@ -180,9 +182,9 @@ def test_false_alarm_tuning_and_evaluation(tmp_path, trained, capsys):
     X, Y, res = trained
     model = res.model
     pts = torch.tensor([[-0.30, 0.70], [-0.25, 0.72], [0.4, 0.1]])  # two confusers inside typical boxes
-    before = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
-    scale = Bd.tune_false_alarms(model, X[:200], pts, budget=0.0)
-    after = float(Bd.false_alarm_rate(model(X[:200]).detach(), pts).max())
+    before = float(Bx.false_alarm_rate(model(X[:200]).detach(), pts).max())
+    scale = Bx.tune_false_alarms(model, X[:200], pts, budget=0.0)
+    after = float(Bx.false_alarm_rate(model(X[:200]).detach(), pts).max())
     assert before > 0 and after == 0.0 and 0.0 <= scale < 1.0
     model.scale.fill_(1.0)
     # evaluation against the static box on a tiny hand-made dataset folder
@@ -211,7 +213,7 @@ def test_false_alarm_tuning_and_evaluation(tmp_path, trained, capsys):
                              "theta_i_deg": torch.full((n,), 60.0).numpy(),
                              "theta_r_deg": torch.where(glint, 60.0, 0.0).numpy(),
                              "delta_phi_deg": torch.where(glint, 180.0, 0.0).numpy()}), d / "shard-00000.parquet")
-    Bd.save(model, tmp_path / "m.pt")
+    Bx.save(model, tmp_path / "m.pt")
     r = evaluate(d, tmp_path / "m.pt")
     inside = ((ndgri >= DEFAULT_BOX.b1) & (ndgri <= DEFAULT_BOX.b2) & (ndsi >= DEFAULT_BOX.c1) & (ndsi <= DEFAULT_BOX.c2))
     assert r["static"]["pd"] == pytest.approx(float(inside[label].float().mean()))
@@ -263,17 +265,17 @@ def diagonal(n=6000, seed=0):
 
 def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
     X, Y, C = diagonal()
-    res = Bd.train_boxes(X, Y, C, steps=800, margin=0.02)
-    flat = Bd.train_boxes(X, Y, C, hidden=0, steps=800, margin=0.02)
+    res = Bx.train_boxes(X, Y, C, steps=800, margin=0.02)
+    flat = Bx.train_boxes(X, Y, C, hidden=0, steps=800, margin=0.02)
     Xt, Yt, _ = diagonal(20000, seed=1)
     with torch.no_grad():
-        pd = float(Bd.soft_inside(res.model(Xt), Yt, 1e-9).mean())
-        pd_flat = float(Bd.soft_inside(flat.model(Xt), Yt, 1e-9).mean())
-        grid = Bd.tuning_configs(res.model, X, grid=12)
+        pd = float(Bx.soft_inside(res.model(Xt), Yt, 1e-9).mean())
+        pd_flat = float(Bx.soft_inside(flat.model(Xt), Yt, 1e-9).mean())
+        grid = tuning_configs(res.model, X, grid=12)
         boxes = res.model(grid)
     # no confuser within the margin of any box over the whole training domain (no tuning needed)
-    assert float(Bd.margin_violation(boxes, C, 0.0).max()) == 0.0
-    assert Bd.tune_false_alarms(res.model, grid, C, budget=0.0) == 1.0
+    assert float(Bx.margin_violation(boxes, C, 0.0).max()) == 0.0
+    assert Bx.tune_false_alarms(res.model, grid, C, budget=0.0) == 1.0
     # the configuration-dependent box covers the walk; one constant box cannot without a confuser inside
     assert pd > 0.95 and pd_flat < 0.8, (pd, pd_flat)
     assert bool((boxes[:, 1] > boxes[:, 0]).all() and (boxes[:, 3] > boxes[:, 2]).all())
@@ -281,9 +283,9 @@ def test_coverage_boxes_follow_the_configuration_and_keep_confusers_out():
     assert float(hi[0] - lo[0]) == pytest.approx(0.5 * 70 / 80, abs=0.1)  # NDGRI edges move with the sun
     assert list(res.model.domain[0]) == pytest.approx([float(X[:, 0].min()), float(X[:, 0].max())])
     with pytest.raises(ValueError, match="margin"):
-        Bd.train_boxes(X, Y, C, margin=-1.0)
+        Bx.train_boxes(X, Y, C, margin=-1.0)
     with pytest.raises(ValueError, match="method"):
-        Bd.learn(X, Y, "svm", confusers=C)
+        Bx.learn(X, Y, "svm", confusers=C)
 
 
 def test_learn_refuses_a_model_that_left_the_data():
@@ -294,13 +296,13 @@ def test_learn_refuses_a_model_that_left_the_data():
     from torchskin.errors import Failure
 
     with pytest.raises(Failure, match="training failed"):  # a failure, not bad input (ValueError)
-        Bd.learn(X, Y, confusers=C, steps=200, batch=1000, width_cost=50.0)
+        Bx.learn(X, Y, confusers=C, steps=200, batch=1000, width_cost=50.0)
 
 
 def test_coverage_training_is_deterministic():
     X, Y, C = diagonal(3000, seed=2)
-    a = Bd.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
-    b = Bd.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
+    a = Bx.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
+    b = Bx.train_boxes(X, Y, C, steps=60, batch=1000).model.state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -309,14 +311,14 @@ def test_detector_edge_forms_equal_the_index_rules():
     (``ratio_indices`` + ``inside_box``) but on the edges, and its score is the weighted index margin."""
     g = torch.Generator().manual_seed(7)
     X, _ = synthetic(8, seed=3)
-    model = Bd.BoundaryModel()
+    model = Bx.BoxModel()
     cube = torch.rand(8, 4, 32, 32, generator=g) * 0.7
     cube[0, :, 0, 0] = 0.0  # undefined indices: never skin
     with torch.no_grad():
         mask, score = BoxDetector(model)(cube, X)
         box = model(X)[:, :, None, None]
-    ndgri, ndsi, _ = Bd.ratio_indices(cube.movedim(1, -1))
-    inside = Bd.inside_box(box, ndgri, ndsi)
+    ndgri, ndsi, _ = ratio_indices(cube.movedim(1, -1))
+    inside = Bx.inside_box(box, ndgri, ndsi)
     margin = torch.minimum(torch.minimum(ndgri - box[:, 0], box[:, 1] - ndgri),
                            torch.minimum(ndsi - box[:, 2], box[:, 3] - ndsi))
     differ = mask != inside
@@ -436,34 +438,34 @@ def test_ndvn_rule_in_the_detector_in_training_and_in_the_budget():
     dark = torch.tensor([[-0.3, 0.3, -0.6]])  # inside the skin's (NDGRI, NDSI) range, far darker in the visible
     flat = torch.tensor([[-0.3, 0.3, 0.0]])  # the same with skin's visible/NIR balance
     far = torch.tensor([[0.4, 0.0, 0.0], [-0.9, -0.1, 0.2]])
-    model, info = Bd.learn(X, Y, confusers=torch.cat([dark, far]), steps=400, margin=0.02, width_cost=0.0)
+    model, info = Bx.learn(X, Y, confusers=torch.cat([dark, far]), steps=400, margin=0.02, width_cost=0.0)
     assert info["ndvn_learned"]
     with torch.no_grad():
         boxes = model(X[:50])
         d1_all = model(X)[:, 4]
     # NDVN does not depend on the configuration here: the learned d1 sits near the pooled quantile less the margin
     # (the pinball fit's error for 4000 pixels: well within 0.04), and just as many pixels fall below it
-    pooled = float(torch.quantile(Y[:, 2].double(), Bd.NDVN_QUANTILE)) - Bd.NDVN_MARGIN
+    pooled = float(torch.quantile(Y[:, 2].double(), Bx.NDVN_QUANTILE)) - Bx.NDVN_MARGIN
     assert float((d1_all - pooled).abs().max()) < 0.04
-    assert float((Y[:, 2] < d1_all).float().mean()) < 3 * Bd.NDVN_QUANTILE
+    assert float((Y[:, 2] < d1_all).float().mean()) < 3 * Bx.NDVN_QUANTILE
     assert bool((boxes[:, 2] < 0.3).all())  # the box reaches past the dark confuser: the rule keeps it out
-    assert float(Bd.false_alarm_rate(boxes, dark).max()) == 0.0
-    blocked, _ = Bd.learn(X, Y, confusers=torch.cat([flat, far]), steps=400, margin=0.02, width_cost=0.0)
+    assert float(Bx.false_alarm_rate(boxes, dark).max()) == 0.0
+    blocked, _ = Bx.learn(X, Y, confusers=torch.cat([flat, far]), steps=400, margin=0.02, width_cost=0.0)
     with torch.no_grad():
-        assert float(Bd.false_alarm_rate(blocked(X[:50]), flat).max()) == 0.0  # that one must stay outside
+        assert float(Bx.false_alarm_rate(blocked(X[:50]), flat).max()) == 0.0  # that one must stay outside
     # the detector's fifth edge form is the NDVN margin times g + r + n + s
     cube = torch.rand(4, 4, 16, 16, generator=g) * 0.7
     with torch.no_grad():
         mask, score = BoxDetector(model)(cube, X[:4])
         box = model(X[:4])[:, :, None, None]
-    ng, ns, nv = Bd.ratio_indices(cube.movedim(1, -1))
-    inside = Bd.inside_box(box, ng, ns, nv)
+    ng, ns, nv = ratio_indices(cube.movedim(1, -1))
+    inside = Bx.inside_box(box, ng, ns, nv)
     margin = torch.stack([ng - box[:, 0], box[:, 1] - ng, ns - box[:, 2], box[:, 3] - ns, nv - box[:, 4]]).abs()
     differ = mask != inside
     assert bool((margin.amin(0)[differ] < 1e-6).all()) and bool((~mask & (nv < box[:, 4])).sum() > 0)
     # the budget: the `allow` largest violations are free
-    v = Bd.margin_violation(torch.tensor([[-0.5, 0.0, 0.2, 0.8]]), torch.tensor([[-0.3, 0.5], [-0.2, 0.4]]), 0.0)
-    v1 = Bd.margin_violation(torch.tensor([[-0.5, 0.0, 0.2, 0.8]]), torch.tensor([[-0.3, 0.5], [-0.2, 0.4]]), 0.0, 1)
+    v = Bx.margin_violation(torch.tensor([[-0.5, 0.0, 0.2, 0.8]]), torch.tensor([[-0.3, 0.5], [-0.2, 0.4]]), 0.0)
+    v1 = Bx.margin_violation(torch.tensor([[-0.5, 0.0, 0.2, 0.8]]), torch.tensor([[-0.3, 0.5], [-0.2, 0.4]]), 0.0, 1)
     assert float(v) == pytest.approx(0.2 + 0.2) and float(v1) == pytest.approx(0.2)
 
 
@@ -477,13 +479,13 @@ def test_learned_ndvn_rule_follows_the_configuration():
     v = 0.1 - 0.006 * X[:, 0] + 0.03 * torch.randn(n, generator=g)  # 0.1 at the zenith, -0.38 at 80°
     Y = torch.stack([-0.3 + 0.05 * torch.randn(n, generator=g), 0.6 + 0.05 * torch.randn(n, generator=g), v], -1)
     far = torch.tensor([[0.4, 0.0, 0.0], [-0.9, -0.1, 0.2]])
-    model, info = Bd.learn(X, Y, confusers=far, steps=400, margin=0.02)
+    model, info = Bx.learn(X, Y, confusers=far, steps=400, margin=0.02)
     with torch.no_grad():
         d1 = model(torch.tensor([[10.0, 35.0, 90.0], [70.0, 35.0, 90.0]]))[:, 4]
     # the conditional 1 % quantile of N(mu(sun), 0.03) less the margin: mu - 2.33 x 0.03 - 0.05
-    want = torch.tensor([0.1 - 0.06, 0.1 - 0.42]) - 2.326 * 0.03 - Bd.NDVN_MARGIN
+    want = torch.tensor([0.1 - 0.06, 0.1 - 0.42]) - 2.326 * 0.03 - Bx.NDVN_MARGIN
     assert float((d1 - want).abs().max()) < 0.04, (d1.tolist(), want.tolist())
-    pooled = float(torch.quantile(v.double(), Bd.NDVN_QUANTILE)) - Bd.NDVN_MARGIN
+    pooled = float(torch.quantile(v.double(), Bx.NDVN_QUANTILE)) - Bx.NDVN_MARGIN
     assert float(d1[0]) > pooled + 0.2  # a pooled rule would leave the high sun's d1 0.3 lower
 
 
@@ -506,16 +508,16 @@ def test_learn_holds_the_scene_budget_on_its_own_non_skin_pixels():
     k = (Xs[:, 0] < 30).nonzero().flatten()[:60]
     Ps[k] = torch.tensor([-0.3, 0.5, 0.0])
     Ps[-500:] = math.nan  # dark pixels: never detected, still counted
-    free, _ = Bd.learn(X, Y, confusers=far, steps=300, margin=0.02)
-    assert Bd.scene_rate(free, Xs, Ps) > 0.01  # without the scene the box reaches the intruders
-    held, info = Bd.learn(X, Y, confusers=far, steps=300, margin=0.02, scene=(Xs, Ps), scene_budget=1e-3)
-    rate = Bd.scene_rate(held, Xs, Ps)
+    free, _ = Bx.learn(X, Y, confusers=far, steps=300, margin=0.02)
+    assert Bx.scene_rate(free, Xs, Ps) > 0.01  # without the scene the box reaches the intruders
+    held, info = Bx.learn(X, Y, confusers=far, steps=300, margin=0.02, scene=(Xs, Ps), scene_budget=1e-3)
+    rate = Bx.scene_rate(held, Xs, Ps)
     assert rate <= 1e-3 and info["pfa_scene_train"] == rate and info["scene_pixels"] == m
     assert info["train_coverage"] > 0.6  # the box gives up the intruders' corner, not the skin
     with pytest.raises(ValueError, match="scene_budget"):
-        Bd.learn(X, Y, confusers=far, steps=1, scene=(Xs, Ps), scene_budget=1.0)
+        Bx.learn(X, Y, confusers=far, steps=1, scene=(Xs, Ps), scene_budget=1.0)
     with pytest.raises(ValueError, match="scene must be"):
-        Bd.learn(X, Y, confusers=far, steps=1, scene=(Xs[:, :2], Ps))
+        Bx.learn(X, Y, confusers=far, steps=1, scene=(Xs[:, :2], Ps))
 
 
 def test_a_detector_reused_across_calls_gives_a_fresh_ones_bits(trained, tmp_path):

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchskin import classifier as Cl
-from torchskin.boundaries import tuning_configs
+from torchskin.detectors import classifier as Cl
+from torchskin.detectors.features import tuning_configs
 
 pytestmark = pytest.mark.slow  # the module fixture trains the classifier
 
@@ -84,7 +84,8 @@ def test_classifier_separates_and_holds_the_budget(trained):
 
 
 def test_checkpoint_round_trip_and_onnx_detector(trained, tmp_path):
-    from torchskin.export import ClassifierDetector, detector_graph, metadata, write_graphs
+    from torchskin.detectors.classifier import ClassifierDetector
+    from torchskin.export import detector_graph, metadata, write_graphs
     from torchskin.onboard import OnboardDetector
 
     X, R, _, model, info = trained
@@ -92,9 +93,9 @@ def test_checkpoint_round_trip_and_onnx_detector(trained, tmp_path):
     again = Cl.load(tmp_path / "c.pt")
     assert bool((again.decide(R, X) == model.decide(R, X)).all())
     with pytest.raises(ValueError, match="not a classifier"):
-        from torchskin.boundaries import BoundaryModel, save
+        from torchskin.detectors.boxes import BoxModel, save
 
-        save(BoundaryModel(), tmp_path / "b.pt")
+        save(BoxModel(), tmp_path / "b.pt")
         Cl.load(tmp_path / "b.pt")
     paths = write_graphs({"detector": detector_graph(model, metadata(model))}, tmp_path)
     rng = np.random.default_rng(0)

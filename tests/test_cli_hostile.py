@@ -229,12 +229,12 @@ def test_library_entry_points_refuse_bad_input():
         Sun(azimuth_deg=float("nan"))
     with pytest.raises(ValueError, match="target"):
         Camera(target=[0.0, float("inf"), 1.0])
-    from torchskin.onboard import Boundaries, OnboardDetector
+    from torchskin.onboard import OnboardBoxes, OnboardDetector
 
     with pytest.raises(ValueError, match="not a detector"):
         OnboardDetector(BND)
     with pytest.raises(ValueError, match="not a boundaries"):
-        Boundaries(DET)
+        OnboardBoxes(DET)
     d = OnboardDetector(DET)
     cube = np.full((1, 4, 4, 4), 0.3, dtype=np.float32)
     assert d(cube, np.array([[40, 30, 60]]))["mask"].shape == (1, 4, 4)  # whole-degree integers are cast

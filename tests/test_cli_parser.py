@@ -152,12 +152,3 @@ def test_python_dash_m_runs_the_command_line():
     r = subprocess.run([sys.executable, "-m", "torchskin.cli", "calibrate", "--help"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.startswith("usage: torchskin calibrate"), r.stderr
-
-
-def test_the_deprecated_modules_reexport_the_package():
-    import torchskin.commands as commands
-    import torchskin.onboard_cli as onboard_cli
-    from torchskin.cli import calibrate, detect, spectra, train
-
-    assert commands.cmd_train is train.cmd_train and commands.MAX_SAMPLE is spectra.MAX_SAMPLE
-    assert onboard_cli.cli_detect is detect.cli_detect and onboard_cli.parse_roi is calibrate.parse_roi

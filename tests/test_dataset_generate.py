@@ -13,7 +13,8 @@ import pytest
 
 from torchskin.cli import main
 from torchskin.dataset.config import resolve_config
-from torchskin.dataset.generate import MANIFEST, generate, verify
+from torchskin.dataset.generate import MANIFEST, generate
+from torchskin.dataset.verify import verify
 from torchskin.render.kernels import compiler_available
 
 
@@ -187,7 +188,7 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj, mon
 
     import torchskin.dataset.generate as gen
     from torchskin.dataset.config import sample_group
-    from torchskin.detectors.features import BAND_COLUMNS
+    from torchskin.dataset.schema import BAND_COLUMNS
     from torchskin.render.raycast import Raycaster
 
     sensor = gen.group_sensor

@@ -99,7 +99,7 @@ def test_a_cube_pixel_is_its_row_with_sensor_noise_on(dataset):
 
     import torchskin.dataset.generate as gen
     from torchskin.dataset.config import sample_group
-    from torchskin.detectors.features import BAND_COLUMNS
+    from torchskin.dataset.schema import BAND_COLUMNS
     from torchskin.render.raycast import Raycaster
 
     d, cfg = dataset

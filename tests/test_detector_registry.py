@@ -12,7 +12,7 @@ from test_boundaries_onnx import diagonal  # the synthetic skin walk of the box 
 from torch import nn
 
 from torchskin.detectors import registry
-from torchskin.detectors.boxes import BoundaryModel, BoxTraining, train_boxes
+from torchskin.detectors.boxes import BoxModel, BoxTraining, train_boxes
 from torchskin.detectors.classifier import ClassifierTraining, SkinClassifier, train_classifier
 from torchskin.detectors.features import FEATURES, MIN_REFLECTANCE, config_buffers, ratio_indices
 from torchskin.detectors.graphs import torch_detector_graph
@@ -77,15 +77,15 @@ def toy_kind():
 def test_builtin_kinds_and_their_methods():
     assert set(registry.kinds()) >= {"boxes", "classifier"}
     assert registry.methods()[:3] == ("boxes", "quantiles", "classifier")
-    assert registry.kind_for_method("quantiles") is BoundaryModel
+    assert registry.kind_for_method("quantiles") is BoxModel
     assert registry.kind_for_method("classifier") is SkinClassifier
-    assert registry.kind_for_method(None) is BoundaryModel  # the cards' rule: a box model unless told otherwise
+    assert registry.kind_for_method(None) is BoxModel  # the cards' rule: a box model unless told otherwise
     with pytest.raises(ValueError, match="unknown training method 'svm'"):
         registry.kind_for_method("svm", default=None)
-    assert registry.kind_of(BoundaryModel()) == "boxes" and registry.kind_of(SkinClassifier()) == "classifier"
+    assert registry.kind_of(BoxModel()) == "boxes" and registry.kind_of(SkinClassifier()) == "classifier"
     with pytest.raises(ValueError, match="not a registered detector kind"):
         registry.kind_of(nn.Linear(2, 2))
-    assert isinstance(BoundaryModel(), BoxDetectorModel) and registry.boxes_of(BoundaryModel()) is not None
+    assert isinstance(BoxModel(), BoxDetectorModel) and registry.boxes_of(BoxModel()) is not None
     assert isinstance(SkinClassifier(), DetectorModel) and registry.boxes_of(SkinClassifier()) is None
 
 
@@ -133,9 +133,9 @@ def test_checkpoints_carry_their_kind_and_old_ones_still_load(tmp_path):
     cfg = torch.tensor([[30.0, 40.0, 90.0], [70.0, 10.0, 170.0]])
     assert torch.equal(back.boxes(cfg), model.boxes(cfg))
     # the box kind's own save writes the same bytes as the registry's
-    from torchskin import boundaries
+    from torchskin.detectors import boxes
 
-    boundaries.save(model, tmp_path / "b2.pt", {"note": 1})
+    boxes.save(model, tmp_path / "b2.pt", {"note": 1})
     assert (tmp_path / "b2.pt").read_bytes() == (tmp_path / "b.pt").read_bytes()
     torch.save({**again, "kind": "svm"}, tmp_path / "svm.pt")
     with pytest.raises(ValueError, match="--model .*svm.pt' is a checkpoint of an unknown detector kind 'svm'"):

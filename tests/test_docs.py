@@ -70,10 +70,10 @@ def test_cli_reference_lists_every_command_and_option(site):
 
 def test_the_dataset_column_table_is_the_schema():
     """docs/guide/datasets.md lists every Parquet column with the type, meaning and unit the generator writes
-    (``dataset.generate.COLUMNS``), in order: a column added or reworded in the code shows up here."""
+    (``dataset.schema.COLUMNS``), in order: a column added or reworded in the code shows up here."""
     from pathlib import Path
 
-    from torchskin.dataset.generate import COLUMNS
+    from torchskin.dataset.schema import COLUMNS
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "datasets.md").read_text()
     rows = [ln for ln in text.splitlines() if ln.startswith("| `")]

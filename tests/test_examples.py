@@ -62,6 +62,8 @@ def test_dataset_with_pandas(tmp_path):
         assert all(-1.0 <= v <= 1.0 for v in (*skin[1:], *other[1:]))
         assert skin[2] > 0.3 > other[2]  # skin is bright at 1080 nm and dark at 1580 nm (water)
     assert sum(n for n, _, _ in table.values()) <= n_rows  # elm_valid rows only
+    # torchskin's reader (dataset.files.read_rows) reads the same elm_valid rows
+    assert int(re.search(r"read_rows: (\d+) rows", stdout).group(1)) == sum(n for n, _, _ in table.values())
     assert (out / "data" / "_manifest.json").is_file() and list((out / "data").glob("shard-*.parquet"))
     assert "ray.data" not in stdout  # --ray is off by default
 

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchskin import boundaries as Bd
 from torchskin.cli import main
+from torchskin.detectors import boxes as Bx
+from torchskin.detectors.features import confuser_indices, tuning_configs
 
 EXPORTS = Path(__file__).resolve().parents[1] / "exports"
 FILES = ("boundaries.pt", "baseline_box.pt", "classifier.pt", "boundaries.onnx", "baseline_box.onnx", "detector.onnx",
@@ -22,7 +23,7 @@ FILES = ("boundaries.pt", "baseline_box.pt", "classifier.pt", "boundaries.onnx",
 def committed():
     for f in FILES:
         assert (EXPORTS / f).is_file(), f"exports/{f} is missing: run `make demo`"
-    return (Bd.load(EXPORTS / "boundaries.pt"), json.loads((EXPORTS / "evaluation.json").read_text()),
+    return (Bx.load(EXPORTS / "boundaries.pt"), json.loads((EXPORTS / "evaluation.json").read_text()),
             json.loads((EXPORTS / "selection.json").read_text()))
 
 
@@ -38,16 +39,16 @@ def reexported(committed, tmp_path_factory):
 
 
 def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported):
-    from torchskin.onboard import Boundaries, OnboardDetector
+    from torchskin.onboard import OnboardBoxes, OnboardDetector
 
     model, _, _ = committed
     lo, hi = model.domain[:, 0], model.domain[:, 1]
     cfg = (lo + (hi - lo) * torch.rand(2000, 3, generator=torch.Generator().manual_seed(1))).numpy()
     for name in ("boundaries", "baseline_box"):
-        old, new = Boundaries(EXPORTS / f"{name}.onnx")(cfg), Boundaries(reexported / f"{name}.onnx")(cfg)
+        old, new = OnboardBoxes(EXPORTS / f"{name}.onnx")(cfg), OnboardBoxes(reexported / f"{name}.onnx")(cfg)
         assert np.abs(old["boxes"] - new["boxes"]).max() < 1e-6
         with torch.no_grad():
-            assert np.abs(old["boxes"] - Bd.load(EXPORTS / f"{name}.pt")(torch.from_numpy(cfg)).numpy()).max() < 1e-5
+            assert np.abs(old["boxes"] - Bx.load(EXPORTS / f"{name}.pt")(torch.from_numpy(cfg)).numpy()).max() < 1e-5
     rng = np.random.default_rng(2)
     cube = (rng.random((2, 4, 40, 50)) * 0.6).astype(np.float32)
     from torchskin import tissue  # the Type I/II preset's diffuse reflectance in the index bands: a skin spectrum
@@ -109,10 +110,10 @@ def test_shipped_models_meet_their_claims(committed):
         if m["kind"] != "static":
             assert m["overall"]["pfa_scene"] <= 1e-4 and m["overall"]["pfa"] <= 1e-3, m["name"]
     for name in ("boundaries.pt", "baseline_box.pt"):
-        model = Bd.load(EXPORTS / name)
-        grid = Bd.tuning_configs(model, torch.zeros(0, 3), grid=8)
+        model = Bx.load(EXPORTS / name)
+        grid = tuning_configs(model, torch.zeros(0, 3), grid=8)
         with torch.no_grad():
-            pfa = Bd.false_alarm_rate(model(grid), Bd.confuser_indices("test"))
+            pfa = Bx.false_alarm_rate(model(grid), confuser_indices("test"))
         assert float(pfa.max()) <= 1e-3, name
 
 
@@ -236,11 +237,11 @@ def reference_box_figures(data_dir, onnx_path, floor: float) -> dict:
     """Sunlit skin hits and box areas of a boundaries ONNX on a dataset, computed in numpy from the rows."""
     import pandas as pd
 
-    from torchskin.onboard import Boundaries
+    from torchskin.onboard import OnboardBoxes
 
     df = pd.read_parquet(data_dir)
     df = df[df.elm_valid].reset_index(drop=True)
-    b = Boundaries(onnx_path)
+    b = OnboardBoxes(onnx_path)
     X = df[list(b.features)].to_numpy(np.float32)
     box = b(X)["boxes"].astype(np.float64)
     g_, r_, n_, s_ = (df[c].to_numpy(np.float64) for c in ("r544", "r633", "r1080", "r1580"))

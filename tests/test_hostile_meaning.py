@@ -198,7 +198,7 @@ def test_verify_of_a_dataset_missing_most_of_its_shards_prints_one_short_line(tm
 
 
 def test_name_ranges_shows_runs_and_gaps():
-    from torchskin.dataset.generate import name_ranges
+    from torchskin.dataset.verify import name_ranges
 
     names = [f"shard-{k:05d}.parquet" for k in (0, 1, 2, 5, 7, 8)] + ["images/images-00003.npy", ".x.tmp"]
     assert name_ranges(names, limit=10) == ("8: .x.tmp, images/images-00003.npy, shard-00000.parquet.."

@@ -151,11 +151,10 @@ def test_reachable_follows_the_packages_on_the_way():
     assert reachable(g, "t.a") == {"t", "t.p", "t.p.f", "t.p.learner"}  # t.p's __init__ drags the learner in
 
 
-#: the learners and what sits above them: the detector kinds that train, their registry, the old names of the kinds,
-#: and the modules that judge and export models
+#: the learners and what sits above them: the detector kinds that train, their registry, and the modules that judge
+#: and export models
 UPPER = {"torchskin.detectors.boxes", "torchskin.detectors.classifier", "torchskin.detectors.registry",
-         "torchskin.boundaries", "torchskin.classifier", "torchskin.evaluate", "torchskin.export",
-         "torchskin.modelcard", "torchskin.commands", "torchskin.cli"}
+         "torchskin.evaluate", "torchskin.export", "torchskin.modelcard", "torchskin.cli"}
 #: the layers below the learners: the index formulas, the datasets and the detectors' shared features
 LOWER = ("torchskin.detect", "torchskin.bands", "torchskin.confusers", "torchskin.detectors",
          "torchskin.detectors.features", "torchskin.detectors.protocol", "torchskin.detectors.graphs")
@@ -170,5 +169,48 @@ def test_no_module_imports_upward():
     bad = {m: sorted(reachable(graph, m) & UPPER) for m in lower}
     bad = {m: up for m, up in bad.items() if up}
     assert not bad, "modules that import upward: " + "; ".join(f"{m} -> {', '.join(up)}" for m, up in bad.items())
-    # and the generator does use the shared features (the layering is not vacuous)
-    assert "torchskin.detectors.features" in reachable(graph, "torchskin.dataset.generate")
+    # and the detectors' shared features do use the dataset's schema, as the generator does (not vacuous)
+    assert "torchskin.dataset.schema" in reachable(graph, "torchskin.detectors.features")
+    assert "torchskin.dataset.schema" in reachable(graph, "torchskin.dataset.generate")
+
+
+def test_the_datasets_import_no_detector():
+    """No module under ``torchskin/dataset`` loads ``torchskin.detectors`` (imports inside functions and the package
+    ``__init__`` files on the way included): the dataset's schema (``dataset.schema``) sits below the detectors."""
+    graph = with_packages(import_graph())
+    datasets = [m for m in graph if m == "torchskin.dataset" or m.startswith("torchskin.dataset.")]
+    assert {"torchskin.dataset.schema", "torchskin.dataset.generate", "torchskin.dataset.verify"} <= set(datasets)
+    bad = {m: sorted(d for d in reachable(graph, m) if d.split(".")[:2] == ["torchskin", "detectors"])
+           for m in datasets}
+    bad = {m: d for m, d in bad.items() if d}
+    assert not bad, "dataset modules that import the detectors: " + "; ".join(f"{m} -> {', '.join(d)}"
+                                                                             for m, d in bad.items())
+
+
+def test_dataset_verify_loads_no_renderer(tmp_path):
+    """``torchskin dataset verify`` (its handler, ``cli.dataset``, and ``dataset.verify``) reads the folder's files
+    alone: ``dataset.verify`` reaches no ``torchskin.render`` (statically), and the handler run in a fresh
+    interpreter on a dataset leaves ``torchskin.render``, ``open3d`` and torch unloaded."""
+    import hashlib
+    import json
+    import subprocess
+    import sys
+
+    graph = with_packages(import_graph())
+    assert not {d for d in reachable(graph, "torchskin.dataset.verify") if d.startswith("torchskin.render")}
+    # the handler imports the command line's package, whose parser (lazily) loads every command: checked running
+    assert "torchskin.dataset.verify" in import_graph()["torchskin.cli.dataset"]
+    shard = tmp_path / "shard-00000.parquet"
+    shard.write_bytes(b"not parsed by verify")
+    entry = {"name": shard.name, "rows": 3, "bytes": shard.stat().st_size,
+             "sha256": hashlib.sha256(shard.read_bytes()).hexdigest()}
+    (tmp_path / "_manifest.json").write_text(json.dumps({"schema_version": 6, "n_shards": 1, "shards": [entry]}))
+    code = ("import argparse, sys\n"
+            "from torchskin.cli.dataset import cmd_dataset_verify\n"
+            f"status = cmd_dataset_verify(argparse.Namespace(dir={str(tmp_path)!r}, json=False))\n"
+            "print('status', status)\n"
+            "print('loaded', sorted(m for m in ('torchskin.render', 'open3d', 'torch', 'torchskin.dataset.generate')"
+            " if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert out.startswith("ok: 1 shards, 3 rows") and "status 0" in out, out
+    assert "loaded []" in out, out

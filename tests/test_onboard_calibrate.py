@@ -91,7 +91,7 @@ def test_bad_regions_and_nan():
 
 
 @pytest.mark.parametrize("module", ["torchskin.onboard", "torchskin.cli", "torchskin.cli.detect",
-                                    "torchskin.cli.calibrate", "torchskin.onboard_cli"])
+                                    "torchskin.cli.calibrate"])
 def test_onboard_modules_import_without_torch(module):
     """The runtime, its command line and the dispatcher import with numpy (and onnxruntime) alone."""
     r = subprocess.run([sys.executable, "-c", f"import sys, {module}; assert 'torch' not in sys.modules"],

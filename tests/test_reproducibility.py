@@ -16,8 +16,9 @@ import torch
 from test_boundaries_onnx import diagonal  # skin walking with the sun between confusers
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from torchskin import boundaries as Bd
-from torchskin import classifier as Cl
+from torchskin.detectors import boxes as Bx
+from torchskin.detectors import classifier as Cl
+from torchskin.detectors.features import tuning_configs
 
 pytestmark = [pytest.mark.slow, pytest.mark.reproducibility]
 
@@ -47,15 +48,15 @@ def test_box_learner_holds_the_walking_skin_from_any_start(seed, n_threads):
     issue's bar is 0.95 (met with 1.000 over seeds 0-9 x threads 1, 2 when this test was written)."""
     X, Y, C = diagonal(3000, seed=seed)
     with torch_threads(n_threads):
-        model, info = Bd.learn(X, Y, confusers=C, steps=800, margin=0.02)
+        model, info = Bx.learn(X, Y, confusers=C, steps=800, margin=0.02)
     assert info["train_coverage"] >= 0.95, info["train_coverage"]
     Xt, Yt, _ = diagonal(20000, seed=100 + seed)  # fresh pixels of the same walk
-    assert Bd.train_coverage(model, Xt, Yt) >= 0.95
+    assert Bx.train_coverage(model, Xt, Yt) >= 0.95
     # and no confuser inside any box of the training domain (the budget allows floor(1e-3 x 6) = 0)
     assert info["pfa_train_worst"] == 0.0
     with torch.no_grad():
-        boxes = model(Bd.tuning_configs(model, X, grid=12))
-    assert float(Bd.false_alarm_rate(boxes, C).max()) == 0.0
+        boxes = model(tuning_configs(model, X, grid=12))
+    assert float(Bx.false_alarm_rate(boxes, C).max()) == 0.0
 
 
 def test_box_learner_start_follows_the_data():
@@ -64,7 +65,7 @@ def test_box_learner_start_follows_the_data():
     step (init only: steps=0 of the coverage loss). The tolerance 0.06 is the NDGRI spread of the 2 % to 98 %
     quantiles (4.1 sigma = 0.06) which a 400-step fit resolves only roughly."""
     X, Y, C = diagonal(3000, seed=0)
-    res = Bd.train_boxes(X, Y, C, steps=0, init_steps=400)
+    res = Bx.train_boxes(X, Y, C, steps=0, init_steps=400)
     with torch.no_grad():
         lo, hi = res.model(torch.tensor([[5.0, 30.0, 90.0], [75.0, 30.0, 90.0]]))
     assert float(hi[0] - lo[0]) == pytest.approx(0.5 * 70 / 80, abs=0.06)
@@ -72,7 +73,7 @@ def test_box_learner_start_follows_the_data():
     m5 = -0.6 + 0.5 * 5 / 80
     assert float(lo[0]) == pytest.approx(m5 - 0.031, abs=0.02)
     with pytest.raises(ValueError, match="init_quantile"):
-        Bd.train_boxes(X, Y, C, init_quantile=0.6)
+        Bx.train_boxes(X, Y, C, init_quantile=0.6)
 
 
 def overlapping(n=3000, seed=0):
@@ -241,7 +242,8 @@ def test_ray_backend_with_two_workers_matches_local(tmp_path):
     it out)."""
     ray = pytest.importorskip("ray")
     from torchskin.dataset.config import resolve_config
-    from torchskin.dataset.generate import generate, verify
+    from torchskin.dataset.generate import generate
+    from torchskin.dataset.verify import verify
 
     cfg = resolve_config({"sampling": {"groups_per_shard": 1}, "sun": {"per_pose": 2}, "skin": {"per_pose": 2}})
     local = generate(cfg, 8, 5, tmp_path / "local", quiet=True)

@@ -3,10 +3,9 @@
 Modules: ``tissue`` (9-layer Kubelka-Munk skin), ``optics`` (Fresnel, Schlick, microfacet lobe, combined
 BRDF), ``detect`` (NDSI/NDGRI, rules box, Bhattacharyya), ``bands``, ``angles``, ``data``, ``render`` (the
 renderer's stages: scene, meshes, raycast, materials, light, shade, sensor, elm, pipeline, outputs), ``fit``,
-``dataset``, ``detectors`` (the detector kinds: ``boxes``, ``classifier``, their registry; ``boundaries`` and
-``classifier`` are the old names of the two kinds), ``evaluate``, ``experiment``, ``export``, ``onboard`` (numpy +
-onnxruntime only) and ``cli`` (the command line, one module per command; its ``detect`` and ``calibrate`` are
-numpy + onnxruntime only, and ``onboard_cli`` is their deprecated alias). Submodules load on first use, so
+``dataset``, ``detectors`` (the detector kinds: ``boxes``, ``classifier``, their registry), ``evaluate``,
+``experiment``, ``export``, ``onboard`` (numpy + onnxruntime only) and ``cli`` (the command line, one module per
+command; its ``detect`` and ``calibrate`` are numpy + onnxruntime only). Submodules load on first use, so
 ``import torchskin.onboard`` does not import torch.
 """
 
@@ -15,8 +14,8 @@ from types import ModuleType
 
 __version__ = "0.1.0"
 
-_SUBMODULES = ("angles", "bands", "boundaries", "classifier", "cli", "confusers", "data", "dataset", "detect", "detectors",
-               "evaluate", "experiment", "export", "fit", "onboard", "onboard_cli", "optics", "render", "tissue")
+_SUBMODULES = ("angles", "bands", "cli", "confusers", "data", "dataset", "detect", "detectors", "evaluate", "experiment",
+               "export", "fit", "onboard", "optics", "render", "tissue")
 
 
 def __getattr__(name: str) -> ModuleType:

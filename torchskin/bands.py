@@ -1,13 +1,17 @@
 """Spectral bands: ``Band(center_nm, fwhm_nm)`` with Gaussian response; fwhm 0 means monochromatic.
 
+A camera's bands as data: ``BandSet``, read from the ``--bands`` text (``BandSet.parse``, the one parser of band
+lists), named as dataset columns (``BandSet.columns``) and written as JSON (``BandSet.to_json``).
+
 Band values of a spectrum are response-weighted means over wavelength (a flat source spectrum; weight by
 the source yourself when it matters). Shapes: spectra are ``(..., n_grid)``, band values ``(..., n_bands)``.
 """
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -49,16 +53,14 @@ class Band:
 
     @property
     def label(self) -> str:
-        """The centre as written in file names and titles (``band_<label>nm.png``): six significant digits."""
+        """The centre as written in file names, titles and dataset columns (``band_<label>nm.png``, ``r<label>``):
+        six significant digits, trailing zeros dropped (``f"{center_nm:g}"``): 544.0 is ``544``, 544.5 ``544.5``."""
         return f"{self.center_nm:g}"
 
 
 #: Centres (nm) of the thesis's four detection bands, green, red, NIR and SWIR, in this order: the bands of the
 #: NDGRI (544, 633 nm) and NDSI (1080, 1580 nm) rules. The one place these numbers are written.
 INDEX_BANDS_NM: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
-
-#: The thesis's detection system: the ``INDEX_BANDS_NM`` bands, monochromatic by default.
-DEFAULT_BANDS: tuple[Band, ...] = tuple(Band(c) for c in INDEX_BANDS_NM)
 
 
 #: a per-band setting (``per_band``): one number, one value per band, four values at the ``INDEX_BANDS_NM``, or a
@@ -107,6 +109,28 @@ def check_band_within(band: Band, lo: float, hi: float) -> None:
 MAX_RANGE_BANDS = 10_000
 
 
+def range_numbers(text: str, option: str) -> tuple[float, float, float]:
+    """START, STOP and STEP of a range ``START:STOP:STEP`` (a ``--bands`` range, ``spectra --wavelengths``).
+
+    The caller checks what they mean. ``ValueError`` naming ``option`` unless ``text`` is three numbers.
+
+    >>> range_numbers("450:1650:10", "--wavelengths")
+    (450.0, 1650.0, 10.0)
+    >>> range_numbers("400-800", "--wavelengths")
+    Traceback (most recent call last):
+    ...
+    ValueError: --wavelengths must be START:STOP:STEP in nm, got '400-800'
+    """
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{option} must be START:STOP:STEP in nm, got {text!r}")
+    try:
+        start, stop, step = (float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"{option} must be numbers START:STOP:STEP, got {text!r}") from None
+    return start, stop, step
+
+
 def expand_band_items(text: str, option: str = "--bands") -> list[str]:
     """The items ``centre[/fwhm]`` of a band list (comma-separated), each range ``START:STOP:STEP[/FWHM]``
     expanded to START, START + STEP, ... up to STOP inclusive (STOP is in it when it lies on the step, within
@@ -127,9 +151,8 @@ def expand_band_items(text: str, option: str = "--bands") -> list[str]:
             out.append(item)
             continue
         rng, _, f = item.partition("/")
-        parts = rng.split(":")
         try:
-            start, stop, step = (float(v) for v in parts) if len(parts) == 3 else (math.nan,) * 3
+            start, stop, step = range_numbers(rng, option)
         except ValueError:
             start = stop = step = math.nan
         if not (all(math.isfinite(v) for v in (start, stop, step)) and step > 0 and stop >= start):
@@ -143,34 +166,164 @@ def expand_band_items(text: str, option: str = "--bands") -> list[str]:
     return out
 
 
+#: how far (nm) a wavelength may lie from a band's centre and still be that band (``BandSet.index``,
+#: ``onboard.match_bands``): a camera's nominal centres are rounded; the index bands are hundreds of nm apart
+BAND_MATCH_NM = 2.0
+
+
+@dataclass(frozen=True)
+class BandSet:
+    """A camera's bands as data: its bands (``Band``) in the cube's order, at least one.
+
+    Read a ``--bands`` list, name its dataset columns, and keep it as JSON in a manifest:
+
+    >>> b = BandSet.parse("544.5,633/20,1080:1100:10")
+    >>> b.columns
+    ('r544.5', 'r633', 'r1080', 'r1090', 'r1100')
+    >>> b.index(1091.0)
+    3
+    >>> BandSet.from_json(b.to_json()) == b
+    True
+    >>> BandSet.parse("544/20").to_json()
+    '[{"center_nm": 544.0, "fwhm_nm": 20.0}]'
+
+    A band's column is ``r`` and its ``Band.label``: its centre to six significant digits, trailing zeros
+    dropped. The index bands are the dataset's ``r544, r633, r1080, r1580``; 544.5 nm is ``r544.5``.
+    """
+
+    bands: tuple[Band, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "bands", as_bands(tuple(self.bands)))
+
+    @classmethod
+    def of(cls, bands: Iterable[Band | float | tuple[float, float]]) -> BandSet:
+        """The bands of ``Band`` objects, centres or ``(centre, fwhm)`` pairs (``as_bands``)."""
+        return cls(as_bands(bands))
+
+    @classmethod
+    def parse(cls, text: str, within: tuple[float, float] | None = None, ordered: bool = True,
+              option: str = "--bands") -> BandSet:
+        """The bands of a ``--bands`` list: the one parser of band lists.
+
+        Args:
+            text: comma-separated bands ``centre[/fwhm]`` in nm, e.g. ``"544,633,1080/20,1580/40"`` (no fwhm:
+                monochromatic), or ranges ``START:STOP:STEP[/FWHM]`` (``expand_band_items``: ``450:1650:10`` is
+                the 121 bands 450, 460, ..., 1650 nm).
+            within: ``(lo, hi)`` nm that every band's response (centre ± ``SUPPORT_FWHM`` FWHM) must lie in;
+                default the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``).
+            ordered: the centres must strictly ascend, with distinct labels (``check_ascending``); a cube's
+                bands as recorded (``io.parse_band_list``) may come in any order.
+            option: the option named in errors.
+
+        Returns:
+            The bands; a one-line ``ValueError`` naming ``option`` and the bad item otherwise.
+
+        >>> len(BandSet.parse("450:1650:10"))
+        121
+        >>> BandSet.parse("544,abc")
+        Traceback (most recent call last):
+        ...
+        ValueError: bad band 'abc' in --bands (use centre[/fwhm] in nm): could not convert string to float: 'abc'
+        """
+        lo, hi = MODEL_RANGE_NM if within is None else within
+        out = []
+        for item in expand_band_items(text, option):
+            c, _, f = item.partition("/")
+            try:
+                band = Band(float(c), float(f) if f else 0.0)
+                check_band_within(band, lo, hi)
+            except ValueError as e:
+                raise ValueError(f"bad band {item!r} in {option} (use centre[/fwhm] in nm): {e}") from None
+            out.append(band)
+        if ordered:
+            check_ascending(out, option)
+        return cls(tuple(out))
+
+    @classmethod
+    def from_json(cls, data: str | Sequence[Mapping[str, object]]) -> BandSet:
+        """The bands of ``to_json``'s text, or of its list already decoded (a manifest's entry).
+
+        ``ValueError`` naming the problem for anything else, or for a band with a ``response`` curve (not
+        modelled yet: a band's response is the Gaussian of its FWHM).
+        """
+        try:
+            items = json.loads(data) if isinstance(data, str) else data
+        except ValueError as e:
+            raise ValueError(f"band set JSON does not parse: {e}") from None
+        if not isinstance(items, (list, tuple)) or not items:
+            raise ValueError("band set JSON must be a non-empty list of bands {\"center_nm\": nm, \"fwhm_nm\": nm}, "
+                             f"got {'an empty list' if isinstance(items, (list, tuple)) else type(items).__name__}")
+        out = []
+        for k, d in enumerate(items):
+            if isinstance(d, Mapping) and "response" in d:
+                raise ValueError(f"band set JSON: band {k} has a response curve; only Gaussian bands (center_nm, "
+                                 "fwhm_nm) are modelled")
+            c, f = (d.get("center_nm"), d.get("fwhm_nm", 0.0)) if isinstance(d, Mapping) else (None, None)
+            if not (isinstance(d, Mapping) and set(d) <= {"center_nm", "fwhm_nm"}
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (c, f))):
+                raise ValueError(f"band set JSON: band {k} must be {{\"center_nm\": nm, \"fwhm_nm\": nm}} (numbers), "
+                                 f"got {str(d)[:100]}")
+            try:
+                out.append(Band(float(c), float(f)))  # type: ignore[arg-type]  # numbers, checked above
+            except ValueError as e:
+                raise ValueError(f"band set JSON: band {k}: {e}") from None
+        return cls(tuple(out))
+
+    def to_json(self) -> str:
+        """The bands as JSON, a list of ``{"center_nm", "fwhm_nm"}`` in band order: for manifests and ONNX
+        metadata; ``from_json`` reads it back."""
+        return json.dumps([{"center_nm": b.center_nm, "fwhm_nm": b.fwhm_nm} for b in self.bands])
+
+    def __len__(self) -> int:
+        return len(self.bands)
+
+    def __iter__(self) -> Iterator[Band]:
+        return iter(self.bands)
+
+    def __getitem__(self, i: int) -> Band:
+        return self.bands[i]
+
+    @property
+    def centers(self) -> tuple[float, ...]:
+        """The band centres, nm."""
+        return tuple(b.center_nm for b in self.bands)
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """The dataset column of each band: ``r`` and its label (``r544``); ``ValueError`` if two coincide."""
+        cols = tuple(f"r{b.label}" for b in self.bands)
+        if len(set(cols)) < len(cols):
+            raise ValueError(f"bands {', '.join(self.labels)} nm: two share a column name; use distinct centres")
+        return cols
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """``Band.label`` of each band."""
+        return tuple(b.label for b in self.bands)
+
+    def index(self, nm: float, tol_nm: float = BAND_MATCH_NM) -> int:
+        """The position of the band centred nearest ``nm``, within ``tol_nm``; ``ValueError`` if none is."""
+        d = [abs(c - nm) for c in self.centers]
+        k = min(range(len(d)), key=d.__getitem__)
+        if not d[k] <= tol_nm:
+            raise ValueError(f"no band within {tol_nm:g} nm of {nm:g} nm (the bands: {', '.join(self.labels)} nm)")
+        return k
+
+
+#: The thesis's detection system: the ``INDEX_BANDS_NM`` bands, monochromatic, as a ``BandSet``.
+INDEX_BANDS = BandSet.of(INDEX_BANDS_NM)
+#: ``INDEX_BANDS``' bands as a tuple: the bands of every command without ``--bands``.
+DEFAULT_BANDS: tuple[Band, ...] = INDEX_BANDS.bands
+
+
 def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:
-    """Parse a band list as the CLI's ``--bands`` takes it.
-
-    Args:
-        text: comma-separated bands ``centre[/fwhm]`` in nm, e.g. ``"544,633,1080/20,1580/40"`` (no fwhm:
-            monochromatic), or ranges ``START:STOP:STEP[/FWHM]`` (``expand_band_items``: ``450:1650:10`` is
-            the 121 bands 450, 460, ..., 1650 nm).
-        within: ``(lo, hi)`` nm that every band's response (centre ± ``SUPPORT_FWHM`` FWHM) must lie in; default
-            the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``).
-
-    Returns:
-        The bands; ``ValueError`` naming the bad item otherwise.
+    """The bands of a ``--bands`` list as a tuple: ``BandSet.parse`` (``within``: its default range).
 
     >>> [(b.center_nm, b.fwhm_nm) for b in parse_bands("544,1080/20")]
     [(544.0, 0.0), (1080.0, 20.0)]
     """
-    lo, hi = MODEL_RANGE_NM if within is None else within
-    out = []
-    for item in expand_band_items(text):
-        c, _, f = item.partition("/")
-        try:
-            band = Band(float(c), float(f) if f else 0.0)
-            check_band_within(band, lo, hi)
-        except ValueError as e:
-            raise ValueError(f"bad band {item!r} in --bands (use centre[/fwhm] in nm): {e}") from None
-        out.append(band)
-    check_ascending(out, "--bands")
-    return as_bands(out)
+    return BandSet.parse(text, within).bands
 
 
 def check_ascending(bands: Sequence[Band], what: str = "bands") -> None:

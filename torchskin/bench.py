@@ -276,21 +276,21 @@ def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
     """The shipped detector (``torchskin/data/detector.onnx``: the five edge forms of the box model with the NDVN
     rule, and its brightness floor, ``min_reflectance`` in its metadata) through ``torchskin.onboard`` with
     onnxruntime's CPU provider on a 1024 x 1024 x 4 float32 frame (uniform reflectance 0.02-0.62, seed 0; the
-    share of it the boxes take is reported), a single boundary query (a default ``BoundaryModel`` from seed 0,
+    share of it the boxes take is reported), a single box query (a default ``BoxModel`` from seed 0,
     exported), and the memory-bound floor: reading the same frame once (numpy sum), in the same run."""
     import tempfile
 
     import numpy as np
 
-    from .detectors.boxes import BoundaryModel
+    from .detectors.boxes import BoxModel
     from .export import export
-    from .onboard import Boundaries, OnboardDetector
+    from .onboard import OnboardBoxes, OnboardDetector
 
     with tempfile.TemporaryDirectory() as d:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)
-            paths = export(BoundaryModel(), d)
-        det, bnd = OnboardDetector(), Boundaries(paths["boundaries"])
+            paths = export(BoxModel(), d)
+        det, bnd = OnboardDetector(), OnboardBoxes(paths["boundaries"])
         rng = np.random.default_rng(0)
         cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
         cfg = np.array([[40.0, 30.0, 60.0]])

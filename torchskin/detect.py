@@ -8,15 +8,23 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, TypeVar
 
 import torch
 
 from ._checks import TensorLike, as_tensor
 from .bands import DEFAULT_BANDS, INDEX_BANDS_NM, Band, as_bands
 
+if TYPE_CHECKING:
+    import numpy as np
 
-def normalized_difference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(a - b) / (a + b); NaN where a + b == 0."""
+#: torch tensors or numpy arrays: ``normalized_difference`` takes either
+ArrayT = TypeVar("ArrayT", "torch.Tensor", "np.ndarray")
+
+
+def normalized_difference(a: ArrayT, b: ArrayT) -> ArrayT:
+    """(a - b) / (a + b); NaN where a + b == 0. The one home of the formula: tensors (``ratio_indices``, the
+    renderer's ``elm_indices``) or numpy arrays (``dataset.schema.Rows.nd``), the same steps in their dtype."""
     return (a - b) / (a + b)
 
 

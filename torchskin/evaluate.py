@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 
 from .angles import BACKLIT_MIN_DEG
 from .bands import INDEX_BANDS_NM
-from .dataset.files import manifest, open_dataset, read_valid
+from .dataset.files import manifest, read_rows
 from .detect import DEFAULT_BOX
 from .detectors import registry
 from .detectors.boxes import false_alarm_rate, inside_box
@@ -85,13 +85,13 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
         raise ValueError(f"--model {p!r} does not exist")
     name = Path(p).name
     if p.endswith(".onnx"):
-        from .onboard import Boundaries, OnboardDetector, model_inputs
+        from .onboard import OnboardBoxes, OnboardDetector, model_inputs
 
         if "cube" in model_inputs(p):
             d = OnboardDetector(p)
             decide = lambda R, X: torch.from_numpy(d.pixels(R.numpy(), X.numpy())["mask"])  # noqa: E731
             return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta))
-        b = Boundaries(p)
+        b = OnboardBoxes(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
         return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
     model, ck = registry.load(p)
@@ -180,17 +180,16 @@ class _Rows:
         cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg",
                                    "label", "shadow", "ndgri", "ndsi", "group", "sun", "skin", *BAND_COLUMNS,
                                    "theta_i_deg", "theta_r_deg", "delta_phi_deg"]))
-        names = set(open_dataset(data_dir, cols).schema.names)  # validates the folder and the columns
-        extra = [c for c in ("material", "confuser", "clothing") if c in names]
-        t, self.excluded = read_valid(data_dir, cols + extra)
-        if len(t) == 0:
+        rows = read_rows(data_dir, cols, optional=("material", "confuser", "clothing"))  # checks the folder, columns
+        self.excluded = rows.excluded
+        if len(rows) == 0:
             raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
-        self.n = len(t)
-        col = {c: np.array(t.column(c).to_numpy(zero_copy_only=False)) for c in cols + extra}
-        self.X = torch.from_numpy(np.stack([col[f] for f in features], -1).astype(np.float32))
-        self.R = torch.from_numpy(np.stack([col[b] for b in BAND_COLUMNS], -1).astype(np.float32))
+        self.n = len(rows)
+        col = rows.columns
+        self.X = torch.from_numpy(rows.stack(features, np.float32))
+        self.R = torch.from_numpy(rows.bands(np.float32))
         self.g, self.s = torch.from_numpy(col["ndgri"]).float(), torch.from_numpy(col["ndsi"]).float()
-        self.v = ratio_indices(self.R)[2]
+        self.v = torch.from_numpy(rows.index("ndvn", np.float32))  # float32, as ratio_indices(self.R)
         self.label = torch.from_numpy(col["label"]).bool()
         self.shadow = torch.from_numpy(col["shadow"]).bool()
         self.glint = glint_affected(col["theta_i_deg"], col["theta_r_deg"], col["delta_phi_deg"]) & ~self.shadow
@@ -419,7 +418,7 @@ def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLi
                         scene_budget: float = 1e-4, pfa_budget: float = 1e-3,
                         min_reflectance: float = MIN_REFLECTANCE, iters: int = 30) -> dict:
     """Calibrate a checkpoint to the false-alarm budgets on a validation dataset (the held-out set): one scalar,
-    the largest box scale (box models: ``BoundaryModel.scale``, every box shrunk about its centre) or the lowest
+    the largest box scale (box models: ``BoxModel.scale``, every box shrunk about its centre) or the lowest
     logit threshold (classifiers), at which the share of the dataset's non-skin pixels called skin (under the
     brightness floor, as ``evaluate`` judges it) is within ``scene_budget`` and the earthlib test spectra within
     ``pfa_budget`` in every configuration of the dataset; never looser than the checkpoint's own tuning. Writes
@@ -597,13 +596,12 @@ def boxes_plot(data_dir: str | os.PathLike, model_path: str | os.PathLike, path:
     from .plots import pyplot, save_figure
 
     features, boxes_of = box_function(model_path)
-    t, _ = read_valid(data_dir, ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"])
-    label = t.column("label").to_numpy(zero_copy_only=False)
-    shadow = t.column("shadow").to_numpy(zero_copy_only=False)
+    rows = read_rows(data_dir, ["ndgri", "ndsi", "label", "shadow", "sun_zenith_deg"])
+    label, shadow = rows["label"], rows["shadow"]
     rng = np.random.default_rng(0)
 
     def pick(m):
-        cols = [t.column(c).to_numpy(zero_copy_only=False)[m] for c in ("ndgri", "ndsi", "sun_zenith_deg")]
+        cols = [rows[c][m] for c in ("ndgri", "ndsi", "sun_zenith_deg")]
         if len(cols[0]) > max_points:
             k = rng.choice(len(cols[0]), max_points, replace=False)
             cols = [c[k] for c in cols]

@@ -12,19 +12,8 @@ from typing import TYPE_CHECKING
 
 from . import __version__
 from .bands import INDEX_BANDS_NM
-from .detectors.boxes import (  # noqa: F401 (the box kind's export pieces, re-exported under their old home)
-    BOX_ORDER,
-    EDGE_C,
-    EDGE_M,
-    BoundaryModel,
-    BoxDetector,
-    boundaries_graph,
-    edge_matrix,
-)
-from .detectors.boxes import edge_detector_graph as _detector_graph  # noqa: F401
-from .detectors.classifier import ClassifierDetector  # noqa: F401 (re-exported)
+from .detectors.boxes import BOX_ORDER
 from .detectors.features import FEATURE_UNITS
-from .detectors.graphs import OPSET  # noqa: F401 (re-exported)
 from .detectors.protocol import BoxDetectorModel, DetectorModel
 from .io import atomic_path
 

@@ -231,26 +231,17 @@ def bands_sidecar_text(bands_nm: list[float], fwhm_nm: list[float] | None = None
 
 
 def parse_band_list(text: str, option: str = "--bands") -> list[float]:
-    """Band centres in nm from "544,633,1080,1580" (a ``/FWHM`` after a centre is accepted and ignored; ranges
-    ``START:STOP:STEP`` as ``bands.expand_band_items``): positive,
-    finite, distinct; ``ValueError`` naming ``option`` otherwise.
+    """Band centres in nm, in the order given, of a cube's band list: ``bands.BandSet.parse`` with bands in any
+    order and at any wavelength (a ``/FWHM`` is checked, then not used), then ``check_band_list``: distinct, in
+    nm; ``ValueError`` naming ``option`` otherwise.
 
     >>> parse_band_list("1580, 544/20,1080,633")
     [1580.0, 544.0, 1080.0, 633.0]
     """
-    from .bands import expand_band_items
+    from .bands import BandSet
 
-    out = []
-    for item in expand_band_items(text, option):
-        centre = item.strip().partition("/")[0].strip()
-        try:
-            v = float(centre)
-        except ValueError:
-            raise ValueError(f"{option}: {item.strip()!r} is not a band centre in nm") from None
-        if not (v > 0 and v < float("inf")):
-            raise ValueError(f"{option}: band centres must be positive wavelengths in nm, got {item.strip()!r}")
-        out.append(v)
-    return check_band_list(out, option)
+    inf = float("inf")
+    return check_band_list(list(BandSet.parse(text, (-inf, inf), ordered=False, option=option).centers), option)
 
 
 def check_band_list(bands: list[float], where: str) -> list[float]:

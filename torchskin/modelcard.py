@@ -106,7 +106,7 @@ def _kind(train: dict) -> Any:
 
 def _false_alarm_line(train: dict) -> str:
     # "calibration" here (and "calibrated threshold" in ``_INPUTS``) means the false-alarm tuning
-    # (``boundaries.tune_false_alarms``, ``classifier.tune_threshold``); the words and the summary key
+    # (``boxes.tune_false_alarms``, ``classifier.tune_threshold``); the words and the summary key
     # ``calibration_configs`` are part of the shipped cards and checkpoints (exports/), so they stay. Each kind
     # words its own tuning (``card_false_alarms``)
     kind = _kind(train)

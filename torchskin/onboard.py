@@ -5,7 +5,7 @@
     out["mask"], out["score"], out["out_of_domain"]
 
 ``score`` is the smallest margin to a box edge in index units weighted by the band-pair sum (positive inside;
-see ``torchskin.export.BoxDetector``).
+see ``torchskin.detectors.boxes.BoxDetector``).
 
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance, and values far outside
 [0, 1.2] (below ``REFLECTANCE_MIN``, above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE`` of the
@@ -18,7 +18,7 @@ Calibrated frames of dark pixels (sky, deep shadow) carry slightly negative refl
 ``clipped_values`` (a pixel whose band pairs sum to 0 is never skin).
 
 The ELM of camera frames (``panel_signal``, ``elm_fit``, ``elm_apply``) is numpy too; the command line
-(``torchskin detect``, ``torchskin calibrate``) is ``torchskin.onboard_cli``.
+(``torchskin detect``, ``torchskin calibrate``) is ``torchskin.cli.detect`` and ``torchskin.cli.calibrate``.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .bands import BAND_MATCH_NM  # how far a cube's band centre may lie from the model's
 from .io import MAX_MEGAPIXELS, StrPath, as_float32, npy_header
 
 if TYPE_CHECKING:
@@ -65,10 +66,6 @@ REFLECTANCE_MIN = -0.2
 #: the shipped detector, packaged with torchskin (a copy of the repository's ``exports/detector.onnx``, made by
 #: ``make demo``'s export step): ``torchskin detect``'s and ``OnboardDetector``'s default model
 SHIPPED_DETECTOR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "detector.onnx")
-
-#: how far (nm) a cube's band centre may lie from the model's and still be that band (a camera's nominal centres
-#: are rounded; the model's bands are 544, 633, 1080, 1580 nm, hundreds of nm apart)
-BAND_MATCH_NM = 2.0
 
 
 def match_bands(cube_bands: Sequence[float], model_bands: Sequence[float], tol_nm: float = BAND_MATCH_NM) -> list[int]:
@@ -173,7 +170,7 @@ class _Model:
 
 
 def model_inputs(path: str | os.PathLike) -> list[str]:
-    """The input names of an ONNX model (``cube`` marks a detector, ``config`` alone a boundary model)."""
+    """The input names of an ONNX model (``cube`` marks a detector, ``config`` alone a box model: ``OnboardBoxes``)."""
     import onnxruntime as ort
 
     try:
@@ -184,10 +181,10 @@ def model_inputs(path: str | os.PathLike) -> list[str]:
 
 
 def _split_box_graph(path: str, options: Any) -> tuple | None:
-    """A box detector graph (``export._detector_graph``: edge matrices ``det_w0..`` from the configuration, then
-    per pixel one MatMul per edge form, Min, Greater) as the per-frame part (an onnxruntime session:
-    config -> edge matrices) and its per-pixel head rebuilt for tiles (``_EdgeHead``), so that tiles do not run
-    the boundary network again. None for other graphs (a classifier), or without the ``onnx`` package: the
+    """A box detector graph (``detectors.boxes.edge_detector_graph``: edge matrices ``det_w0..`` from the
+    configuration, then per pixel one MatMul per edge form, Min, Greater) as the per-frame part (an onnxruntime
+    session: config -> edge matrices) and its per-pixel head rebuilt for tiles (``_EdgeHead``), so that tiles do not
+    run the box network again. None for other graphs (a classifier), or without the ``onnx`` package: the
     whole graph then runs per tile."""
     try:
         import onnx
@@ -361,9 +358,10 @@ def _subgraph(m: Any, inputs: list[str], outputs: list[str]) -> Any:
     return part
 
 
-class Boundaries(_Model):
-    """``boundaries.onnx``: configuration (N, k) -> boxes (N, 5) (b1, b2, c1, c2, d1; see ``box_order`` in the
-    metadata; models exported before the NDVN rule give (N, 4))."""
+class OnboardBoxes(_Model):
+    """The boxes of a ``boxes``-kind model, exported as ``boundaries.onnx`` (or ``baseline_box.onnx``) and run by
+    onnxruntime: configuration (N, k) -> boxes (N, 5) (b1, b2, c1, c2, d1; see ``box_order`` in the metadata; models
+    exported before the NDVN rule give (N, 4))."""
 
     KIND = "boundaries (configuration -> boxes)"
     IO = ({"config"}, {"boxes"})
@@ -377,7 +375,8 @@ class Boundaries(_Model):
 
 class OnboardDetector(_Model):
     """``detector.onnx`` run by onnxruntime: reflectance cube (B, 4, H, W) + configuration (B, k) -> mask and
-    score (the torch reference: ``torchskin.export.BoxDetector`` or ``ClassifierDetector``).
+    score (the torch reference: ``torchskin.detectors.boxes.BoxDetector`` or
+    ``torchskin.detectors.classifier.ClassifierDetector``).
 
     Large frames are cut into tiles of ``tile`` pixels (each band's run of the flattened frame) that
     ``threads`` workers (the calling thread and a pool; one onnxruntime session, one intra-op thread each)

@@ -10,7 +10,7 @@ from .options import add_json
 
 def cmd_dataset_verify(args: argparse.Namespace) -> int:
     """Run ``torchskin dataset verify``: status 0 when the shards match the manifest, 1 otherwise."""
-    from ..dataset.generate import verify, verify_line, verify_summary
+    from ..dataset.verify import verify, verify_line, verify_summary  # the folder's files only: no renderer
 
     rep = verify(args.dir)
     print(json.dumps(verify_summary(rep)) if args.json else verify_line(rep))  # counts and ranges, never a list

@@ -172,7 +172,7 @@ def band_list_text(text: str) -> str:
 
 
 def add_bands(p: ArgumentTarget, default: str = "544,633,1080,1580") -> None:
-    """``--bands``: band centres (and FWHM) in nm (``bands.parse_bands``); ``default`` says what is used
+    """``--bands``: band centres (and FWHM) in nm (``bands.BandSet.parse``); ``default`` says what is used
     without it; an empty value is refused (``band_list_text``)."""
     p.add_argument("--bands", type=band_list_text, metavar=BANDS_METAVAR, help=f"{BANDS_HELP} (default: {default})")
 

@@ -10,7 +10,7 @@ import math
 import torch
 
 from .. import tissue
-from ..bands import DEFAULT_BANDS, band_sampling, parse_bands
+from ..bands import DEFAULT_BANDS, band_sampling, parse_bands, range_numbers
 from ..detect import DEFAULT_BOX, indices, rules_detector
 from ..errors import check_output_file
 from .options import add_bands, add_json, add_seed
@@ -36,14 +36,9 @@ def _parse_params(items: list[str]) -> dict[str, float]:
 
 
 def _parse_wavelengths(text: str) -> torch.Tensor:
-    parts = text.split(":")
-    if len(parts) != 3:
-        raise ValueError(f"--wavelengths must be START:STOP:STEP in nm, got {text!r}")
-    try:
-        start, stop, step = (float(p) for p in parts)
-    except ValueError:
-        raise ValueError(f"--wavelengths must be numbers START:STOP:STEP, got {text!r}") from None
-    return tissue.wavelength_grid(start, stop, step, dtype=torch.float64)
+    """The ``--wavelengths`` grid: a range as ``--bands`` writes one (``bands.range_numbers``), sampled by
+    ``tissue.wavelength_grid`` (STOP included, up to ``bands.MAX_GRID_POINTS`` wavelengths)."""
+    return tissue.wavelength_grid(*range_numbers(text, "--wavelengths"), dtype=torch.float64)
 
 
 def _skins(args: argparse.Namespace) -> tuple[tissue.SkinParams, list[str]]:

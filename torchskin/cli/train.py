@@ -62,7 +62,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     help="boxes: most sunlit skin per configuration with the earthlib train spectra kept a margin "
                          "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss); "
                          "classifier: a configuration-conditioned MLP on scale-invariant band ratios "
-                         "(torchskin.classifier), thresholded at the false-alarm budget")
+                         "(torchskin.detectors.classifier), thresholded at the false-alarm budget")
     tp.add_argument("--margin", type=float, default=0.03,
                     help="boxes: distance (index units) kept from every earthlib train spectrum (default 0.03)")
     tp.add_argument("--width-cost", type=float, default=0.05,

@@ -1,5 +1,6 @@
-"""Dataset folder files, without the renderer's imports: the manifest's name, checksums, and reading the rows
-of frames whose ELM is valid (what training and evaluation use)."""
+"""Dataset folder files, without the renderer's imports: the folder's layout (manifest, shard and image names),
+checksums, the manifest's checks, and reading the rows of frames whose ELM is valid (what training and evaluation
+use): ``read_valid`` as a pyarrow table, ``read_rows`` as the schema's typed ``Rows`` (``dataset.schema``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..io import StrPath
+from .schema import READ_SCHEMAS, SCHEMA_VERSION, Rows
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -23,11 +25,31 @@ MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when 
 #: light a surface facing the sun and sky does, ``render.elm.ELM_MAX_IRRADIANCE_RATIO``; 1 or missing: before).
 #: ``elm_valid``'s noise and gain checks (``render.elm.elm_line_valid``) change no row of the default datasets
 RENDER_REVISION = 4
-#: the dataset schema this torchskin writes (``dataset.generate`` lists what each version changed)
-SCHEMA_VERSION = 6
-#: the schemas this torchskin reads: every one it ever wrote (a reader checks the columns it needs,
-#: ``open_dataset``); a manifest of any other version, such as a newer torchskin's, is refused (``manifest``)
-READ_SCHEMAS = range(1, SCHEMA_VERSION + 1)
+#: the subfolder of ``--images`` cubes, out of the way of Parquet readers of the dataset folder
+IMAGES_DIR = "images"
+
+
+def shard_name(k: int) -> str:
+    """The file name of shard ``k``.
+
+    >>> shard_name(7)
+    'shard-00007.parquet'
+    """
+    return f"shard-{k:05d}.parquet"
+
+
+def dataset_files(out: Path) -> list[Path]:
+    """The files of a dataset folder and of its images subfolder."""
+    files = [p for p in out.iterdir() if p.is_file()]
+    if (out / IMAGES_DIR).is_dir():
+        files += [p for p in (out / IMAGES_DIR).iterdir() if p.is_file()]
+    return files
+
+
+def intact(out: Path, entry: dict) -> bool:
+    """Whether the file of a manifest entry (a shard's or its images') is there with the recorded size and SHA-256."""
+    p = out / entry["name"]
+    return p.is_file() and p.stat().st_size == entry["bytes"] and sha256_file(p) == entry["sha256"]
 
 
 def sha256_file(path: StrPath) -> str:
@@ -169,5 +191,33 @@ def read_valid(data_dir: StrPath, columns: Sequence[str], frames: str = "physica
     return t.filter(valid).select(list(columns)), excluded
 
 
-__all__ = ["FRAME_SETS", "MANIFEST", "READ_SCHEMAS", "RENDER_REVISION", "SCHEMA_VERSION", "dataset_surface", "manifest",
-           "manifest_sha256", "open_dataset", "read_valid", "sha256_file"]
+def read_rows(data_dir: StrPath, columns: Sequence[str], frames: str = "physical",
+              optional: Sequence[str] = ()) -> Rows:
+    """The rows training and evaluation use (``read_valid``: the frames ``frames`` names), as numpy columns.
+
+    Args:
+        data_dir: the dataset folder.
+        columns: the columns to read (``dataset.schema.COLUMNS``); a missing one is a one-line ``ValueError``
+            (``open_dataset``).
+        frames: "physical" or "line" (``FRAME_SETS``).
+        optional: more columns, read when the dataset has them (older schemas lack some).
+
+    Returns:
+        ``dataset.schema.Rows``: each column a writable numpy array (strings as objects), and the number of rows
+        left out (``Rows.excluded``); ``Rows.nd`` gives the normalized difference of any band pair.
+    """
+    names = list(dict.fromkeys(columns))
+    if optional:
+        present = set(open_dataset(data_dir, names).schema.names)
+        names += [c for c in dict.fromkeys(optional) if c in present and c not in names]
+    t, excluded = read_valid(data_dir, names, frames)
+    out = {}
+    for c in names:
+        a = t.column(c).to_numpy(zero_copy_only=False)
+        out[c] = a if a.flags.writeable else a.copy()
+    return Rows(out, excluded)
+
+
+__all__ = ["FRAME_SETS", "IMAGES_DIR", "MANIFEST", "READ_SCHEMAS", "RENDER_REVISION", "SCHEMA_VERSION",
+           "dataset_files", "dataset_surface", "intact", "manifest", "manifest_sha256", "open_dataset", "read_rows",
+           "read_valid", "sha256_file", "shard_name"]

@@ -3,7 +3,7 @@ skin / non-skin pixels -> Parquet shards with a manifest (checksums), resumable 
 
 Layout of an output folder:
     _manifest.json           schema version, package version, resolved config, master seed, shards
-    shard-00000.parquet ...  one row per sampled pixel (columns: ``COLUMNS``)
+    shard-00000.parquet ...  one row per sampled pixel (columns: ``dataset.schema.COLUMNS``)
 
 Every shard holds ``sampling.groups_per_shard`` consecutive pose groups; a shard depends only on the config,
 the master seed and its index, so runs are bit-identical whatever the worker count or order, and an
@@ -29,7 +29,6 @@ from .. import __version__, tissue
 from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
 from ..bands import DEFAULT_BANDS, INDEX_BANDS_NM, PerBand, at_wavelengths, per_band
 from ..detect import DEFAULT_BOX
-from ..detectors.features import BAND_COLUMNS
 from ..errors import check_folder_empty
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
@@ -52,16 +51,9 @@ from ..render.rtlsr import RHO_MAX
 from ..render.scene import Atmosphere, Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
 from ..render.sensor import Sensor, sensor_signal
 from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
-from .files import MANIFEST, RENDER_REVISION, SCHEMA_VERSION, sha256_file
-from .files import manifest as read_manifest
+from .files import IMAGES_DIR, MANIFEST, RENDER_REVISION, dataset_files, intact, sha256_file, shard_name
+from .schema import BAND_COLUMNS, COLUMNS, SCHEMA_VERSION, STORED_INDICES
 
-# SCHEMA_VERSION (in dataset.files: readers import it without torch; readers refuse other versions): 2: elm_valid
-# column, level panels (tilted towards low cameras: panel_tilt_deg); 3: surface, clothing and material columns,
-# clothing drawn from earthlib; 4: the light model's atmosphere and each pixel's light
-# (sky_view, direct_share_*, light, backlit), sky_fraction derived; 5: one set of pixels per pose group (every sun x
-# skin of a group shades the same 2 x pixels_per_class pixels), panel medians from a capped sample (PANEL_SAMPLE);
-# 6: panel_irradiance_ratio column, elm_valid false where it exceeds render.elm.ELM_MAX_IRRADIANCE_RATIO, and
-# elm_line_valid (elm_valid without that bound)
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
@@ -81,79 +73,6 @@ FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
 #: ``day_of_year`` of the rows of a light model without an atmosphere ("thesis"; the float atmosphere columns are
 #: NaN there): no day of year is 0
 NO_DAY_OF_YEAR = 0
-
-#: Parquet columns: name -> (pyarrow type name, description, unit)
-COLUMNS: dict[str, tuple[str, str, str]] = {
-    "group": ("int32", "pose group index", ""),
-    "sun": ("int16", "sun index within the group", ""),
-    "skin": ("int16", "skin index within the group", ""),
-    "label": ("bool", "true: skin pixel (from the G-buffer)", ""),
-    "sun_zenith_deg": ("float32", "sun zenith", "deg"),
-    "sun_azimuth_deg": ("float32", "sun azimuth (from +x towards +y)", "deg"),
-    "camera_zenith_deg": ("float32", "camera zenith", "deg"),
-    "camera_azimuth_deg": ("float32", "camera azimuth", "deg"),
-    "relative_azimuth_deg": ("float32", "|sun azimuth - camera azimuth| folded to [0, 180]", "deg"),
-    "range_m": ("float32", "camera range to the subject", "m"),
-    "backlit": ("bool", "the camera looks towards the sun: relative azimuth >= 120 deg (BACKLIT_MIN_DEG)", ""),
-    "aerosol_500nm": ("float32", "light model atmosphere: aerosol optical depth at 500 nm (NaN: a light model "
-                      "without an atmosphere, thesis)", ""),
-    "precipitable_water_cm": ("float32", "light model atmosphere: precipitable water (NaN: thesis)", "cm"),
-    "ozone_atm_cm": ("float32", "light model atmosphere: total ozone (NaN: thesis)", "atm-cm"),
-    "pressure_pa": ("float32", "light model atmosphere: surface pressure (NaN: thesis)", "Pa"),
-    "day_of_year": ("int16", "light model atmosphere: day of year, 1-366 (0: thesis, a light model without an "
-                    "atmosphere)", ""),
-    "sky_fraction": ("float32", "derived: diffuse horizontal / direct normal irradiance at 544 nm", ""),
-    "atmosphere_transmittance": ("float32", "sensor path transmittance at 544 nm", ""),
-    "path_radiance_scale": ("float32", "path radiance scale (spectrl2: of Koschmieder's airlight; thesis: of the "
-                            "sensor default)", ""),
-    "skin_type": ("string", "Fitzpatrick type of the group's skin", ""),
-    "melanosome": ("float32", "melanosome volume fraction", ""),
-    "blood": ("float32", "blood level", ""),
-    "oxygenation": ("float32", "blood oxygen saturation", ""),
-    "reticular_depth": ("float32", "reticular dermis thickness", "cm"),
-    "collagen": ("float32", "reticular collagen fraction", ""),
-    "subcutaneous_scale": ("float32", "subcutaneous reflectance scale", ""),
-    "subject_yaw_deg": ("float32", "subject yaw", "deg"),
-    "head_yaw_deg": ("float32", "anny head turn (NaN for mesh files)", "deg"),
-    "head_pitch_deg": ("float32", "anny head tilt (NaN for mesh files)", "deg"),
-    "gender": ("float32", "anny phenotype in [0, 1] (NaN for mesh files)", ""),
-    "age": ("float32", "anny phenotype", ""),
-    "muscle": ("float32", "anny phenotype", ""),
-    "weight": ("float32", "anny phenotype", ""),
-    "height": ("float32", "anny phenotype", ""),
-    "proportions": ("float32", "anny phenotype", ""),
-    "subject": ("string", "subject source (anny or the mesh path)", ""),
-    "surface": ("string", "skin surface model of eq 3.1.1 (thesis or conserving)", ""),
-    "clothing": ("string", "earthlib spectrum name of the subject's clothing (empty: the fixed clothing spectrum)", ""),
-    "panels": ("string", "reference panel kind", ""),
-    "material": ("string", "what the pixel shows: skin, clothing, ground or confuser", ""),
-    "confuser": ("string", "earthlib confuser spectrum name (empty: none)", ""),
-    "theta_i_deg": ("float32", "local incidence angle", "deg"),
-    "theta_r_deg": ("float32", "local view angle", "deg"),
-    "delta_phi_deg": ("float32", "local relative azimuth (180: forward plane)", "deg"),
-    "shadow": ("bool", "not sunlit: the sun is occluded (cast shadow) or behind the surface (θi > 90°)", ""),
-    "light": ("string", "sunlit or shadow (no direct sun: not shadow, resp. shadow)", ""),
-    "sky_view": ("float32", "the pixel's cosine-weighted view of the sky (hemisphere rays; NaN: a light without sky or "
-                 "ground light, none cast)", ""),
-    "direct_share_544": ("float32", "share of the pixel's irradiance at 544 nm that is direct (sun and circumsolar)",
-                         ""),
-    "direct_share_1580": ("float32", "share of the pixel's irradiance at 1580 nm that is direct", ""),
-    "panel_irradiance_ratio": ("float32", "the most irradiance a surface facing the sun and sky receives over the "
-                               "reference panels' (render.elm.panel_irradiance_ratio): sunlit surfaces read up to this "
-                               "many times their reflectance through the empirical line", ""),
-    "elm_valid": ("bool", "the frame's ELM is physical: both reference panels sunlit (>= half of each interior), "
-                  "their signals >= 20 sigma of the medians' noise apart in every band, a positive finite gain "
-                  "(render.elm.elm_line_valid), and panel_irradiance_ratio <= 3 (ELM_MAX_IRRADIANCE_RATIO); "
-                  "evaluation and calibration use only these frames", ""),
-    "elm_line_valid": ("bool", "elm_valid but for the irradiance-ratio bound: panels sunlit and the line a line; "
-                       "torchskin train --frames line (its default) also learns from these frames", ""),
-    "r544": ("float32", "ELM reflectance at 544 nm", ""),
-    "r633": ("float32", "ELM reflectance at 633 nm", ""),
-    "r1080": ("float32", "ELM reflectance at 1080 nm", ""),
-    "r1580": ("float32", "ELM reflectance at 1580 nm", ""),
-    "ndgri": ("float32", "(r544 - r633) / (r544 + r633)", ""),
-    "ndsi": ("float32", "(r1080 - r1580) / (r1080 + r1580)", ""),
-}
 
 
 def _arrow_schema():
@@ -449,8 +368,8 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
                  "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
                  "elm_valid": elm_valid[cfg],
-                 "elm_line_valid": elm_line_valid[cfg], "ndgri": res.ndgri[:, 0, 0].cpu()[at].numpy(),
-                 "ndsi": res.ndsi[:, 0, 0].cpu()[at].numpy()})
+                 "elm_line_valid": elm_line_valid[cfg],
+                 **{name: getattr(res, name)[:, 0, 0].cpu()[at].numpy() for name in STORED_INDICES}})
     rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
     shadow = rows["shadow"]
     rows["light"] = strings(shadow, ["sunlit", "shadow"])
@@ -496,10 +415,6 @@ def sky_fraction(light: LightTables, zenith_deg: list[float]) -> np.ndarray:
 
 
 # -------------------------------------------------------------------------------------------------- shards
-def shard_name(k: int) -> str:
-    return f"shard-{k:05d}.parquet"
-
-
 def write_images(out_dir: Path, k: int, cubes: list) -> dict:
     """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images/images-NNNNN.npy``
     (a subfolder, so that Parquet readers of the dataset folder see only shards)."""
@@ -509,17 +424,6 @@ def write_images(out_dir: Path, k: int, cubes: list) -> dict:
     save_npy(path, arr, suffix=".tmp")
     return {"name": f"{IMAGES_DIR}/{path.name}", "shape": list(arr.shape), "sha256": sha256_file(path),
             "bytes": path.stat().st_size}
-
-
-IMAGES_DIR = "images"  # --images cubes live here, out of the way of Parquet readers of the dataset folder
-
-
-def _dataset_files(out: Path) -> list[Path]:
-    """The files of a dataset folder and of its images subfolder."""
-    files = [p for p in out.iterdir() if p.is_file()]
-    if (out / IMAGES_DIR).is_dir():
-        files += [p for p in (out / IMAGES_DIR).iterdir() if p.is_file()]
-    return files
 
 
 def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
@@ -582,11 +486,6 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
     return entry
 
 
-def _intact(out: Path, entry: dict) -> bool:
-    p = out / entry["name"]
-    return p.is_file() and p.stat().st_size == entry["bytes"] and sha256_file(p) == entry["sha256"]
-
-
 def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
     per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
     return {"schema_version": SCHEMA_VERSION, "render_revision": RENDER_REVISION, "package_version": __version__,
@@ -595,76 +494,6 @@ def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], i
             "n_shards": n_shards, "images": images,
             "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
             "shards": [done[k] for k in sorted(done)]}
-
-
-def verify(out_dir: str | os.PathLike) -> dict:
-    """Check a dataset folder against its manifest: missing, partial (temporary leftovers or unreadable)
-    and corrupted (checksum mismatch) shards. ``ok`` is True when everything matches. A manifest of a schema this
-    torchskin does not read is a ``ValueError`` (``dataset.files.manifest``)."""
-    out = Path(out_dir)
-    man = read_manifest(out)  # a schema this torchskin does not read is refused (dataset.files.manifest)
-    if man is None:
-        raise ValueError(f"{str(out)!r} has no {MANIFEST}: not a torchskin dataset")
-    listed = {s["name"]: s for s in man["shards"]}
-    missing, corrupted = [], []
-    for k in range(man["n_shards"]):
-        name = shard_name(k)
-        entries = [listed[name], listed[name].get("images")] if name in listed else []
-        for e in [x for x in entries if x] or [{"name": name}]:
-            p = out / e["name"]
-            if "sha256" not in e or not p.is_file():
-                missing.append(e["name"])
-            elif not _intact(out, e):
-                corrupted.append(e["name"])
-    partial = sorted(str(p.relative_to(out)) for p in _dataset_files(out)
-                     if p.name.startswith((".shard-", ".images-")) or p.name.endswith(".tmp"))
-    return {"ok": not (missing or corrupted or partial), "shards": man["n_shards"], "missing": missing,
-            "corrupted": corrupted, "partial": partial,
-            "rows": sum(s["rows"] for s in man["shards"] if s["name"] not in corrupted)}
-
-
-def name_ranges(names: Sequence[str], limit: int = 4) -> str:
-    """A short text for a possibly huge list of shard file names: the count and the runs of consecutive indices,
-    at most ``limit`` runs then how many more, e.g. ``"5: shard-00002.parquet..shard-00005.parquet,
-    images/images-00009.npy"``; ``"none"`` for an empty list. Names without an index are listed as they are."""
-    import re
-
-    if not names:
-        return "none"
-    keyed = []
-    for name in names:
-        m = re.fullmatch(r"(.*?)(\d+)(\.[A-Za-z0-9]+)?", name)
-        keyed.append((name, "", -1, "") if m is None else (m[1], m[3] or "", int(m[2]), m[2]))
-    keyed.sort(key=lambda t: (t[0], t[1], t[2]))
-    runs: list[list] = []  # [prefix, suffix, first, last, first text, last text]
-    for head, tail, idx, digits in keyed:
-        r = runs[-1] if runs else None
-        if idx >= 0 and r is not None and r[0] == head and r[1] == tail and r[3] + 1 == idx:
-            r[3], r[5] = idx, digits
-        else:
-            runs.append([head, tail, idx, idx, digits, digits])
-    text = [r[0] if r[2] < 0 else f"{r[0]}{r[4]}{r[1]}" + (f"..{r[0]}{r[5]}{r[1]}" if r[3] > r[2] else "")
-            for r in runs[:limit]]
-    more = f", ... ({len(runs) - limit} more runs)" if len(runs) > limit else ""
-    return f"{len(names)}: " + ", ".join(text) + more
-
-
-def verify_summary(report: dict) -> dict:
-    """``verify``'s report with its lists of names (missing, corrupted, partial) replaced by counts and ranges
-    (``name_ranges``), so that a dataset of millions of shards reports in one short line (``dataset verify``)."""
-    out = {k: v for k, v in report.items() if k not in ("missing", "corrupted", "partial")}
-    for k in ("missing", "corrupted", "partial"):
-        out[k] = len(report[k])
-        out[f"{k}_ranges"] = name_ranges(report[k])
-    return out
-
-
-def verify_line(report: dict) -> str:
-    """``verify``'s report as one line of text: ok or PROBLEMS, shards, rows, and the missing, corrupted and
-    partial files as counts and ranges (``name_ranges``)."""
-    return (("ok" if report["ok"] else "PROBLEMS") + f": {report['shards']} shards, {report['rows']} rows; missing "
-            f"{name_ranges(report['missing'])}; corrupted {name_ranges(report['corrupted'])}; partial "
-            f"{name_ranges(report['partial'])}")
 
 
 #: the measured size of a row in a Parquet shard (zstd): 26-27 bytes on the default config, rounded up; with the
@@ -758,12 +587,12 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
         raise ValueError(f"output {str(out)!r} exists and is not a folder")
     existing = [p for p in out.iterdir()] if out.is_dir() else []
     check_folder_empty(out, "output", resume or overwrite, "--resume to continue")
-    reclaim = sum(p.stat().st_size for p in _dataset_files(out)) if existing and overwrite and not resume else 0
+    reclaim = sum(p.stat().st_size for p in dataset_files(out)) if existing and overwrite and not resume else 0
     if not resume:  # a resumed run checks once it knows which shards are still to write
         check_disk_space(out, estimate_bytes(cfg, n_configs, images), reclaim)
     done: dict[int, dict] = {}
     if existing and overwrite and not resume:
-        for p in _dataset_files(out):
+        for p in dataset_files(out):
             if p.name == MANIFEST or p.name.startswith(("shard-", ".shard-", "images-", ".images-")):
                 p.unlink()
         if (out / IMAGES_DIR).is_dir() and not any((out / IMAGES_DIR).iterdir()):
@@ -784,11 +613,11 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
                              f"this torchskin renders revision {RENDER_REVISION} (other bytes for the same seed): "
                              "regenerate it with --overwrite")
         for s in old["shards"]:
-            if all(_intact(out, e) for e in (s, s.get("images")) if e):
+            if all(intact(out, e) for e in (s, s.get("images")) if e):
                 done[int(s["name"][6:11])] = s
     if resume:
         check_disk_space(out, estimate_bytes(cfg, n_configs, images, [k for k in range(n_shards) if k not in done]))
-    for p in (_dataset_files(out) if out.is_dir() else []):
+    for p in (dataset_files(out) if out.is_dir() else []):
         if p.name.startswith((".shard-", ".images-")):  # temporaries of a killed run
             p.unlink()
     if backend == "ray" and address:  # before the folder is made: a cluster that is not there fails in bounded time

@@ -3,7 +3,7 @@ exported, all behind one protocol and one registry.
 
 Modules, lowest first (each imports only those above it):
 
-- ``features``: what every kind shares and the datasets may use: the dataset's band columns (``BAND_COLUMNS``),
+- ``features``: what every kind shares: the dataset's band columns (``BAND_COLUMNS``, from ``dataset.schema``),
   the configuration features with their units and domains, the brightness floor, the index formulas (``ratio_indices``,
   whose one home is ``torchskin.detect``), the configuration buffers and the tuning configurations.
 - ``protocol``: the ``DetectorModel`` protocol (decide, domain, detector graph, checkpoint with a ``kind``), the
@@ -16,8 +16,8 @@ Modules, lowest first (each imports only those above it):
 
 A new kind is one module (a class that satisfies ``DetectorModel``) plus one call, ``registry.register(MyKind)``.
 
-This package's ``__init__`` imports nothing: ``import torchskin.detectors.features`` (the dataset generator does)
-loads no learner. Submodules load on first use (``torchskin.detectors.registry``).
+This package's ``__init__`` imports nothing: ``import torchskin.detectors.features`` loads no learner. Submodules
+load on first use (``torchskin.detectors.registry``).
 """
 
 import importlib

@@ -28,11 +28,10 @@ Two trainers:
 
 Both are followed by ``tune_false_alarms`` (a hard guarantee on the train spectra). The model is exported
 to ONNX (``torchskin.export``: ``boundaries.onnx`` from ``boundaries_graph``, ``detector.onnx`` from
-``BoundaryModel.detector_graph``, the five edge forms of ``BoxDetector``) and run onboard without torch
-(``torchskin.onboard``).
+``BoxModel.detector_graph``, the five edge forms of ``BoxDetector``) and run onboard without torch
+(``torchskin.onboard``: ``OnboardBoxes``, ``OnboardDetector``).
 
-This module is the ``boxes`` detector kind (``torchskin.detectors.registry``); ``torchskin.boundaries`` re-exports
-it under its old name.
+This module is the ``boxes`` detector kind (``torchskin.detectors.registry``); ``BoxModel`` is its model.
 """
 
 from __future__ import annotations
@@ -51,8 +50,6 @@ from ..detect import rules_detector
 from ..errors import Failure
 from .features import (
     BAND_COLUMNS,
-    FEATURE_DOMAIN,
-    FEATURE_UNITS,
     FEATURES,
     MIN_REFLECTANCE,
     config_buffers,
@@ -88,7 +85,7 @@ def ndvn_rule(v: torch.Tensor, quantile: float | None = NDVN_QUANTILE, margin: f
     return max(-1.0, float(torch.quantile(v.double(), quantile)) - margin)
 
 
-class BoundaryModel(nn.Module):
+class BoxModel(nn.Module):
     """Configuration features (N, k) -> boxes (N, 5) = (b1, b2, c1, c2, d1) (``BOX_ORDER``). d1, the NDVN rule:
     with ``ndvn_head``, a fifth output of the network, learned per configuration (``train_boxes``: the conditional
     ``ndvn_quantile`` of the skin's NDVN less ``NDVN_MARGIN``); else the buffer ``ndvn_min``, the same for every
@@ -180,7 +177,7 @@ class BoundaryModel(nn.Module):
                 "ndvn_head": self.ndvn_head, "meta": meta}
 
     @classmethod
-    def from_checkpoint(cls, ck: dict) -> BoundaryModel:
+    def from_checkpoint(cls, ck: dict) -> BoxModel:
         """The model of a checkpoint dict (older checkpoints without a stored domain or NDVN rule get the defaults),
         in eval mode."""
         m = cls(ck["features"], ck["hidden"], ndvn_head=bool(ck.get("ndvn_head", False)))
@@ -191,7 +188,7 @@ class BoundaryModel(nn.Module):
         return m.eval()
 
     @classmethod
-    def from_training(cls, req: TrainRequest) -> tuple[BoundaryModel, dict, str]:
+    def from_training(cls, req: TrainRequest) -> tuple[BoxModel, dict, str]:
         """``torchskin train --method boxes|quantiles``: the model, its training summary and the one-line report
         (``train_on_dataset``)."""
         return train_on_dataset(req)
@@ -243,7 +240,7 @@ class BoundaryModel(nn.Module):
                 f"configurations (worst case after calibration: {f(train.get('pfa_train_worst'))})")
 
 
-def folded(model: BoundaryModel) -> BoundaryModel:
+def folded(model: BoxModel) -> BoxModel:
     """A copy of ``model`` for export, the same function with fewer graph nodes: the feature standardisation
     folded into the first linear layer, and d1 (the NDVN rule) carried by a fifth output of the last layer
     (zero weights, bias d1) instead of being added to the boxes."""
@@ -271,7 +268,7 @@ def folded(model: BoundaryModel) -> BoundaryModel:
 
 @dataclass
 class TrainResult:
-    model: BoundaryModel
+    model: BoxModel
     loss: float
     rows: int
 
@@ -280,7 +277,7 @@ def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATUR
                    sunlit_only: bool = False, frames: str = "physical") -> tuple[torch.Tensor, torch.Tensor]:
     """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
     sunlit and shadowed (``sunlit_only``: sunlit only), from the frames ``frames`` names
-    (``dataset.files.read_valid``: "physical", ``elm_valid``; "line", ``elm_line_valid``)."""
+    (``dataset.files.read_rows``: "physical", ``elm_valid``; "line", ``elm_line_valid``)."""
     X, Y = _index_rows(data_dir, features, skin=True, sunlit_only=sunlit_only, frames=frames)
     if len(X) == 0:
         raise ValueError(f"no usable {'sunlit ' if sunlit_only else ''}skin pixels in {str(data_dir)!r}")
@@ -302,18 +299,16 @@ def load_scene_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATU
 def _index_rows(data_dir: str | os.PathLike, features: Sequence[str], skin: bool,
                 sunlit_only: bool, floor: float | None = None, frames: str = "physical"
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    from ..dataset.files import read_valid
+    from ..dataset.files import read_rows
 
-    t, _ = read_valid(data_dir, list(features) + ["ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS], frames)
-    label = t.column("label").to_numpy(zero_copy_only=False)
-    keep = label.copy() if skin else ~label
+    rows = read_rows(data_dir, [*features, "ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS], frames)
+    keep = rows["label"].copy() if skin else ~rows["label"]
     if sunlit_only:
-        keep &= ~t.column("shadow").to_numpy(zero_copy_only=False)
-    X = np.stack([t.column(f).to_numpy(zero_copy_only=False) for f in features], -1)[keep]
-    R = np.stack([t.column(b).to_numpy(zero_copy_only=False) for b in BAND_COLUMNS], -1)[keep].astype(np.float64)
-    v = ratio_indices(torch.from_numpy(R))[2].numpy()  # NDVN in float64 (NaN where the band sum is 0)
-    Y = np.stack([t.column("ndgri").to_numpy(zero_copy_only=False)[keep],
-                  t.column("ndsi").to_numpy(zero_copy_only=False)[keep], v], -1)
+        keep &= ~rows["shadow"]
+    X = rows.stack(features)[keep]
+    R = rows.bands(np.float64)[keep]
+    v = rows.index("ndvn", np.float64)[keep]  # NDVN in float64 (NaN where the band sum is 0)
+    Y = np.stack([rows["ndgri"][keep], rows["ndsi"][keep], v], -1)
     ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
     if floor is not None:  # below the brightness floor: never a detection (NaN indices), still a row
         Y[~(R.mean(1) > floor)] = np.nan
@@ -331,7 +326,7 @@ def _check_xy(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str]) -> None
 
 
 def _initial_model(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str], hidden: int, q: float, seed: int,
-                   domain: Any = None, ndvn_quantile: float | None = None) -> BoundaryModel:
+                   domain: Any = None, ndvn_quantile: float | None = None) -> BoxModel:
     """A model that starts at the pooled (q, 1 - q) quantile box (and, with ``ndvn_quantile``, a learned d1 at
     the pooled NDVN quantile of ``Y[:, 2]`` less ``NDVN_MARGIN``), with small deterministic weights (``seed``)
     and the training ``domain`` ((k, 2); default: the extremes of ``X``)."""
@@ -339,7 +334,7 @@ def _initial_model(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str], hi
     if domain is None:
         domain = torch.stack([X.min(0).values, X.max(0).values], -1)
     head = ndvn_quantile is not None
-    model = BoundaryModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain, ndvn_head=head)
+    model = BoxModel(features, hidden, X.mean(0), X.std(0).clamp_min(1e-6), domain, ndvn_head=head)
     with torch.no_grad():
         for p in model.net.parameters():
             if p.requires_grad:
@@ -373,7 +368,7 @@ def quantile_loss(box: torch.Tensor, Y: torch.Tensor, q: float, w: torch.Tensor 
     return (loss if w is None else loss * w).mean()
 
 
-def fit_quantiles(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor, q: float, steps: int, lr: float,
+def fit_quantiles(model: BoxModel, X: torch.Tensor, Y: torch.Tensor, q: float, steps: int, lr: float,
                   w: torch.Tensor | None = None, batch: int | None = None, g: torch.Generator | None = None,
                   decay: bool = False, ndvn_quantile: float | None = None) -> float:
     """Adam on ``quantile_loss`` (in place): ``model``'s boxes become the conditional ``q`` / ``1 - q`` quantiles
@@ -660,7 +655,7 @@ METHODS = ("boxes", "quantiles")
 def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: float = 1e-3,
           confusers: torch.Tensor | None = None, ndvn_quantile: float | None = NDVN_QUANTILE,
           scene: tuple[torch.Tensor, torch.Tensor] | None = None, scene_budget: float = 1e-4,
-          **options: Any) -> tuple[BoundaryModel, dict]:
+          **options: Any) -> tuple[BoxModel, dict]:
     """Learn the configuration-dependent boxes: train (``train_boxes`` or ``train_quantiles``), then enforce the
     false-alarm budget on the earthlib train partition (``tune_false_alarms`` over ``tuning_configs``). With
     (n, 3) skin points ``Y`` and (m, 3) confusers the visible/NIR rule is set first (``ndvn_rule`` of the
@@ -734,23 +729,23 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
 MIN_TRAIN_COVERAGE = 0.5
 
 
-def train_coverage(model: BoundaryModel, X: torch.Tensor, Y: torch.Tensor) -> float:
+def train_coverage(model: BoxModel, X: torch.Tensor, Y: torch.Tensor) -> float:
     """Fraction of the training skin pixels ``Y`` (n, 2 or 3) inside the hard box of their configuration ``X``."""
     uniq, inv = distinct_configs(X)
     v = Y[:, 2] if Y.shape[1] > 2 else None
     return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1], v).float().mean())
 
 
-def save(model: BoundaryModel, path: str | os.PathLike, meta: dict | None = None) -> None:
+def save(model: BoxModel, path: str | os.PathLike, meta: dict | None = None) -> None:
     """A torch checkpoint (kind "boxes"): state, features and hidden size (+ metadata), written atomically through
     a buffer: the same model gives the same bytes."""
     write_checkpoint(model, path, meta)
 
 
-def load(path: str | os.PathLike) -> BoundaryModel:
-    """A ``BoundaryModel`` from a checkpoint written by ``save`` (those written before checkpoints carried a kind,
+def load(path: str | os.PathLike) -> BoxModel:
+    """A ``BoxModel`` from a checkpoint written by ``save`` (those written before checkpoints carried a kind,
     and older ones without a stored domain or NDVN rule, included), in eval mode."""
-    return BoundaryModel.from_checkpoint(torch.load(path, map_location="cpu", weights_only=True))
+    return BoxModel.from_checkpoint(torch.load(path, map_location="cpu", weights_only=True))
 
 
 def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
@@ -788,7 +783,7 @@ def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None], v).float().mean(-1)
 
 
-def tune_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch.Tensor,
+def tune_false_alarms(model: BoxModel, configs: torch.Tensor, points: torch.Tensor,
                       budget: float = 1e-3, iters: int = 30,
                       scene: tuple[torch.Tensor, torch.Tensor] | None = None, scene_budget: float = 1e-4) -> float:
     """Shrink every box about its centre (one global scale, found by bisection) until the false-alarm rate on
@@ -812,7 +807,7 @@ def tune_false_alarms(model: BoundaryModel, configs: torch.Tensor, points: torch
     return lo
 
 
-def scene_rate(model: BoundaryModel, X: torch.Tensor, P: torch.Tensor) -> float:
+def scene_rate(model: BoxModel, X: torch.Tensor, P: torch.Tensor) -> float:
     """The share of non-skin pixels (features ``X`` (q, k), (NDGRI, NDSI[, NDVN]) ``P``) that their own
     configuration's box calls skin (0 for none)."""
     if len(X) == 0:
@@ -823,7 +818,7 @@ def scene_rate(model: BoundaryModel, X: torch.Tensor, P: torch.Tensor) -> float:
     return float(inside_box(box, P[:, 0], P[:, 1], P[:, 2] if P.shape[1] > 2 else None).float().mean())
 
 
-def train_on_dataset(req: TrainRequest) -> tuple[BoundaryModel, dict, str]:
+def train_on_dataset(req: TrainRequest) -> tuple[BoxModel, dict, str]:
     """``torchskin train --method boxes|quantiles`` on a dataset folder: the skin and scene rows
     (``load_skin_rows``, ``load_scene_rows``), the declared domain (``domain_from_manifest``), ``learn``; returns
     the model, its training summary (``learn``'s, with ``light_classes``) and the command's one-line report."""
@@ -883,19 +878,19 @@ class BoxDetector(nn.Module):
     ``edge_detector_graph`` writes the same arithmetic as a short ONNX graph (one one-row MatMul per edge, Min,
     Greater)."""
 
-    def __init__(self, boundaries: BoundaryModel):
+    def __init__(self, model: BoxModel):
         super().__init__()
-        self.boundaries = boundaries
+        self.model = model
 
     def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mask and score (B, H, W) of a reflectance cube (B, 4, H, W) under configurations (B, k)."""
         B, _, H, W = cube.shape
-        lin = edge_matrix(self.boundaries(config)) @ cube.reshape(B, 4, H * W)  # (B, E, HW)
+        lin = edge_matrix(self.model(config)) @ cube.reshape(B, 4, H * W)  # (B, E, HW)
         score = lin.amin(1).reshape(B, H, W)
         return score > 0, score
 
 
-def boundaries_graph(model: BoundaryModel, meta: dict[str, str]) -> onnx.ModelProto:
+def boundaries_graph(model: BoxModel, meta: dict[str, str]) -> onnx.ModelProto:
     """The ONNX graph configuration (N, k) -> boxes (N, 5) of a box model (its ``folded`` copy)."""
     cfg = torch.zeros(2, len(model.features))
     return torch_graph(folded(model.eval()), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}},
@@ -948,11 +943,8 @@ def edge_detector_graph(boundaries_model: onnx.ModelProto, meta: dict[str, str])
     return m
 
 
-__all__ = ["BOX_ORDER", "METHODS", "BoundaryModel", "BoxDetector", "BoxTraining", "EDGE_C", "EDGE_M", "MIN_TRAIN_COVERAGE",
+__all__ = ["BOX_ORDER", "METHODS", "BoxDetector", "BoxModel", "BoxTraining", "EDGE_C", "EDGE_M", "MIN_TRAIN_COVERAGE",
            "NDVN_MARGIN", "NDVN_QUANTILE", "TrainResult", "boundaries_graph", "edge_detector_graph", "edge_matrix",
            "false_alarm_rate", "fit_quantiles", "folded", "inside_box", "learn", "load", "load_scene_rows",
            "load_skin_rows", "margin_violation", "ndvn_rule", "quantile_loss", "save", "scene_rate", "scene_violation",
-           "soft_inside", "train_boxes", "train_coverage", "train_on_dataset", "train_quantiles", "tune_false_alarms",
-           # shared with every kind (``features``), kept here for the old ``boundaries`` names
-           "BAND_COLUMNS", "FEATURES", "FEATURE_DOMAIN", "FEATURE_UNITS", "MIN_REFLECTANCE", "config_buffers",
-           "confuser_indices", "distinct_configs", "domain_from_manifest", "ratio_indices", "tuning_configs"]
+           "soft_inside", "train_boxes", "train_coverage", "train_on_dataset", "train_quantiles", "tune_false_alarms"]

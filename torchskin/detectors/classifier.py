@@ -23,8 +23,7 @@ ground, confusers of the training partition) and every earthlib *train* spectrum
 over the training domain. The decision threshold is then raised until at most ``pfa_budget`` of the earthlib
 train spectra are called skin in any configuration of the tuning set (``tune_threshold``: the boxes' rule).
 
-This module is the ``classifier`` detector kind (``torchskin.detectors.registry``); ``torchskin.classifier``
-re-exports it under its old name.
+This module is the ``classifier`` detector kind (``torchskin.detectors.registry``); ``SkinClassifier`` is its model.
 """
 
 from __future__ import annotations
@@ -177,7 +176,7 @@ class SkinClassifier(nn.Module):
     #: the model card's "Intended use" of this kind (``modelcard``)
     card_use: ClassVar[str] = (
         "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with a "
-        "configuration-conditioned MLP on the band ratios NDGRI, NDSI and NDVN (`torchskin.classifier`), "
+        "configuration-conditioned MLP on the band ratios NDGRI, NDSI and NDVN (`torchskin.detectors.classifier`), "
         "thresholded at the false-alarm budget.")
 
     @staticmethod
@@ -221,16 +220,15 @@ class ClassifierDetector(nn.Module):
 
 def load_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES, frames: str = "physical"
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Training rows of a generated dataset (the frames ``frames`` names: ``dataset.files.read_valid``):
+    """Training rows of a generated dataset (the frames ``frames`` names: ``dataset.files.read_rows``):
     configuration (n, k), reflectance (n, 4), skin label and sunlit flag (numpy)."""
-    from ..dataset.files import read_valid
+    from ..dataset.files import read_rows
 
-    t, _ = read_valid(data_dir, list(features) + list(BAND_COLUMNS) + ["label", "shadow"], frames)
-    col = {c: np.asarray(t.column(c).to_numpy(zero_copy_only=False)) for c in t.column_names}
-    X = np.stack([col[f] for f in features], -1).astype(np.float32)
-    R = np.stack([col[b] for b in BAND_COLUMNS], -1).astype(np.float32)
+    rows = read_rows(data_dir, [*features, *BAND_COLUMNS, "label", "shadow"], frames)
+    X = rows.stack(features, np.float32)
+    R = rows.bands(np.float32)
     ok = np.isfinite(X).all(1) & np.isfinite(R).all(1)
-    return X[ok], R[ok], col["label"][ok].astype(bool), ~col["shadow"][ok].astype(bool)
+    return X[ok], R[ok], rows["label"][ok].astype(bool), ~rows["shadow"][ok].astype(bool)
 
 
 def _earthlib_reflectance(part: str) -> torch.Tensor:

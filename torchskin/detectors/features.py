@@ -1,10 +1,12 @@
-"""What every detector kind shares, and what the datasets may use without importing a learner: the dataset's band
-columns, the configuration features (order, units, training domain), the brightness floor, the index formulas
-(``ratio_indices``; its one home is ``torchskin.detect``, re-exported here), the configuration inputs'
-standardisation and domain buffers (``config_buffers``), the configurations a false-alarm budget is enforced on
-(``tuning_configs``) and the earthlib spectra in the index bands (``earthlib_reflectance``, ``confuser_indices``).
+"""What every detector kind shares, without importing a learner: the dataset's band columns (``BAND_COLUMNS``,
+whose home is ``torchskin.dataset.schema``, re-exported here), the configuration features (order, units, training
+domain), the brightness floor, the index formulas (``ratio_indices``; its one home is ``torchskin.detect``,
+re-exported here), the configuration inputs' standardisation and domain buffers (``config_buffers``), the
+configurations a false-alarm budget is enforced on (``tuning_configs``) and the earthlib spectra in the index bands
+(``earthlib_reflectance``, ``confuser_indices``).
 
-This module imports no learner (``torchskin.detectors.boxes`` / ``classifier``): ``torchskin.dataset`` imports it.
+This module imports no learner (``torchskin.detectors.boxes`` / ``classifier``). ``torchskin.dataset`` imports nothing
+of ``torchskin.detectors``: the dataset's schema is ``torchskin.dataset.schema``, below the detectors.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 import torch
 
 from ..bands import INDEX_BANDS_NM
+from ..dataset.schema import BAND_COLUMNS
 from ..detect import ratio_indices
 
 #: default configuration features (what an onboard computer knows: sun position and camera pointing)
@@ -30,8 +33,6 @@ FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0
 #: bands is not above it is not skin (at the noise floor its indices are ratios of sensor noise; the onboard runtime
 #: applies the same floor, ``min_reflectance``, recorded in the exported detector's metadata)
 MIN_REFLECTANCE = 0.005
-#: the dataset columns of the ELM reflectance in the four index bands (``INDEX_BANDS_NM``: g, r, n, s), in order
-BAND_COLUMNS = ("r544", "r633", "r1080", "r1580")
 
 
 def config_buffers(features: Sequence[str], mean: Any = None, std: Any = None,

@@ -4,7 +4,7 @@ every checkpoint names its kind; box checkpoints written before they did are ``b
 (``train``), tell a model's kind (``kind_of``) and its boxes (``boxes_of``), and find the kind a training summary
 describes (``kind_for_method``: the model cards).
 
-The built-in kinds, ``boxes`` (``boxes.BoundaryModel``) and ``classifier`` (``classifier.SkinClassifier``), are
+The built-in kinds, ``boxes`` (``boxes.BoxModel``) and ``classifier`` (``classifier.SkinClassifier``), are
 registered when this module loads. A new kind is one module plus one call:
 
 >>> from torchskin.detectors import registry
@@ -21,7 +21,7 @@ from typing import Any, cast
 
 import torch
 
-from .boxes import BoundaryModel
+from .boxes import BoxModel
 from .classifier import SkinClassifier
 from .protocol import BoxDetectorModel, DetectorModel, TrainRequest, write_checkpoint
 
@@ -147,7 +147,7 @@ def train(req: TrainRequest) -> tuple[DetectorModel, dict, str]:
     return cast(tuple[DetectorModel, dict, str], fn(req))
 
 
-register(cast(type[DetectorModel], BoundaryModel))
+register(cast(type[DetectorModel], BoxModel))
 register(cast(type[DetectorModel], SkinClassifier))
 
 __all__ = ["LEGACY_KIND", "boxes_of", "get", "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint",
