@@ -6,7 +6,7 @@
 COMMIT (default 2afa293, the four-edge graph before the NDVN rule and the brightness floor) is extracted with
 ``git archive`` into a temporary directory and imported as the package ``torchskin_old``. Each side runs its own
 commit's onboard code on its own graph, 2afa293 without a brightness floor (it had none by default), this
-checkout with the shipped floor (the shipped model's ``min_reflectance``, ``evaluate.MIN_REFLECTANCE``):
+checkout with the shipped floor (the shipped model's ``min_reflectance``, ``evaluation.MIN_REFLECTANCE``):
 
 - ``--graphs shipped`` (default): the detector each commit shipped (``exports/detector.onnx`` at COMMIT; this
   checkout's ``torchskin/data/detector.onnx``), the trained boxes a user runs;
@@ -74,7 +74,7 @@ def main() -> int:
         import torchskin_old.onboard as old_onboard  # type: ignore[import-not-found]
 
         from torchskin.detectors.boxes import BoxModel
-        from torchskin.evaluate import MIN_REFLECTANCE
+        from torchskin.evaluation import MIN_REFLECTANCE
         from torchskin.export import export
         from torchskin.onboard import SHIPPED_DETECTOR, OnboardDetector
 

@@ -4,11 +4,11 @@
 
     python scripts/pipeline_evaluate.py [--work out/pipeline]
 
-Each WORK/<model>.pt is first calibrated on the held-out set (evaluate.calibrate_to_budget: one scalar per model,
+Each WORK/<model>.pt is first calibrated on the held-out set (evaluation.calibrate_to_budget: one scalar per model,
 the box scale or the classifier's threshold, so that held-out scene non-skin Pfa <= 1e-4 and earthlib test Pfa
 <= 1e-3) from the trained WORK/<model>.trained.pt; the calibration is recorded in the checkpoint's metadata. Writes WORK/evaluation.json (every model: Pd sunlit / glint-affected / shadowed, Pfa earthlib test and scene
 non-skin by family, decision-region areas, per-bin figures), WORK/plots/{roc,pd_heatmap,boxes,comparison}.png
-and WORK/selection.json (the checkpoint detector.onnx is made from, and why: evaluate.select_detector)."""
+and WORK/selection.json (the checkpoint detector.onnx is made from, and why: evaluation.select_detector)."""
 
 import argparse
 import json
@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from torchskin.cli import main
-from torchskin.evaluate import calibrate_to_budget, select_detector
+from torchskin.evaluation import calibrate_to_budget, select_detector
 from torchskin.io import write_text
 
 MODELS = ("boundaries.pt", "baseline_box.pt", "classifier.pt")

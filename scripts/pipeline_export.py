@@ -51,7 +51,7 @@ def run(argv=None) -> int:
                      (work / "plots_test" / "comparison.png", out / "comparison_test.png")):
         with atomic_path(dst) as tmp:
             shutil.copyfile(src, tmp)
-    from torchskin.evaluate import thesis_frame
+    from torchskin.evaluation import thesis_frame
 
     thesis_frame(out / "detector.onnx", plot=out / "thesis_frame.png")  # the shipped detector on the thesis geometry
     if out.resolve() == (ROOT / "exports").resolve():  # the shipped detector, packaged for pip users

@@ -69,6 +69,7 @@ def run(argv=None) -> int:
     import torch
 
     from torchskin import tissue
+    from torchskin.bands import BandSet
     from torchskin.detectors import boxes as Bx
     from torchskin.detectors import registry
     from torchskin.onboard import OnboardBoxes, OnboardDetector
@@ -91,8 +92,11 @@ def run(argv=None) -> int:
         meta = {p.key: p.value for p in m.metadata_props}
         check(m.opset_import[0].version >= 17 and json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0]
               and len(meta.get("training_manifest_sha256", "")) == 64 and meta.get("torchskin_version")
-              and meta.get("skin_surface_model") == "thesis" and len(json.loads(meta["box_order"])) == 5,
-              f"{name}.onnx: checker, opset >= 17, metadata (skin surface model {meta.get('skin_surface_model')!r})")
+              and meta.get("skin_surface_model") == "thesis" and len(json.loads(meta["box_order"])) == 5
+              and meta.get("kind") in registry.kinds() and "bands" in meta
+              and list(BandSet.from_json(meta["bands"]).centers) == json.loads(meta["bands_nm"]),
+              f"{name}.onnx: checker, opset >= 17, metadata (kind {meta.get('kind')!r}, band set, skin surface model "
+              f"{meta.get('skin_surface_model')!r})")
     model = Bx.load(out / "boundaries.pt")
     lo, hi = model.domain[:, 0], model.domain[:, 1]
     cfg = lo + (hi - lo) * torch.rand(4096, len(model.features), generator=torch.Generator().manual_seed(0))
@@ -125,7 +129,7 @@ def run(argv=None) -> int:
           f"detector.onnx (onboard runtime) vs torch: max |score diff| {serr:.1e}, {int(differ.sum())} mask pixels differ")
     frac = float(res["mask"][:, 64:192, 64:192].mean())
     check(frac > 0.9, f"detector.onnx finds the skin-like square: {frac:.3f} of it")
-    from torchskin.evaluate import thesis_frame
+    from torchskin.evaluation import thesis_frame
 
     t = thesis_frame(out / "detector.onnx")
     check(t["pd_sunlit_learned"] > 0.9 and not t["out_of_domain"],

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from torchskin.cli import main
-from torchskin.evaluate import calibrate_to_budget
+from torchskin.evaluation import calibrate_to_budget
 
 #: (column, section of the evaluation, key): the figures compared
 FIGURES = (("Pd sunlit", "overall", "pd_sunlit"),

@@ -139,7 +139,7 @@ def test_train_export_detect_pipeline_on_a_generated_dataset(tmp_path, capsys):
     # the training domain is the dataset's declared ranges, not the extremes of its few draws
     assert Bx.load(tmp_path / "m.pt").domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
     # calibration to the budgets on a validation set: one scale, never looser than training's; the record kept
-    from torchskin.evaluate import calibrate_to_budget, evaluate
+    from torchskin.evaluation import calibrate_to_budget, evaluate
 
     loose = calibrate_to_budget(tmp_path / "m.pt", tmp_path / "data", tmp_path / "loose.pt", scene_budget=0.5)
     assert loose["after"] == loose["before"] == float(Bx.load(tmp_path / "m.pt").scale)
@@ -192,7 +192,7 @@ def test_false_alarm_tuning_and_evaluation(tmp_path, trained, capsys):
     import pyarrow.parquet as pq
 
     from torchskin.detect import DEFAULT_BOX
-    from torchskin.evaluate import evaluate
+    from torchskin.evaluation import evaluate
 
     n = 400
     g = torch.Generator().manual_seed(5)

@@ -196,7 +196,7 @@ def test_a_new_kind_runs_through_evaluate_export_and_the_cards(toy_kind, tiny_da
     import onnxruntime as ort
 
     from torchskin.dataset.files import read_valid
-    from torchskin.evaluate import evaluate
+    from torchskin.evaluation import evaluate
     from torchskin.export import export, write_model_cards
 
     toy = NdsiThreshold(0.5)

@@ -60,6 +60,11 @@ def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported)
     assert np.array_equal(a["score"], b["score"]) and a["mask"][:, 10:30, 10:30].all()
     for card in ("boundaries.md", "baseline_box.md", "detector.md"):  # a pure function of checkpoint + evaluation
         assert (reexported / card).read_text() == (EXPORTS / card).read_text(), card
+    import onnx
+
+    for name in ("boundaries", "baseline_box", "detector"):  # the committed graphs carry today's metadata (kind, bands)
+        meta = [{p.key: p.value for p in onnx.load(str(d / f"{name}.onnx")).metadata_props} for d in (EXPORTS, reexported)]
+        assert meta[0] == meta[1] and meta[0]["kind"] == "boxes", name
 
 
 def test_committed_metadata_and_cards(committed):
@@ -92,7 +97,7 @@ def test_shipped_models_meet_their_claims(committed):
     (measured again on a regenerated slice of the test set in
     ``test_shipped_detector_claims_hold_on_a_regenerated_test_slice``); every committed box model keeps the
     earthlib test spectra out over its whole training domain."""
-    from torchskin.evaluate import select_detector
+    from torchskin.evaluation import select_detector
 
     _, ev, sel = committed
     assert select_detector(ev)[0] == sel["detector"]  # the choice follows from the committed evaluation
@@ -132,7 +137,7 @@ def test_shipped_detector_claims_hold_on_a_regenerated_test_slice(tmp_path):
 
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
-    from torchskin.evaluate import evaluate
+    from torchskin.evaluation import evaluate
 
     claim = json.loads((EXPORTS / "evaluation_test.json").read_text())
     claimed = {m["name"]: m["overall"] for m in claim["models"]}
@@ -173,7 +178,7 @@ def test_evaluate_runs_the_three_exports(tmp_path, capsys):
     decides as the box model it was made from."""
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
-    from torchskin.evaluate import evaluate
+    from torchskin.evaluation import evaluate
     from torchskin.render.meshes import sphere_mesh, write_obj
 
     v, f = sphere_mesh(0.35, 3)
@@ -205,7 +210,7 @@ def test_evaluate_runs_the_three_exports(tmp_path, capsys):
     assert got["area"]["mean"] == pytest.approx(ref["area_mean"], rel=1e-6)  # float32 box edges
     # detector.onnx's area is counted on evaluate's AREA_GRID grid over [-1, 1]²: each edge of a box is off by
     # at most one cell δ = 2 / AREA_GRID, so the area by at most δ (w + h) + δ² against the box model's w h
-    from torchskin.evaluate import AREA_GRID
+    from torchskin.evaluation.regions import AREA_GRID
 
     if source == 0:
         delta = 2.0 / AREA_GRID
@@ -224,7 +229,7 @@ def test_shipped_detector_finds_sunlit_skin_in_the_thesis_geometry(tmp_path):
     calibrated from the signal frame with the onboard ELM through the panels' pixel regions, then the shipped
     detector.onnx. The static box misses the skin seen at grazing incidence; the shipped detector keeps nearly
     all sunlit skin, and with its brightness floor no pixel off the subject passes."""
-    from torchskin.evaluate import thesis_frame
+    from torchskin.evaluation import thesis_frame
 
     r = thesis_frame(EXPORTS / "detector.onnx", plot=tmp_path / "thesis.png")
     assert (tmp_path / "thesis.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -265,7 +270,7 @@ def test_selection_ships_only_graphs_that_meet_the_onboard_budget():
     """A classifier with the highest Pd inside the budgets is reported, not shipped, while a box model is
     eligible (its per-pixel MLP is ~40x the box graph's onboard time); with no box model, or when its kind is
     allowed, it is chosen."""
-    from torchskin.evaluate import ONBOARD_KINDS, select_detector
+    from torchskin.evaluation import ONBOARD_KINDS, select_detector
 
     def model(name, kind, pd, pfa=0.0, scene=0.0, area=0.3):
         return {"name": name, "kind": kind, "overall": {"pd_sunlit": pd, "pfa": pfa, "pfa_scene": scene},

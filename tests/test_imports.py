@@ -154,7 +154,7 @@ def test_reachable_follows_the_packages_on_the_way():
 #: the learners and what sits above them: the detector kinds that train, their registry, and the modules that judge
 #: and export models
 UPPER = {"torchskin.detectors.boxes", "torchskin.detectors.classifier", "torchskin.detectors.registry",
-         "torchskin.evaluate", "torchskin.export", "torchskin.modelcard", "torchskin.cli"}
+         "torchskin.evaluation", "torchskin.export", "torchskin.modelcard", "torchskin.cli"}
 #: the layers below the learners: the index formulas, the datasets and the detectors' shared features
 LOWER = ("torchskin.detect", "torchskin.bands", "torchskin.confusers", "torchskin.detectors",
          "torchskin.detectors.features", "torchskin.detectors.protocol", "torchskin.detectors.graphs")

@@ -134,12 +134,13 @@ def test_spectra_colour_key(tmp_path, figures):
 
 @pytest.mark.slow
 def test_pd_heatmap_labelled_and_not_overlapping(tmp_path, figures):
-    from torchskin import evaluate
+    from torchskin.evaluation import figures as evaluation_figures
+    from torchskin.evaluation import metrics
 
-    sun, cam = evaluate.SUN_BINS, evaluate.CAMERA_BINS
+    sun, cam = metrics.SUN_BINS, metrics.CAMERA_BINS
     bins = [{"sun_zenith_deg": [a, b], "camera_zenith_deg": [c, d], "learned": {"pd_sunlit": 0.9},
              "static": {"pd_sunlit": 0.4}} for a, b in zip(sun, sun[1:]) for c, d in zip(cam, cam[1:])]
-    evaluate.plots({"models": [{"name": "boundaries.onnx"}], "bins": bins}, tmp_path)
+    evaluation_figures.plots({"models": [{"name": "boundaries.onnx"}], "bins": bins}, tmp_path)
     assert {p.name for p in tmp_path.iterdir()} == {"roc.png", "pd_heatmap.png"}
     heat = figures[-1]
     assert colorbar_labels(heat) == ["Pd, sunlit skin (fraction detected)"]

@@ -243,7 +243,7 @@ DEMO_EVALUATIONS = {"torchskin evaluate --data out/pipeline/heldout": "evaluatio
 def test_demo_evaluate_tables_are_the_committed_exports():
     """The demo pipeline's printed ``torchskin evaluate`` tables are what ``evaluate.table`` prints for the
     committed ``exports/evaluation*.json``: every row, every digit (a progress line or a stale figure fails)."""
-    from torchskin import evaluate
+    from torchskin import evaluation
 
     found = 0
     for page in PAGES:
@@ -253,7 +253,7 @@ def test_demo_evaluate_tables_are_the_committed_exports():
                 continue
             table = [ln.rstrip() for ln in printed[:next(i for i, ln in enumerate(printed) if ln.startswith("("))]]
             result = json.loads((ROOT / "exports" / DEMO_EVALUATIONS[prefix]).read_text())
-            assert table == [ln.rstrip() for ln in evaluate.table(result).splitlines()[:-1]], (page, cmd)
+            assert table == [ln.rstrip() for ln in evaluation.table(result).splitlines()[:-1]], (page, cmd)
             found += 1
     assert found == len(DEMO_EVALUATIONS)
 

@@ -250,7 +250,13 @@ def open_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
     return _open_tiff(p, option, max_megapixels, need_wavelengths)
 
 
-def _open_npy(p: Path, option: str) -> CubeFile:
+def open_npy(p: Path, option: str, one_frame: bool = True, max_megapixels: float | None = None) -> np.ndarray:
+    """The data of a ``.npy`` cube, memory-mapped (no pickles), after the checks of its header, before any data
+    is read or mapped: the one ``.npy`` reader of the onboard commands (``open_cube``'s one frame,
+    ``onboard.load_cube``'s frames). Refused, each a one-line ``ValueError`` naming ``option`` and the file: a
+    header that does not parse, other values than real numbers, with ``one_frame`` any other shape than (bands,
+    H, W) of non-zero sizes (else no values at all), frames above ``max_megapixels`` (H x W, when given), and a
+    file shorter than its header's cube (a copy cut short, a disk that filled)."""
     from .errors import one_line
 
     try:
@@ -263,16 +269,27 @@ def _open_npy(p: Path, option: str) -> CubeFile:
         raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
     if dtype.hasobject or dtype.kind not in "fiu":
         raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {dtype}")
-    if len(shape) != 3 or 0 in shape:
+    if one_frame and (len(shape) != 3 or 0 in shape):
         raise ValueError(f"{option} {str(p)!r} must be one frame (bands, H, W), got shape {shape}")
+    if math.prod(shape) == 0:
+        raise ValueError(f"{option} {str(p)!r} is empty (shape {shape})")
+    if max_megapixels is not None and len(shape) >= 2:
+        mp = shape[-1] * shape[-2] / 1e6
+        if mp > max_megapixels:
+            raise ValueError(f"{option} {str(p)!r} frames are {shape[-2]} x {shape[-1]} = {mp:.1f} megapixels, above "
+                             f"the cap of {max_megapixels:g} (--max-megapixels raises it)")
     need, size = offset + math.prod(shape) * dtype.itemsize, p.stat().st_size
     if size < need:  # checked from the header before anything is mapped: a copy cut short, a disk that filled
         raise ValueError(f"{option} {str(p)!r} is truncated: {size} bytes, but its header's {dtype.name} "
                          f"{' x '.join(map(str, shape))} cube needs {need}")
     try:
-        data = np.load(p, mmap_mode="r", allow_pickle=False)
+        return np.load(p, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
+
+
+def _open_npy(p: Path, option: str) -> CubeFile:
+    data = open_npy(p, option)
     bands = read_bands_sidecar(p)
     fwhm = None
     if bands is not None:

@@ -1,7 +1,8 @@
 """Export learned detectors to ONNX: ``boundaries.onnx`` and ``baseline_box.onnx`` (configuration (N, k) ->
 boxes (N, 4)) and ``detector.onnx`` (reflectance cube (B, 4, H, W) + configuration (B, k) -> mask (B, H, W) and
 score; from a model of any detector kind: each writes its own, ``DetectorModel.detector_graph``), opset 17, with metadata (band centres, units, feature order and
-units, skin surface model, training manifest hash, package version)."""
+units, skin surface model, training manifest hash, package version; the detector kind and the band set,
+centres and FWHM: ``metadata``)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from . import __version__
-from .bands import INDEX_BANDS_NM
+from .bands import INDEX_BANDS, BandSet
 from .detectors.boxes import BOX_ORDER
 from .detectors.features import FEATURE_UNITS
 from .detectors.protocol import BoxDetectorModel, DetectorModel
@@ -21,15 +22,36 @@ if TYPE_CHECKING:
     import onnx
 
 
+def model_bands(model: DetectorModel) -> BandSet:
+    """The bands a model reads, in the cube's order: its ``bands`` (a ``BandSet`` or what ``BandSet.of`` takes:
+    centres and FWHM) where it has them, else its kind's ``required_bands`` (centres, monochromatic:
+    ``registry.required_bands``), else the thesis's ``INDEX_BANDS`` (every built-in kind's)."""
+    b = getattr(model, "bands", None)
+    if b is None:
+        b = getattr(model, "required_bands", None)
+    return INDEX_BANDS if b is None else b if isinstance(b, BandSet) else BandSet.of(b)
+
+
 def metadata(model: DetectorModel, manifest_sha256: str = "", surface: str = "") -> dict[str, str]:
-    """The ONNX metadata of an exported model (any detector kind: its features and domain): band centres and
-    units, feature order, units and domain, box order, NDVN formula, skin surface model, training manifest hash,
-    package version (every key is part of the shipped files: keep them as they are; the kind is not among them,
-    so that the shipped graphs stay byte for byte what they were)."""
+    """The ONNX metadata of an exported model (any detector kind: its features and domain): its detector kind
+    (``kind``: the registry's name, ``boxes``, ``classifier``, ...; the onboard runtime picks its head by it), its
+    band set (``bands``: ``BandSet.to_json``, centres and FWHM, in the cube's order; ``bands_nm``: the centres
+    alone, as exports before ``bands`` recorded them), band units, feature order, units and domain, box order, NDVN
+    formula, skin surface model, training manifest hash, package version (every key is part of the shipped files:
+    keep them as they are).
+
+    >>> from torchskin.detectors.boxes import BoxModel
+    >>> m = metadata(BoxModel())
+    >>> m["kind"], BandSet.from_json(m["bands"]) == INDEX_BANDS
+    ('boxes', True)
+    """
+    bands = model_bands(model)
     return {
+        "kind": model.kind,
         "skin_surface_model": surface,
         "torchskin_version": __version__,
-        "bands_nm": json.dumps(list(INDEX_BANDS_NM)),
+        "bands": bands.to_json(),
+        "bands_nm": json.dumps(list(bands.centers)),
         "band_units": "nm; reflectance in [0, 1] (ELM-calibrated)",
         "features": json.dumps(list(model.features)),
         "feature_units": json.dumps([FEATURE_UNITS.get(f, "") for f in model.features]),

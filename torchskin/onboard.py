@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .bands import BAND_MATCH_NM  # how far a cube's band centre may lie from the model's
-from .io import MAX_MEGAPIXELS, StrPath, as_float32, npy_header
+from .bands import BAND_MATCH_NM, BandSet  # how far a cube's band centre may lie from the model's
+from .io import MAX_MEGAPIXELS, StrPath, as_float32
 
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor
@@ -147,7 +147,20 @@ class _Model:
         self.meta = dict(meta)
         self.features = json.loads(meta.get("features", "[]"))
         self.domain = np.array(json.loads(meta.get("feature_domain", "[]")), dtype=np.float64).reshape(-1, 2)
-        self.bands_nm = json.loads(meta.get("bands_nm", "[]"))
+        #: the detector kind the graph records (metadata ``kind``: ``boxes``, ``classifier``, ...); None for exports
+        #: made before graphs recorded it
+        self.kind: str | None = meta.get("kind")
+        #: the model's bands (metadata ``bands``, centres and FWHM); None for exports made before graphs recorded
+        #: them (``bands_nm``, centres alone, and ``fwhm_nm`` then)
+        self.band_set: BandSet | None = None
+        if "bands" in meta:
+            try:
+                self.band_set = BandSet.from_json(meta["bands"])
+            except ValueError as e:
+                raise ValueError(f"cannot load ONNX model {self.path!r}: its metadata 'bands' is not a band set: {e}") \
+                    from None
+        self.bands_nm = list(self.band_set.centers) if self.band_set is not None \
+            else json.loads(meta.get("bands_nm", "[]"))
         self._pool: ThreadPoolExecutor | None = None
 
     def _config(self, config: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -180,28 +193,90 @@ def model_inputs(path: str | os.PathLike) -> list[str]:
     return [i.name for i in sess.get_inputs()]
 
 
-def _split_box_graph(path: str, options: Any) -> tuple | None:
+#: the detector kinds (metadata ``kind``) whose graph runs on the box head (``_split_box_graph``): the edge forms of
+#: ``detectors.boxes.edge_detector_graph``; every other kind runs on the generic head, its graph as it is, per tile
+BOX_HEAD_KINDS = frozenset({"boxes"})
+
+
+def _edges_by_name(m: Any, inits: dict) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """The edge-matrix outputs and the edge constants (``det_edge_M``, ``det_edge_C``) of a box detector graph
+    found by their node names: how exports made before graphs recorded their ``kind`` are recognised."""
+    split = [n for n in m.graph.node if n.op_type == "Split" and list(n.input[:1]) == ["det_w"]]
+    if len(split) != 1:
+        return None
+    return list(split[0].output), inits["det_edge_M"], inits["det_edge_C"]
+
+
+def _edges_by_structure(m: Any, inits: dict) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """The same found by the graph's structure, whatever its names (a graph whose ``kind`` is a box kind): the one
+    Split of Reshape(Add(MatMul(boxes, M), C)) (M, C initializers) whose every output feeds a MatMul."""
+    producer = {o: n for n in m.graph.node for o in n.output}
+    users: dict[str, list] = {}
+    for n in m.graph.node:
+        for i in n.input:
+            users.setdefault(i, []).append(n)
+
+    def made_by(name: str, op: str) -> Any:
+        n = producer.get(name)
+        return n if n is not None and n.op_type == op else None
+
+    found = []
+    for n in m.graph.node:
+        if n.op_type != "Split" or not n.input:
+            continue
+        reshape = made_by(n.input[0], "Reshape")
+        add = made_by(reshape.input[0], "Add") if reshape is not None else None
+        if add is None:
+            continue
+        mm = next((made_by(i, "MatMul") for i in add.input if made_by(i, "MatMul") is not None), None)
+        C = next((inits[i] for i in add.input if i in inits), None)
+        M = next((inits[i] for i in mm.input if i in inits), None) if mm is not None else None
+        if M is None or C is None or not all(any(u.op_type == "MatMul" for u in users.get(o, [])) for o in n.output):
+            continue
+        found.append((list(n.output), M, C))
+    return found[0] if len(found) == 1 else None
+
+
+def _split_box_graph(path: str, options: Any, by_name: bool = False) -> tuple | None:
     """A box detector graph (``detectors.boxes.edge_detector_graph``: edge matrices ``det_w0..`` from the
     configuration, then per pixel one MatMul per edge form, Min, Greater) as the per-frame part (an onnxruntime
     session: config -> edge matrices) and its per-pixel head rebuilt for tiles (``_EdgeHead``), so that tiles do not
-    run the box network again. None for other graphs (a classifier), or without the ``onnx`` package: the
-    whole graph then runs per tile."""
+    run the box network again. The edges are found by the graph's structure (``_edges_by_structure``; the caller
+    knows from the metadata ``kind`` that it is a box graph) or, ``by_name``, by the node names of the box graph
+    (``_edges_by_name``: exports without ``kind``). None when they are not found (a classifier), or without the
+    ``onnx`` package: the whole graph then runs per tile (the same results)."""
     try:
         import onnx
         import onnxruntime as ort
+        from onnx import numpy_helper
     except ImportError:
         return None
     try:
         m = onnx.load(path)
-        split = [n for n in m.graph.node if n.op_type == "Split" and list(n.input[:1]) == ["det_w"]]
-        if len(split) != 1:
+        inits = {t.name: numpy_helper.to_array(t) for t in m.graph.initializer}
+        found = (_edges_by_name if by_name else _edges_by_structure)(m, inits)
+        if found is None:
             return None
-        edges = list(split[0].output)
+        edges, M, C = found
         per_frame = ort.InferenceSession(_subgraph(m, ["config"], edges).SerializeToString(), options,
                                          providers=["CPUExecutionProvider"])
-        return per_frame, _EdgeHead(m, len(edges), options)
+        return per_frame, _EdgeHead(m, M, C, len(edges), options)
     except Exception:  # noqa: BLE001 - any failure to split: run the whole graph per tile (same results)
         return None
+
+
+def detector_head(meta: dict[str, str], path: str, options: Any) -> tuple[str, tuple | None]:
+    """The head an ``OnboardDetector`` runs its graph on, chosen by the graph's metadata ``kind``: ``"boxes"`` (a
+    kind of ``BOX_HEAD_KINDS``: the box head, ``_split_box_graph``'s per-frame session and tile head) or
+    ``"generic"`` (any other kind: the graph as it is, per tile), and the box head's parts (None for the generic
+    head). A graph without ``kind`` (exported before graphs recorded it) is told by today's node names instead
+    (``_edges_by_name``: the Split of ``det_w``); a box graph whose edges are not found runs on the generic head
+    (the same results, slower)."""
+    kind = meta.get("kind")
+    if kind is not None and kind not in BOX_HEAD_KINDS:
+        return "generic", None
+    split = _split_box_graph(path, options, by_name=kind is None)
+    return ("generic", None) if split is None else ("boxes", split)
 
 
 #: the float32 bit pattern of ``REFLECTANCE_MAX``: non-negative float32 values order as their bits (as unsigned
@@ -229,12 +304,11 @@ class _EdgeHead:
 
     GROUPS = {"gr": (0, 2), "ns": (2, 4), "all": (0, 4)}
 
-    def __init__(self, m: Any, e: int, options: Any):
+    def __init__(self, m: Any, M: np.ndarray, C: np.ndarray, e: int, options: Any):
         import onnxruntime as ort
         from onnx import TensorProto, helper, numpy_helper
 
-        inits = {t.name: numpy_helper.to_array(t) for t in m.graph.initializer}
-        M, C = inits["det_edge_M"].reshape(-1, e, 4), inits["det_edge_C"].reshape(e, 4)
+        M, C = M.reshape(-1, e, 4), C.reshape(e, 4)  # the graph's edge constants (``det_edge_M``, ``det_edge_C``)
         used = (M != 0).any(0) | (C != 0)  # (edge, band): can this weight be non-zero for some box?
         self.e, self.groups = e, []
         for k in range(e):
@@ -382,7 +456,12 @@ class OnboardDetector(_Model):
     ``threads`` workers (the calling thread and a pool; one onnxruntime session, one intra-op thread each)
     pull from a shared queue, outputs bound straight into the result arrays, so the intermediates stay in
     cache: the frame is read from memory about once. An OnboardDetector keeps its tile buffers and pool between
-    calls: create it once, and use one per calling thread (calls on one object must not overlap)."""
+    calls: create it once, and use one per calling thread (calls on one object must not overlap).
+
+    The head the tiles run on (``head_name``) follows the graph's metadata ``kind`` (``detector_head``): a box
+    kind's graph computes its edge matrices once per frame and runs a rebuilt per-pixel head ("boxes"); any other
+    kind's graph runs as it is ("generic"). Graphs exported before they recorded ``kind`` are told by their node
+    names. The model's bands come from the metadata ``bands`` (``band_set``, centres and FWHM), else ``bands_nm``."""
 
     KIND = "detector (cube + configuration -> mask, score)"
     IO = ({"cube", "config"}, {"mask", "score"})
@@ -393,7 +472,8 @@ class OnboardDetector(_Model):
             raise ValueError(f"tile must be >= 1024 pixels, got {tile}")
         self.tile = int(tile)
         self._bindings: dict[int, dict[int, _TileBinding]] = {}  # per worker, per tile size (``_TileBinding``)
-        self._split = _split_box_graph(self.path, self.session.get_session_options())
+        #: the head the graph runs on, by its metadata ``kind`` (``detector_head``): "boxes" or "generic"
+        self.head_name, self._split = detector_head(self.meta, self.path, self.session.get_session_options())
 
     @staticmethod
     def _check_tile(t: np.ndarray, b: int, clipped: np.ndarray | None) -> tuple[float, float, int]:
@@ -798,30 +878,16 @@ def load_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
     (``io.as_float32``: float64, float16, big-endian and integer files convert alike). Its frame size (H x W)
     must be at most ``max_megapixels`` (``io.MAX_MEGAPIXELS``, what ``--max-megapixels`` raises), checked from the
     header before any data is read; a native float32 file is memory-mapped rather than read whole. Every
-    problem is a one-line ``ValueError`` naming ``option`` and the file."""
-    from .errors import check_input_file, one_line
+    problem is a one-line ``ValueError`` naming ``option`` and the file: the header's checks are
+    ``cubefiles.open_npy``'s (the one ``.npy`` reader: a file shorter than its header's cube is refused as
+    truncated), then the values' (finite)."""
+    from .cubefiles import open_npy
+    from .errors import check_input_file
 
     p = check_input_file(path, option, (".npy",))
     if not (np.isfinite(max_megapixels) and max_megapixels > 0):
         raise ValueError(f"--max-megapixels must be a positive number, got {max_megapixels}")
-    try:
-        shape, dtype = npy_header(p)
-    except (OSError, ValueError, EOFError, SyntaxError) as e:
-        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
-    if dtype.hasobject or dtype.kind not in "fiu":
-        raise ValueError(f"{option} {str(p)!r} must hold numbers, got dtype {dtype}")
-    if math.prod(shape) == 0:
-        raise ValueError(f"{option} {str(p)!r} is empty (shape {shape})")
-    if len(shape) >= 2:
-        mp = shape[-1] * shape[-2] / 1e6
-        if mp > max_megapixels:
-            raise ValueError(f"{option} {str(p)!r} frames are {shape[-2]} x {shape[-1]} = {mp:.1f} megapixels, above "
-                             f"the cap of {max_megapixels:g} (--max-megapixels raises it)")
-    try:
-        x = np.load(p, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError, EOFError) as e:
-        raise ValueError(f"cannot read {option} {str(p)!r}: {one_line(e)}") from None
-    x = as_float32(x)
+    x = as_float32(open_npy(p, option, one_frame=False, max_megapixels=max_megapixels))
     flat = x.reshape(-1)
     for lo in range(0, flat.size, _FINITE_CHUNK):  # chunks: no temporary the size of the cube
         if not np.isfinite(flat[lo:lo + _FINITE_CHUNK]).all():
@@ -903,8 +969,10 @@ def apply_plan(plan: dict, block: np.ndarray) -> np.ndarray:
 
 
 def model_fwhm(det: _Model) -> list[float] | None:
-    """The model's band FWHM (nm) from its metadata ``fwhm_nm``; None (monochromatic, the renderer's default
-    bands) when it has none."""
+    """The model's band FWHM (nm) from its metadata ``bands`` (or, in exports without it, ``fwhm_nm``); None
+    (monochromatic, the renderer's default bands) when it has none."""
+    if det.band_set is not None:
+        return [b.fwhm_nm for b in det.band_set]
     try:
         f = json.loads(det.meta.get("fwhm_nm", "null"))
         return None if f is None else [float(v) for v in f]
@@ -973,6 +1041,26 @@ def _mask_writer(out: StrPath, shape: tuple[int, int], geotags: list, envi_map: 
     return PngRows(out, shape[0], shape[1])
 
 
+def mask_rows(mask: np.ndarray) -> np.ndarray:
+    """A boolean mask's rows as a mask file stores them: uint8, skin 255, not skin 0."""
+    return np.asarray(mask, dtype=bool).view(np.uint8) * np.uint8(255)
+
+
+def write_mask(out: StrPath, mask: ArrayLike, geotags: list | None = None, envi_map: dict | None = None) -> None:
+    """A whole boolean (H, W) mask written by ``_mask_writer`` (the one way masks are written: ``detect_file``
+    streams its rows through the same writers), atomically: ``.png``, ``.tif`` or ``.hdr`` by ``out``'s suffix."""
+    m = np.asarray(mask, dtype=bool)
+    if m.ndim != 2:
+        raise ValueError(f"a mask must be (H, W), got shape {m.shape}")
+    writer = _mask_writer(out, (m.shape[0], m.shape[1]), geotags or [], envi_map)
+    try:
+        writer.write_rows(mask_rows(m))
+    except BaseException as e:
+        writer.abort(e)
+        raise
+    writer.close()
+
+
 def _finite_rows(cf: Any, r0: int, r1: int, where: str) -> np.ndarray:
     """``cf.read_rows(r0, r1)``, refused naming the file (``where``) when it holds NaN or infinite values (as
     ``load_cube`` refuses a cube read whole)."""
@@ -1037,7 +1125,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
             if "clipped_values" in res:
                 clipped += int(res["clipped_values"][0])
             if writer is not None:
-                writer.write_rows(m.view(np.uint8) * np.uint8(255))
+                writer.write_rows(mask_rows(m))
         check_reflectance_range(low, high, over / (4 * H * W), where)
     except BaseException as e:
         if writer is not None:

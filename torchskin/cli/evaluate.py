@@ -12,31 +12,23 @@ from .options import add_json
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from ..dataset.files import manifest_sha256
-    from ..evaluate import boxes_plot, compare_plot, evaluate, load_candidate, plots, table, world_warnings
+    from ..bands import INDEX_BANDS_NM
+    from ..dataset.files import require_bands
+    from ..evaluation import evaluate, table, write_figures
     from ..io import write_text
 
     if args.plots:
         check_output_folder(args.plots, "--plots")
     if args.save:
         check_output_file(args.save, "--save", (".json",))
-    res = evaluate(args.data, args.model)
-    warnings = world_warnings(args.data, args.model)  # a model of another world: said, not refused
-    for w in warnings:
+    # the static thesis box every evaluation compares against reads NDGRI and NDSI: the index bands (the built-in
+    # kinds' required_bands, registry.required_bands), checked before anything is read or written
+    require_bands(args.data, INDEX_BANDS_NM, "evaluate (the thesis box, NDGRI and NDSI)")
+    res = evaluate(args.data, args.model)  # complete: provenance and warnings included
+    for w in res.get("warnings", ()):  # a model of another world: said, not refused
         print(f"torchskin evaluate: warning: {w}", file=sys.stderr)
-    if warnings:
-        res["warnings"] = warnings
-    res["data"] = str(args.data)
-    res["data_manifest_sha256"] = manifest_sha256(args.data)
-    res["model"] = str(args.model[0])
     if args.plots:
-        plots(res, args.plots)
-        compare_plot(res, Path(args.plots) / "comparison.png")
-        first = res["models"][0]
-        if load_candidate(first["path"]).boxes is not None:  # any box kind: its edges against the sun
-            boxes_plot(args.data, first["path"], Path(args.plots) / "boxes.png")
+        write_figures(res, args.plots)
     if args.save:
         write_text(args.save, json.dumps(res, indent=1))
     if args.json:

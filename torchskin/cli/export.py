@@ -77,7 +77,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         if not isinstance(evaluation, dict) or not {"learned", "static"} <= set(evaluation):
             raise ValueError(f"--metrics {args.metrics!r} is not a torchskin evaluate --save result")
     reason = args.detector_reason or ("the configuration-dependent boxes of --model" if not args.detector else "")
-    from ..evaluate import MIN_REFLECTANCE
+    from ..evaluation import MIN_REFLECTANCE
 
     floor = (evaluation or {}).get("min_reflectance", MIN_REFLECTANCE)
     det_meta = {"detector_model": trains["detector"]["checkpoint"], "detector_reason": reason,

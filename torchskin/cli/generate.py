@@ -6,7 +6,7 @@ import argparse
 import json
 
 from ..errors import check_input_file, check_output_folder
-from .options import add_device, add_json, add_out_folder, add_overwrite, add_seed, add_surface
+from .options import add_bands, add_device, add_json, add_out_folder, add_overwrite, add_seed, add_surface
 
 #: ``generate --compile`` choices -> ``dataset.generate.generate(compile=...)``
 COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": False}
@@ -14,6 +14,7 @@ COMPILE_CHOICES: dict[str, bool | str] = {"auto": "auto", "on": True, "off": Fal
 
 def cmd_generate(args: argparse.Namespace) -> int:
     """Run ``torchskin generate`` (``dataset.generate.generate``) after checking every input and output."""
+    from ..bands import BandSet
     from ..dataset.config import load_config
     from ..dataset.generate import generate
     from ..devices import check_device
@@ -23,7 +24,9 @@ def cmd_generate(args: argparse.Namespace) -> int:
     check_output_folder(args.out, "--out")
     if args.config:
         check_input_file(args.config, "--config", (".toml",))
-    cfg = load_config(args.config)
+    if args.bands is not None:  # replaces the configuration's [bands] spec; a bad band: one line naming --bands
+        BandSet.parse(args.bands)
+    cfg = load_config(args.config, bands=args.bands)
     if args.surface:
         cfg["skin"]["surface"] = args.surface  # one of SURFACE_MODELS (argparse choices)
     for p in cfg["subject"]["meshes"]:
@@ -61,6 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     gp.add_argument("--config", metavar="TOML", help="configuration (default: the built-in one)")
     gp.add_argument("--configs", type=int, default=100, help="number of configurations (default 100)")
     add_surface(gp, lead="overrides the configuration's skin.surface (its default: thesis)", from_config=True)
+    add_bands(gp, "the config's [bands] spec, else 544,633,1080,1580; one reflectance column r<centre> a band")
     add_seed(gp, "the dataset's draws, its master seed")
     add_out_folder(gp, "the Parquet shards and their manifest")
     gp.add_argument("--resume", action="store_true", help="keep valid shards of an earlier run, redo the rest")

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from .. import tissue
+from ..bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
 from ..optics import DEFAULT_SURFACE, SURFACE_MODELS
 from ..render.scene import PANEL_KINDS
 
@@ -89,6 +90,8 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "count": ([0, 3], (0, 32)),
         "partition": ("train", ("train", "test")),
     },
+    # reference panel kinds (render.scene.PANEL_KINDS); Spectralon's Table 3 DHR is known only near the index bands
+    # (render.materials.SPECTRALON_DHR): for other [bands] the default is lambertian alone (spectralon is refused)
     "panels": {
         "kinds": (["lambertian", "spectralon"], "panels"),
     },
@@ -100,6 +103,11 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     "sampling": {
         "pixels_per_class": (128, "int>=1"),
         "groups_per_shard": (16, "int>=1"),
+    },
+    # the camera's bands: a --bands list (bands.BandSet.parse: "544,633,1080/20,1580/40", ranges "450:1650:10"),
+    # one reflectance column each (r<centre>); default the thesis's four index bands. generate --bands overrides it
+    "bands": {
+        "spec": (",".join(f"{w:g}" for w in INDEX_BANDS_NM), "bands"),
     },
 }
 
@@ -160,6 +168,12 @@ def _check(section: str, key: str, value, domain):
         if not value or any(p not in PANEL_KINDS for p in value):
             raise ValueError(f"{name} must list panel kinds from {list(PANEL_KINDS)}, got {value!r}")
         return list(value)
+    if domain == "bands":
+        if not isinstance(value, str):
+            raise ValueError(f"{name} must be a band list in the --bands syntax (a string such as "
+                             f"\"544,633,1080/20,1580/40\" or \"450:1650:10\"), got {value!r}")
+        config_bands({section: {key: value}}, name)  # a bad band: one line naming the key
+        return value.strip()
     if domain == "paths":
         if not isinstance(value, list) or any(not isinstance(p, str) for p in value):
             raise ValueError(f"{name} must be a list of OBJ/PLY paths, got {value!r}")
@@ -189,16 +203,45 @@ def resolve_config(overrides: dict | None = None) -> dict:
                     and not isinstance(v, (list, tuple)):
                 raise ValueError(f"{s}.{k} must be [min, max] (a range; [x, x] for one value), got {v!r}")
     out = {s: {k: _check(s, k, v, SCHEMA[s][k][1]) for k, v in keys.items()} for s, keys in cfg.items()}
+    _panels_for_bands(out, "kinds" in (overrides or {}).get("panels", {}))
     lo_d, hi_d = out["light"]["day_of_year"]
     if math.ceil(lo_d) > math.floor(hi_d):
         raise ValueError(f"light.day_of_year must hold a whole day, got [{lo_d:g}, {hi_d:g}]")
     return out
 
 
-def load_config(path: str | os.PathLike | None = None) -> dict:
-    """Read and validate a TOML configuration (``None``: the built-in defaults)."""
+def _panels_for_bands(cfg: dict, given: bool) -> None:
+    """Spectralon panels need Table 3's DHR at every band (``materials.spectralon_dhr``: only near the index bands):
+    with bands it lacks, the default panel kinds become lambertian alone; kinds ``given`` with a Spectralon kind
+    are refused in one line naming ``panels.kinds`` and the bands."""
+    from ..render.materials import spectralon_dhr
+
+    if not any(k.startswith("spectralon") for k in cfg["panels"]["kinds"]):
+        return
+    try:
+        spectralon_dhr("white", config_bands(cfg).bands)
+    except ValueError as e:
+        if given:
+            raise ValueError(f"panels.kinds {cfg['panels']['kinds']} with bands.spec {cfg['bands']['spec']!r}: {e}; "
+                             "use [panels] kinds = [\"lambertian\"]") from None
+        cfg["panels"]["kinds"] = ["lambertian"]
+
+
+def config_bands(cfg: dict, option: str = "bands.spec") -> BandSet:
+    """The bands of a configuration (its ``bands.spec``, ``BandSet.parse``; ``option`` is named in errors).
+
+    >>> config_bands(default_config()).columns
+    ('r544', 'r633', 'r1080', 'r1580')
+    """
+    return BandSet.parse(cfg["bands"]["spec"], option=option)
+
+
+def load_config(path: str | os.PathLike | None = None, bands: str | None = None) -> dict:
+    """Read and validate a TOML configuration (``None``: the built-in defaults); ``bands``: a ``--bands`` list
+    that replaces its ``bands.spec``."""
+    over = {"bands": {"spec": bands}} if bands is not None else {}
     if path is None:
-        return resolve_config()
+        return resolve_config(over)
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
@@ -206,6 +249,8 @@ def load_config(path: str | os.PathLike | None = None) -> dict:
         raise ValueError(f"config file {str(path)!r} does not exist") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"config file {str(path)!r} is not valid TOML: {e}") from None
+    if bands is not None and isinstance(data.get("bands", {}), dict):  # a [bands] that is not a table: refused below
+        data = {**data, "bands": {**data.get("bands", {}), "spec": bands}}
     return resolve_config(data)
 
 
@@ -229,6 +274,7 @@ class PoseGroup:
     surface: str = DEFAULT_SURFACE  # skin surface model
     light: dict = field(default_factory=dict)  # model, the atmosphere's fields (scene.Atmosphere), sky_fraction
     ground_brdf: str = "lambertian"  # material kind of the ground and the confuser patches
+    bands: BandSet = INDEX_BANDS  # the camera's bands (the config's bands.spec)
 
     def as_dict(self) -> dict:
         """The group as JSON-ready data (skins as parameter lists)."""
@@ -300,7 +346,8 @@ def sample_group(cfg: dict, master_seed: int, index: int) -> PoseGroup:
     lo_d, hi_d = lc["day_of_year"]  # a whole day inside the configured range (resolve_config: there is one)
     light["day_of_year"] = int(min(max(round(light["day_of_year"]), math.ceil(lo_d)), math.floor(hi_d)))
     return PoseGroup(index, seed, camera, subject, suns, skins, skin_types, atmosphere, sensor, panels, confusers, clothing,
-                     cfg["skin"]["surface"], light, cfg["ground"]["brdf"])
+                     cfg["skin"]["surface"], light, cfg["ground"]["brdf"],
+                     config_bands(cfg) if "bands" in cfg else INDEX_BANDS)
 
 
 #: the ``light`` keys that are ``scene.Atmosphere`` fields (the others take its defaults)

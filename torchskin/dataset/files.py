@@ -10,8 +10,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..bands import INDEX_BANDS, BandSet
 from ..io import StrPath
-from .schema import READ_SCHEMAS, SCHEMA_VERSION, Rows
+from .schema import READ_SCHEMAS, SCHEMA_VERSION, Rows, has_band
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -117,6 +118,44 @@ def dataset_surface(data_dir: StrPath) -> str:
     return man.get("config", {}).get("skin", {}).get("surface", "conserving")
 
 
+def dataset_bands(data_dir: StrPath) -> BandSet:
+    """The bands a dataset was rendered in: its manifest's ``bands`` (``BandSet.to_json``'s list), the index bands
+    (``bands.INDEX_BANDS``) for a dataset whose manifest does not record them (written before ``generate --bands``)
+    or without a manifest. A one-line ``ValueError`` naming the manifest for a malformed entry."""
+    man = manifest(data_dir)
+    if not man or "bands" not in man:
+        return INDEX_BANDS
+    try:
+        return BandSet.from_json(man["bands"])
+    except ValueError as e:
+        raise ValueError(f"dataset manifest {str(Path(data_dir) / MANIFEST)!r}: bands: {e}") from None
+
+
+def describe_bands(bands: BandSet, most: int = 8) -> str:
+    """The band centres for a message: all of them up to ``most``, else their count and range.
+
+    >>> describe_bands(BandSet.parse("544,633")), describe_bands(BandSet.parse("450:1650:10"))
+    ('544, 633 nm', '121 bands, 450 to 1650 nm')
+    """
+    if len(bands) <= most:
+        return f"{', '.join(bands.labels)} nm"
+    return f"{len(bands)} bands, {bands.labels[0]} to {bands.labels[-1]} nm"
+
+
+def require_bands(data_dir: StrPath, needed_nm: Sequence[float], who: str) -> BandSet:
+    """The dataset's bands (``dataset_bands``), checked to hold every band of ``needed_nm`` (within
+    ``bands.BAND_MATCH_NM``): a one-line ``ValueError`` naming the dataset, ``who`` needs them, the missing bands
+    and the bands it has otherwise. The one check of a detector kind's ``required_bands`` (``registry.train``,
+    ``torchskin evaluate``)."""
+    bands = dataset_bands(data_dir)
+    missing = [f"{w:g}" for w in needed_nm if not has_band(bands, w)]
+    if missing:
+        raise ValueError(f"dataset {str(data_dir)!r} lacks the {', '.join(missing)} nm band{'s' * (len(missing) > 1)} "
+                         f"that {who} needs (its bands: {describe_bands(bands)}); generate it with --bands that "
+                         "include them")
+    return bands
+
+
 def manifest_sha256(data_dir: StrPath) -> str:
     """SHA-256 of the dataset's manifest ("" without one): names the exact data a model was trained on."""
     p = Path(data_dir) / MANIFEST
@@ -203,8 +242,10 @@ def read_rows(data_dir: StrPath, columns: Sequence[str], frames: str = "physical
         optional: more columns, read when the dataset has them (older schemas lack some).
 
     Returns:
-        ``dataset.schema.Rows``: each column a writable numpy array (strings as objects), and the number of rows
-        left out (``Rows.excluded``); ``Rows.nd`` gives the normalized difference of any band pair.
+        ``dataset.schema.Rows``: each column a writable numpy array (strings as objects), the number of rows
+        left out (``Rows.excluded``) and the dataset's bands (``Rows.band_set``: ``dataset_bands``, whose
+        ``BandSet.columns`` are its reflectance columns); ``Rows.nd`` gives the normalized difference of any band
+        pair.
     """
     names = list(dict.fromkeys(columns))
     if optional:
@@ -215,9 +256,9 @@ def read_rows(data_dir: StrPath, columns: Sequence[str], frames: str = "physical
     for c in names:
         a = t.column(c).to_numpy(zero_copy_only=False)
         out[c] = a if a.flags.writeable else a.copy()
-    return Rows(out, excluded)
+    return Rows(out, excluded, dataset_bands(data_dir))
 
 
 __all__ = ["FRAME_SETS", "IMAGES_DIR", "MANIFEST", "READ_SCHEMAS", "RENDER_REVISION", "SCHEMA_VERSION",
-           "dataset_files", "dataset_surface", "intact", "manifest", "manifest_sha256", "open_dataset", "read_rows",
-           "read_valid", "sha256_file", "shard_name"]
+           "dataset_bands", "dataset_files", "dataset_surface", "describe_bands", "intact", "manifest",
+           "manifest_sha256", "open_dataset", "read_rows", "read_valid", "require_bands", "sha256_file", "shard_name"]

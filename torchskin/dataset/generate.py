@@ -2,8 +2,10 @@
 skin / non-skin pixels -> Parquet shards with a manifest (checksums), resumable and verifiable.
 
 Layout of an output folder:
-    _manifest.json           schema version, package version, resolved config, master seed, shards
-    shard-00000.parquet ...  one row per sampled pixel (columns: ``dataset.schema.COLUMNS``)
+    _manifest.json           schema version, package version, resolved config, band set, master seed, shards
+    shard-00000.parquet ...  one row per sampled pixel (``dataset.schema.columns_for`` the config's bands)
+
+The band set is the config's ``[bands] spec``; with the index bands, the default, the columns are ``COLUMNS``.
 
 Every shard holds ``sampling.groups_per_shard`` consecutive pose groups; a shard depends only on the config,
 the master seed and its index, so runs are bit-identical whatever the worker count or order, and an
@@ -27,8 +29,8 @@ import torch
 
 from .. import __version__, tissue
 from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
-from ..bands import DEFAULT_BANDS, INDEX_BANDS_NM, PerBand, at_wavelengths, per_band
-from ..detect import DEFAULT_BOX
+from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths, per_band
+from ..detect import DEFAULT_BOX, normalized_difference
 from ..errors import check_folder_empty
 from ..io import atomic_path, save_npy, write_text
 from ..optics import local_angles
@@ -50,22 +52,22 @@ from ..render.raycast import GBuffer, Raycaster
 from ..render.rtlsr import RHO_MAX
 from ..render.scene import Atmosphere, Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
 from ..render.sensor import Sensor, sensor_signal
-from .config import LIGHT_ATMOSPHERE, PoseGroup, sample_group
+from .config import LIGHT_ATMOSPHERE, PoseGroup, config_bands, default_config, sample_group
 from .files import IMAGES_DIR, MANIFEST, RENDER_REVISION, dataset_files, intact, sha256_file, shard_name
-from .schema import BAND_COLUMNS, COLUMNS, SCHEMA_VERSION, STORED_INDICES
+from .schema import INDICES, SCHEMA_VERSION, SINGLE_BAND_COLUMNS, STORED_INDICES, columns_for, has_band
 
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
 PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
 GROUND_REFLECTANCE = [0.12, 0.16, 0.30, 0.28]
-INDEX_BANDS = [[w, 0.0] for w in INDEX_BANDS_NM]
 #: the reference panels' interior pixels a group renders for its ELM medians (per panel, a regular sample:
 #: ``elm.panel_subset``); the median ELM reflectance moves by ~0.2 % against the whole interior
 PANEL_SAMPLE = 256
 #: a shard's anny bodies are built this many at a time in one batched anny call (``meshes.anny_batch``): ~4 ms a
 #: body instead of ~20 ms one by one, and memory bounded whatever ``sampling.groups_per_shard`` says
 BODY_BATCH = 16
-#: the bands whose direct share each row records (544 and 1580 nm: direct_share_544, direct_share_1580)
+#: the bands whose direct share each row records (544 and 1580 nm: direct_share_544, direct_share_1580): their
+#: positions in the index bands; ``share_bands`` finds them in any band set
 SHARE_BANDS = (0, 3)
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
 FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
@@ -75,11 +77,26 @@ FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
 NO_DAY_OF_YEAR = 0
 
 
-def _arrow_schema():
+def _arrow_schema(columns: dict[str, tuple[str, str, str]]):
     import pyarrow as pa
 
     types = {"bool": pa.bool_(), "string": pa.string()}
-    return pa.schema([(k, types.get(v[0]) or getattr(pa, v[0])()) for k, v in COLUMNS.items()])
+    return pa.schema([(k, types.get(v[0]) or getattr(pa, v[0])()) for k, v in columns.items()])
+
+
+def band_position(bands: BandSet, nm: float) -> int | None:
+    """The position of ``bands``' band at ``nm`` (within ``bands.BAND_MATCH_NM``), None without one."""
+    return bands.index(nm) if has_band(bands, nm) else None
+
+
+def share_bands(bands: BandSet) -> dict[str, int]:
+    """The direct-share columns the band set defines -> the position of their band (``SINGLE_BAND_COLUMNS``).
+
+    >>> share_bands(BandSet.of(INDEX_BANDS_NM)), share_bands(BandSet.of([450.0, 1580.0]))
+    ({'direct_share_544': 0, 'direct_share_1580': 3}, {'direct_share_1580': 1})
+    """
+    out = {k: band_position(bands, SINGLE_BAND_COLUMNS[k]) for k in ("direct_share_544", "direct_share_1580")}
+    return {k: v for k, v in out.items() if v is not None}
 
 
 #: the steepest view onto a reference panel, degrees from its normal (level panels up to this camera zenith)
@@ -105,10 +122,12 @@ def group_scene(group: PoseGroup) -> Scene:
                  target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=cam_cfg["fov_deg"])
     from ..confusers import spectrum
 
-    clothing = spectrum(group.clothing, INDEX_BANDS_NM) if group.clothing else FIXED_CLOTHING
-    # the spectra are at the INDEX_BANDS_NM: interpolated in wavelength for any bands (bands.at_wavelengths)
+    centres = list(group.bands.centers)  # earthlib spectra at the band centres
+    # the fixed spectra are at the INDEX_BANDS_NM: interpolated in wavelength for any bands (bands.at_wavelengths)
+    clothing = at_wavelengths(spectrum(group.clothing, centres), centres) if group.clothing else \
+        at_wavelengths(FIXED_CLOTHING)
     mats = {"skin": Material("skin", skin="I-II", surface=group.surface),
-            "clothing": Material("lambertian", reflectance=at_wavelengths(clothing)),
+            "clothing": Material("lambertian", reflectance=clothing),
             "ground": Material(group.ground_brdf, reflectance=at_wavelengths(GROUND_REFLECTANCE)),
             **panel_materials(group.panels)}
     if subject["kind"] == "anny":
@@ -122,10 +141,10 @@ def group_scene(group: PoseGroup) -> Scene:
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
     confusers = []
     for k, c in enumerate(group.confusers):  # flat patches on the ground around the subject
-        refl = spectrum(c["name"], INDEX_BANDS_NM)
+        refl = spectrum(c["name"], centres)
         # "rtlsr" where its energy bound allows (rtlsr.RHO_MAX): brighter spectra stay Lambertian
         kind = group.ground_brdf if max(refl) <= RHO_MAX else "lambertian"
-        mats[f"confuser{k}"] = Material(kind, reflectance=at_wavelengths(refl))
+        mats[f"confuser{k}"] = Material(kind, reflectance=at_wavelengths(refl, centres))
         confusers.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}",
                                   params={"width": c["size"], "height": c["size"]},
                                   position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))
@@ -133,7 +152,8 @@ def group_scene(group: PoseGroup) -> Scene:
     thesis = group.light["model"] == "thesis"
     suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], atmosphere=atm,
                 sky_fraction=group.light["sky_fraction"] if thesis else 0.0) for s in group.suns]
-    return Scene(mats, [body, *panels, ground, *confusers], [cam], suns, illumination=group.light["model"])
+    return Scene(mats, [body, *panels, ground, *confusers], [cam], suns, illumination=group.light["model"],
+                 bands=[[b.center_nm, b.fwhm_nm] for b in group.bands])
 
 
 def group_body(group: PoseGroup) -> tuple[dict, dict]:
@@ -151,7 +171,7 @@ def group_sensor(group: PoseGroup, light: LightTables | None = None) -> Sensor:
     path: PerBand
     if group.light["model"] == "spectrl2" and light is not None:
         atm = Atmosphere(**{k: group.light[k] for k in LIGHT_ATMOSPHERE})
-        p = path_terms(atm, light.sky.double().mean(0).tolist(), INDEX_BANDS, group.camera["range_m"])
+        p = path_terms(atm, light.sky.double().mean(0).tolist(), list(group.bands), group.camera["range_m"])
         tau, path = p["atmosphere_transmittance"], [x * scale for x in p["path_radiance"]]
     else:
         default = cast(dict, Sensor().path_radiance)  # a spectrum at the INDEX_BANDS_NM (bands.at_wavelengths)
@@ -230,7 +250,7 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     light = scene_light(scene, torch.float64)
     sensor = group_sensor(group, light)
     rng = np.random.default_rng(group.seed)
-    out: dict[str, list] = {k: [] for k in COLUMNS}
+    out: dict[str, list] = {k: [] for k in columns_for(group.bands)}
     # the panels' interior, capped to a regular sample (PANEL_SAMPLE), found once for the group's renders
     pix = panel_subset(panel_pixels(gb, list(scene.panels)), PANEL_SAMPLE)
     m = min(pixels_per_class, len(labels.skin), len(labels.other))
@@ -249,7 +269,8 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     # kept pixels are shaded (each configuration's rows are these pixels under its sun and skin)
     picks = np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
     res = render_pixels(scene, torch.from_numpy(picks), device=device, sensor=sensor, gbuffer=gb, skins=skins,
-                        panel_pixels=pix, raycaster=rc, compile=compile, irradiance=SHARE_BANDS, light=light)
+                        panel_pixels=pix, raycaster=rc, compile=compile,
+                        irradiance=list(share_bands(group.bands).values()) or None, light=light)
     if images is not None:  # full frames of every skin x sun in one batch, with the rows' exposure, noise and ELM
         cube = frame_cubes(scene, gb, rc, sensor, skins, pix, picks, res, device, compile)
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
@@ -331,9 +352,12 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
     cfg = np.repeat(np.arange(n_cfg), per)
     ki, si = cfg // n_suns, cfg % n_suns
     skins = cast(tissue.SkinParams, group.skins)
+    bands = group.bands
+    k544 = band_position(bands, SINGLE_BAND_COLUMNS["atmosphere_transmittance"])
     const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
              "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
-             "atmosphere_transmittance": per_band(sensor.atmosphere_transmittance, DEFAULT_BANDS, "transmittance")[0],
+             "atmosphere_transmittance": math.nan if k544 is None else
+             per_band(sensor.atmosphere_transmittance, bands.bands, "transmittance")[k544],
              "path_radiance_scale": group.atmosphere["path_radiance_scale"],
              **atmosphere_columns(group.light),
              "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
@@ -352,7 +376,8 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "sun_azimuth_deg": per_sun([s["azimuth_deg"] for s in group.suns]),
                  "relative_azimuth_deg": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                                   for s in group.suns]),
-                 "sky_fraction": sky_fraction(light, [s["zenith_deg"] for s in group.suns])[si],
+                 "sky_fraction": (np.full(n_suns, np.nan, np.float32) if k544 is None else
+                                  sky_fraction(light, [s["zenith_deg"] for s in group.suns], k544))[si],
                  "panel_irradiance_ratio": irradiance_ratio.astype(np.float32)[si],
                  "backlit": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
                                      >= BACKLIT_MIN_DEG for s in group.suns]),
@@ -369,18 +394,38 @@ def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos
                  "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
                  "elm_valid": elm_valid[cfg],
                  "elm_line_valid": elm_line_valid[cfg],
-                 **{name: getattr(res, name)[:, 0, 0].cpu()[at].numpy() for name in STORED_INDICES}})
-    rows.update({name: refl[:, b].numpy() for b, name in enumerate(BAND_COLUMNS)})
+                 **stored_indices(res, at, refl, bands)})
+    rows.update({name: refl[:, b].numpy() for b, name in enumerate(bands.columns)})
     shadow = rows["shadow"]
     rows["light"] = strings(shadow, ["sunlit", "shadow"])
     sky = res.gbuffer.sky  # None where the light has no sky or ground light (no sky rays cast): NaN
     rows["sky_view"] = np.full(n, np.nan, dtype=np.float32) if sky is None else \
         sky.reshape(-1).cpu()[torch.from_numpy(pos)].float().numpy()
-    direct, diffuse = (x[:, 0, 0].cpu().double()[at] for x in cast(tuple, res.irradiance))  # (n, B)
-    total = direct + diffuse
-    share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
-    rows["direct_share_544"], rows["direct_share_1580"] = share[:, 0], share[:, 1]
-    return {k: rows[k] for k in COLUMNS}
+    shares = share_bands(bands)  # the irradiance bands render_pixels was asked for, in this order
+    rows["direct_share_544"] = rows["direct_share_1580"] = np.full(n, np.nan, dtype=np.float32)
+    if shares:
+        direct, diffuse = (x[:, 0, 0].cpu().double()[at] for x in cast(tuple, res.irradiance))  # (n, B')
+        total = direct + diffuse
+        share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
+        rows.update({name: share[:, j] for j, name in enumerate(shares)})
+    return {k: rows[k] for k in columns_for(bands)}
+
+
+def stored_indices(res: RenderResult, at: tuple[torch.Tensor, torch.Tensor], refl: torch.Tensor,
+                   bands: BandSet) -> dict[str, np.ndarray]:
+    """The stored indices of the rows (``STORED_INDICES``) at ``at`` of the render ``res``: the renderer's own where
+    the bands hold all four index bands (within ``bands.BAND_MATCH_NM``); else, per index, from the rows' float32
+    reflectance ``refl`` (n, B) where its two bands are there, NaN where one is not (the renderer matches bands
+    within 30 nm: a 540 nm band is not the 544 nm the column names)."""
+    if all(has_band(bands, w) for w in INDEX_BANDS_NM):
+        return {name: getattr(res, name)[:, 0, 0].cpu()[at].numpy() for name in STORED_INDICES}
+    out = {}
+    for name in STORED_INDICES:
+        (a,), (b,) = INDICES[name]
+        ia, ib = band_position(bands, a), band_position(bands, b)
+        out[name] = np.full(len(refl), np.nan, np.float32) if ia is None or ib is None else \
+            normalized_difference(refl[:, ia], refl[:, ib]).float().numpy()
+    return out
 
 
 def atmosphere_columns(light: dict) -> dict[str, float | int]:
@@ -406,12 +451,12 @@ def strings(codes: np.ndarray, vocabulary: Sequence[str] | np.ndarray):
                                           pa.array([str(v) for v in vocabulary], type=pa.string()))
 
 
-def sky_fraction(light: LightTables, zenith_deg: list[float]) -> np.ndarray:
-    """Per sun, diffuse horizontal over direct normal irradiance at the first band (544 nm): the thesis model's
-    ``sky_fraction``, derived (NaN where no direct light reaches a horizontal surface)."""
+def sky_fraction(light: LightTables, zenith_deg: list[float], band: int = 0) -> np.ndarray:
+    """Per sun, diffuse horizontal over direct normal irradiance in band ``band`` (the 544 nm band: the index bands'
+    first): the thesis model's ``sky_fraction``, derived (NaN where no direct light reaches a horizontal surface)."""
     cz = torch.cos(torch.deg2rad(torch.tensor(zenith_deg, dtype=torch.float64)))
-    dni = light.direct_horizontal[:, 0].double() / cz
-    return torch.where(dni > 0, light.diffuse_horizontal[:, 0].double() / dni, torch.nan).float().numpy()
+    dni = light.direct_horizontal[:, band].double() / cz
+    return torch.where(dni > 0, light.diffuse_horizontal[:, band].double() / dni, torch.nan).float().numpy()
 
 
 # -------------------------------------------------------------------------------------------------- shards
@@ -426,14 +471,16 @@ def write_images(out_dir: Path, k: int, cubes: list) -> dict:
             "bytes": path.stat().st_size}
 
 
-def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
-    """Write one shard atomically (temporary name, fsync, rename); return its manifest entry."""
+def write_shard(out_dir: Path, k: int, rows: dict[str, list], bands: BandSet | None = None) -> dict:
+    """Write one shard atomically (temporary name, fsync, rename) of a dataset of ``bands`` (default the index
+    bands; its columns: ``schema.columns_for``); return its manifest entry."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    schema = _arrow_schema()
+    columns = columns_for(bands or BandSet.of(INDEX_BANDS_NM))
+    schema = _arrow_schema(columns)
     cols = {}
-    for c in COLUMNS:
+    for c in columns:
         chunks = rows[c]
         if schema.field(c).type == pa.string():  # dictionary chunks (``strings``) or object arrays
             cols[c] = pa.concat_arrays([x.cast(pa.string()) if isinstance(x, pa.Array)
@@ -448,7 +495,7 @@ def write_shard(out_dir: Path, k: int, rows: dict[str, list]) -> dict:
         # dictionary pages for the string columns only: trying them on the float columns (the default) tripled the
         # write time and grew the file
         pq.write_table(table, tmp, compression="zstd", write_statistics=False,
-                       use_dictionary=[c for c in COLUMNS if COLUMNS[c][0] == "string"])
+                       use_dictionary=[c for c in columns if columns[c][0] == "string"])
     return {"name": path.name, "rows": table.num_rows, "sha256": sha256_file(path), "bytes": path.stat().st_size}
 
 
@@ -470,7 +517,9 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
                    images: bool = False, compile: bool = False) -> dict:
     """Generate and write shard ``k`` (a pure function of config, seed and k); with ``images`` also the
     full reflectance cubes of its groups; ``compile``: with the renderer's compiled kernels."""
-    rows: dict[str, list] = {c: [] for c in COLUMNS}
+    bands = config_bands(cfg)
+    columns = columns_for(bands)
+    rows: dict[str, list] = {c: [] for c in columns}
     cubes: list | None = [] if images else None
     ids = shard_groups(cfg, k, n_groups)
     for lo in range(0, len(ids), BODY_BATCH):  # anny bodies built BODY_BATCH at a time (the same bits in any batch)
@@ -478,9 +527,9 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
         with anny_batch([group_body(g) for g in groups if g.subject["kind"] == "anny"]):
             for group in groups:
                 part = group_rows(group, cfg["sampling"]["pixels_per_class"], device, cubes, compile)
-                for c in COLUMNS:
+                for c in columns:
                     rows[c].extend(part[c])  # lists of numpy chunks
-    entry = {**write_shard(out_dir, k, rows), "compiled": compile}
+    entry = {**write_shard(out_dir, k, rows, bands), "compiled": compile}
     if cubes is not None:
         entry["images"] = write_images(out_dir, k, cubes)
     return entry
@@ -488,26 +537,30 @@ def generate_shard(cfg: dict, seed: int, k: int, n_groups: int, out_dir: Path, d
 
 def _manifest(cfg, seed, n_configs, n_groups, n_shards, done: dict[int, dict], images: bool = False) -> dict:
     per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
+    bands = config_bands(cfg)
     return {"schema_version": SCHEMA_VERSION, "render_revision": RENDER_REVISION, "package_version": __version__,
             "config": cfg, "master_seed": seed, "light_model": cfg["light"]["model"],
             "configs": n_groups * per_group, "requested_configs": n_configs, "groups": n_groups,
-            "n_shards": n_shards, "images": images,
-            "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in COLUMNS.items()},
+            "n_shards": n_shards, "images": images, "bands": json.loads(bands.to_json()),
+            "columns": {k: {"type": v[0], "description": v[1], "unit": v[2]} for k, v in columns_for(bands).items()},
             "shards": [done[k] for k in sorted(done)]}
 
 
 #: the measured size of a row in a Parquet shard (zstd): 26-27 bytes on the default config, rounded up; with the
 #: shards' fixed overhead, what ``estimate_bytes`` counts per row
 ROW_BYTES = 32
+#: what each band beyond the index bands' four adds to a row: a float32 reflectance, at most (zstd compresses
+#: little of a noisy reflectance)
+BAND_BYTES = 4
 #: bytes a shard takes whatever its rows (Parquet footer and metadata), and the manifest's entry for it
 SHARD_OVERHEAD_BYTES = 64 * 1024
 
 
 def estimate_bytes(cfg: dict, n_configs: int, images: bool = False, shards: Sequence[int] | None = None) -> int:
     """The bytes ``generate`` will write for ``n_configs`` configurations of ``cfg`` (or only for the shard indices
-    ``shards``): ``ROW_BYTES`` per row, 2 x ``pixels_per_class`` rows a configuration at most, plus
-    ``SHARD_OVERHEAD_BYTES`` a shard; with ``images`` the float16 cubes (skins x suns x 4 bands x H x W x 2 bytes
-    a pose group), which are stored uncompressed.
+    ``shards``): ``ROW_BYTES`` per row (and ``BAND_BYTES`` for each band beyond the index bands' four), 2 x
+    ``pixels_per_class`` rows a configuration at most, plus ``SHARD_OVERHEAD_BYTES`` a shard; with ``images`` the
+    float16 cubes (skins x suns x bands x H x W x 2 bytes a pose group), which are stored uncompressed.
 
     >>> from torchskin.dataset.config import default_config
     >>> estimate_bytes(default_config(), 48) // 2**20  # 48 configurations: one pose group, 256 rows each
@@ -520,9 +573,10 @@ def estimate_bytes(cfg: dict, n_configs: int, images: bool = False, shards: Sequ
     groups = sum(len(shard_groups(cfg, k, n_groups)) for k in ks)
     per_group = cfg["sun"]["per_pose"] * cfg["skin"]["per_pose"]
     rows = groups * per_group * 2 * cfg["sampling"]["pixels_per_class"]
-    total = rows * ROW_BYTES + len(ks) * SHARD_OVERHEAD_BYTES
+    n_bands = len(config_bands(cfg)) if "bands" in cfg else len(INDEX_BANDS_NM)
+    total = rows * (ROW_BYTES + BAND_BYTES * max(0, n_bands - len(INDEX_BANDS_NM))) + len(ks) * SHARD_OVERHEAD_BYTES
     if images:
-        total += groups * per_group * len(INDEX_BANDS) * cfg["camera"]["width"] * cfg["camera"]["height"] * 2
+        total += groups * per_group * n_bands * cfg["camera"]["width"] * cfg["camera"]["height"] * 2
     return total
 
 
@@ -603,7 +657,10 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
             raise ValueError(f"--resume: {str(out)!r} holds a dataset of schema {old.get('schema_version')}, this "
                              f"torchskin writes schema {SCHEMA_VERSION} (other rows for the same seed): regenerate it "
                              "with --overwrite")
-        if (old.get("config") != cfg or old.get("master_seed") != seed
+        old_cfg = old.get("config")
+        if isinstance(old_cfg, dict) and "bands" not in old_cfg:  # written before [bands]: the index bands
+            old_cfg = {**old_cfg, "bands": default_config()["bands"]}
+        if (old_cfg != cfg or old.get("master_seed") != seed
                 or old.get("requested_configs", old.get("configs")) != n_configs):
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
         if bool(old.get("images")) != images:

@@ -30,7 +30,9 @@ if TYPE_CHECKING:
 #: sky_fraction derived; 5: one set of pixels per pose group (every sun x skin of a group shades the same 2 x
 #: pixels_per_class pixels), panel medians from a capped sample (``generate.PANEL_SAMPLE``); 6:
 #: panel_irradiance_ratio column, elm_valid false where it exceeds ``render.elm.ELM_MAX_IRRADIANCE_RATIO``, and
-#: elm_line_valid (elm_valid without that bound)
+#: elm_line_valid (elm_valid without that bound). Band sets (``generate --bands``, ``[bands]``) kept 6: the index
+#: bands' rows are the same bytes; another set's reflectance columns are its ``BandSet.columns`` (``columns_for``),
+#: named in the manifest's ``bands`` (``files.dataset_bands``: the index bands where a manifest has none)
 SCHEMA_VERSION = 6
 #: the schemas this torchskin reads: every one it ever wrote (a reader checks the columns it needs,
 #: ``files.open_dataset``); a manifest of any other version, such as a newer torchskin's, is refused
@@ -142,13 +144,51 @@ FIXED_COLUMNS: dict[str, tuple[str, str, str]] = {
                        "torchskin train --frames line (its default) also learns from these frames", ""),
 }
 
-#: every Parquet column of a shard, in order: name -> (pyarrow type name, description, unit). The fixed columns,
-#: then the ELM reflectance in each index band (``BAND_COLUMNS``), then the stored indices (``STORED_INDICES``)
-COLUMNS: dict[str, tuple[str, str, str]] = {
-    **FIXED_COLUMNS,
-    **{col: ("float32", f"ELM reflectance at {b.label} nm", "") for b, col in zip(INDEX_BANDS, BAND_COLUMNS)},
-    **{name: ("float32", index_formula(name), "") for name in STORED_INDICES},
-}
+#: the columns defined at one index band only (nm): NaN in the rows of a band set without a band within
+#: ``bands.BAND_MATCH_NM`` of it (``columns_for``)
+SINGLE_BAND_COLUMNS: dict[str, float] = {"sky_fraction": _G, "atmosphere_transmittance": _G, "direct_share_544": _G,
+                                         "direct_share_1580": _S}
+
+
+def has_band(bands: BandSet, nm: float) -> bool:
+    """Whether ``bands`` holds a band at ``nm`` (within ``bands.BAND_MATCH_NM``; ``BandSet.index``).
+
+    >>> has_band(INDEX_BANDS, 1580.0), has_band(BandSet.of([544.0, 633.0]), 1580.0)
+    (True, False)
+    """
+    try:
+        bands.index(nm)
+    except ValueError:
+        return False
+    return True
+
+
+def columns_for(bands: BandSet) -> dict[str, tuple[str, str, str]]:
+    """Every Parquet column of a shard of a dataset rendered in ``bands``, in order: name -> (pyarrow type name,
+    description, unit). The fixed columns, then the ELM reflectance in each band (``BandSet.columns``), then the
+    stored indices (``STORED_INDICES``). A column defined at bands the set lacks (an index, or one of
+    ``SINGLE_BAND_COLUMNS``) is NaN, and its description says so; with the index bands, ``COLUMNS``.
+
+    >>> c = columns_for(BandSet.parse("450,544,633"))
+    >>> [k for k in c if k.startswith("r") and k[1:].isdigit()], c["ndsi"][1]
+    (['r450', 'r544', 'r633'], '(r1080 - r1580) / (r1080 + r1580) (NaN: the bands lack 1080, 1580 nm)')
+    """
+    def lacking(nm: Sequence[float]) -> str:
+        gone = [f"{w:g}" for w in nm if not has_band(bands, w)]
+        return f" (NaN: the bands lack {', '.join(gone)} nm)" if gone else ""
+
+    fixed = {k: (t, d + lacking([SINGLE_BAND_COLUMNS[k]]) if k in SINGLE_BAND_COLUMNS else d, u)
+             for k, (t, d, u) in FIXED_COLUMNS.items()}
+    return {**fixed,
+            **{col: ("float32", f"ELM reflectance at {b.label} nm", "") for b, col in zip(bands, bands.columns)},
+            **{name: ("float32", index_formula(name) + lacking([*INDICES[name][0], *INDICES[name][1]]), "")
+               for name in STORED_INDICES}}
+
+
+#: every Parquet column of a shard of the index bands (``columns_for(INDEX_BANDS)``), in order: name -> (pyarrow
+#: type name, description, unit). The fixed columns, then the ELM reflectance in each index band
+#: (``BAND_COLUMNS``), then the stored indices (``STORED_INDICES``)
+COLUMNS: dict[str, tuple[str, str, str]] = columns_for(INDEX_BANDS)
 
 
 def _bands_of(side: float | Sequence[float]) -> Side:
@@ -162,10 +202,13 @@ class Rows:
     Attributes:
         columns: column name -> values (strings as object arrays), in the order they were asked for.
         excluded: rows of the dataset left out because their frame's ELM was not in the frame set read.
+        band_set: the dataset's bands (its manifest's ``bands``; the index bands for datasets written before
+            manifests recorded them): ``nd`` finds a wavelength's column here.
     """
 
     columns: dict[str, np.ndarray]
     excluded: int = 0
+    band_set: BandSet = INDEX_BANDS
 
     def __len__(self) -> int:
         return len(next(iter(self.columns.values()))) if self.columns else 0
@@ -187,8 +230,8 @@ class Rows:
         """The normalized difference (a - b) / (a + b) of two index bands, or of two sums of them, per row.
 
         Args:
-            a_nm, b_nm: a band centre (nm; its column is ``band_column``) or several, whose reflectances are summed
-                in the order given (NDVN: ``(544, 633)`` against ``(1080, 1580)``; ``INDICES`` names the indices).
+            a_nm, b_nm: a band centre (nm; its column is the ``band_set``'s band within ``bands.BAND_MATCH_NM``)
+                or several, whose reflectances are summed in the order given (NDVN: ``(544, 633)`` against ``(1080, 1580)``; ``INDICES`` names the indices).
             dtype: the float type every step is computed in (the columns are float32; float64 by default).
 
         Returns:
@@ -202,7 +245,8 @@ class Rows:
         from ..detect import normalized_difference
 
         def side(nm: Side) -> np.ndarray:
-            return functools.reduce(operator.add, [self.columns[band_column(w)].astype(dtype) for w in nm])
+            cols = [self.band_set.columns[self.band_set.index(w)] for w in nm]
+            return functools.reduce(operator.add, [self.columns[c].astype(dtype) for c in cols])
 
         a, b = side(_bands_of(a_nm)), side(_bands_of(b_nm))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -215,5 +259,6 @@ class Rows:
         return self.nd(a, b, dtype)
 
 
-__all__ = ["BAND_COLUMNS", "COLUMNS", "FIXED_COLUMNS", "INDICES", "READ_SCHEMAS", "SCHEMA_VERSION", "STORED_INDICES",
-           "Rows", "Side", "band_column", "index_formula"]
+__all__ = ["BAND_COLUMNS", "COLUMNS", "FIXED_COLUMNS", "INDICES", "READ_SCHEMAS", "SCHEMA_VERSION",
+           "SINGLE_BAND_COLUMNS", "STORED_INDICES", "Rows", "Side", "band_column", "columns_for", "has_band",
+           "index_formula"]

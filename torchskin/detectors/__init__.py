@@ -11,7 +11,7 @@ Modules, lowest first (each imports only those above it):
   ``CalibrationData``).
 - ``graphs``: the ONNX helpers the kinds' detector graphs are written with.
 - ``boxes``, ``classifier``: the two built-in kinds (learners: they train from datasets).
-- ``registry``: kind name -> model class; ``load`` / ``save`` / ``train`` / ``kind_of``. ``torchskin.evaluate``,
+- ``registry``: kind name -> model class; ``load`` / ``save`` / ``train`` / ``kind_of``. ``torchskin.evaluation``,
   ``torchskin.export``, the model cards and the command line dispatch through it.
 
 A new kind is one module (a class that satisfies ``DetectorModel``) plus one call, ``registry.register(MyKind)``.

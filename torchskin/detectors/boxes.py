@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..bands import INDEX_BANDS_NM
 from ..detect import rules_detector
 from ..errors import Failure
 from .features import (
@@ -98,6 +99,9 @@ class BoxModel(nn.Module):
     kind: ClassVar[str] = "boxes"
     #: the training methods of this kind (``learn``)
     methods: ClassVar[tuple[str, ...]] = ("boxes", "quantiles")
+    #: the band centres (nm) its training and evaluation data must hold (``registry.required_bands``): the four
+    #: index bands, whose columns (``BAND_COLUMNS``) it reads
+    required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
@@ -195,7 +199,7 @@ class BoxModel(nn.Module):
 
     def calibrate_to_budget(self, data: CalibrationData, scene_budget: float, pfa_budget: float,
                             iters: int = 30) -> dict:
-        """``evaluate.calibrate_to_budget`` for boxes: the largest ``scale`` (every box shrunk about its centre),
+        """``evaluation.calibrate_to_budget`` for boxes: the largest ``scale`` (every box shrunk about its centre),
         never above the current one, at which the bright non-skin rows inside their boxes are within
         ``scene_budget`` and the bright earthlib test spectra within ``pfa_budget`` in every configuration. Sets
         it and returns knob, before, after and pfa_scene."""
@@ -527,7 +531,7 @@ def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, setti
     training ignored them and the hard tuning afterwards had to shrink every box, to 0.41 of the skin):
     the confusers as the camera saw them, shadowed and back-lit, per configuration. (Each pixel holding also the
     boxes of configurations within 10° of its own cut the held-out scene Pfa from 6.6e-4 to 2.8e-4 and Pd sunlit
-    from 0.80 to 0.78: not kept; ``evaluate.calibrate_to_budget`` closes the gap on the held-out set.)
+    from 0.80 to 0.78: not kept; ``evaluation.calibrate_to_budget`` closes the gap on the held-out set.)
     ``ndvn_quantile`` (with (n, 3)
     ``Y``): d1 becomes a fifth output of the network, learned per configuration as the conditional
     ``ndvn_quantile`` of the skin's NDVN less ``NDVN_MARGIN`` (pinball loss, in the start and alongside the

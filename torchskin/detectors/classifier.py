@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..bands import INDEX_BANDS_NM
 from .features import (
     BAND_COLUMNS,
     FEATURES,
@@ -80,6 +81,9 @@ class SkinClassifier(nn.Module):
     kind: ClassVar[str] = "classifier"
     #: the training methods of this kind (``train_classifier``)
     methods: ClassVar[tuple[str, ...]] = ("classifier",)
+    #: the band centres (nm) its training and evaluation data must hold (``registry.required_bands``): the four
+    #: index bands, whose columns (``BAND_COLUMNS``) it reads
+    required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
@@ -159,7 +163,7 @@ class SkinClassifier(nn.Module):
 
     def calibrate_to_budget(self, data: CalibrationData, scene_budget: float, pfa_budget: float,
                             iters: int = 30) -> dict:
-        """``evaluate.calibrate_to_budget`` for the classifier: the lowest logit threshold, never below the current
+        """``evaluation.calibrate_to_budget`` for the classifier: the lowest logit threshold, never below the current
         one, at which at most ``scene_budget`` of the non-skin rows (the bright ones can pass) are called skin. Sets
         it and returns knob, before, after and pfa_scene."""
         nonskin, bright = data.nonskin, data.bright

@@ -1,6 +1,6 @@
 """The ``DetectorModel`` protocol every detector kind satisfies, the optional ``BoxDetectorModel`` (kinds whose
 decision region is a box per configuration), and the plain records the kinds take from their callers
-(``TrainRequest`` from the command line, ``CalibrationData`` from ``torchskin.evaluate``).
+(``TrainRequest`` from the command line, ``CalibrationData`` from ``torchskin.evaluation``).
 
 A kind is a class (usually an ``nn.Module``) with:
 
@@ -16,9 +16,11 @@ A kind is a class (usually an ``nn.Module``) with:
 
 Everything else is optional, and found on the class when it is there:
 
+- ``required_bands``: the band centres (nm) a dataset must hold for it (``registry.required_bands``; default the
+  four index bands, ``bands.INDEX_BANDS_NM``): ``torchskin train`` and ``evaluate`` refuse a dataset without them;
 - ``boxes(config)`` and ``boundaries_graph(meta)`` (``BoxDetectorModel``): a box per configuration;
 - ``from_training(req)`` (a classmethod): ``torchskin train --method`` for the kind's methods (``TrainRequest``);
-- ``calibrate_to_budget(data, scene_budget, pfa_budget, iters)``: ``evaluate.calibrate_to_budget``
+- ``calibrate_to_budget(data, scene_budget, pfa_budget, iters)``: ``evaluation.calibrate_to_budget``
   (``CalibrationData``);
 - ``reference_detector()``: the torch module its ``detector.onnx`` computes;
 - ``card_use`` and ``card_false_alarms(train, f)``: the model card's words for the kind.
@@ -71,7 +73,7 @@ class DetectorModel(Protocol):
 @runtime_checkable
 class BoxDetectorModel(DetectorModel, Protocol):
     """A kind whose decision region is a box per configuration: ``boxes(config)`` (n, k) -> (n, 4 or 5),
-    (b1, b2, c1, c2[, d1]) (``boxes.BOX_ORDER``). ``torchskin.evaluate`` measures its false alarms and areas on
+    (b1, b2, c1, c2[, d1]) (``boxes.BOX_ORDER``). ``torchskin.evaluation`` measures its false alarms and areas on
     the boxes, draws its ROC by scaling them, and ``torchskin export`` writes them as ``boundaries.onnx``."""
 
     def boxes(self, config: torch.Tensor) -> torch.Tensor:
@@ -123,7 +125,7 @@ class TrainRequest:
 
 @dataclass
 class CalibrationData:
-    """The validation rows a kind calibrates itself on (``evaluate.calibrate_to_budget``).
+    """The validation rows a kind calibrates itself on (``evaluation.calibrate_to_budget``).
 
     Attributes:
         R: ELM reflectance (n, 4); X: configurations (n, k).

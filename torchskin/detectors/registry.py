@@ -21,6 +21,8 @@ from typing import Any, cast
 
 import torch
 
+from ..bands import INDEX_BANDS_NM
+from ..dataset.files import require_bands
 from .boxes import BoxModel
 from .classifier import SkinClassifier
 from .protocol import BoxDetectorModel, DetectorModel, TrainRequest, write_checkpoint
@@ -96,6 +98,16 @@ def kind_for_method(method: str | None, default: str | None = LEGACY_KIND) -> ty
     return get(default)
 
 
+def required_bands(cls: type[DetectorModel]) -> tuple[float, ...]:
+    """The band centres (nm) a dataset must hold for a kind: its ``required_bands``, default the four index bands
+    (``bands.INDEX_BANDS_NM``, whose columns every built-in kind reads).
+
+    >>> required_bands(get("boxes"))
+    (544.0, 633.0, 1080.0, 1580.0)
+    """
+    return tuple(getattr(cls, "required_bands", INDEX_BANDS_NM))
+
+
 def boxes_of(model: Any) -> Any:
     """The ``boxes(config)`` function of a box kind (``protocol.BoxDetectorModel``), or None for a kind that decides
     otherwise."""
@@ -144,6 +156,7 @@ def train(req: TrainRequest) -> tuple[DetectorModel, dict, str]:
     fn = getattr(cls, "from_training", None)
     if fn is None:
         raise ValueError(f"detector kind {cls.kind!r} does not train from datasets")
+    require_bands(req.data, required_bands(cls), f"--method {req.method}")  # before anything is read or written
     return cast(tuple[DetectorModel, dict, str], fn(req))
 
 
@@ -151,4 +164,4 @@ register(cast(type[DetectorModel], BoxModel))
 register(cast(type[DetectorModel], SkinClassifier))
 
 __all__ = ["LEGACY_KIND", "boxes_of", "get", "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint",
-           "methods", "register", "save", "train", "unregister"]
+           "methods", "register", "required_bands", "save", "train", "unregister"]

@@ -1,0 +1,100 @@
+"""The side-by-side comparison: every model and the static thesis box judged on one held-out dataset
+(``evaluate``, a complete JSON-ready result, provenance included) and its text table (``table``)."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+
+from ..angles import BACKLIT_MIN_DEG
+from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
+from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
+from .provenance import provenance, render_revision
+from .regions import ROC_SCALES, earthlib_test, judge, roc
+
+
+def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
+    """One model's entry of ``evaluate``'s ``models``: overall, sun zenith >= 60°, per bin (sun x camera zenith,
+    and relative azimuth), areas, scene Pfa by family."""
+    area = judged.area_cfg
+    return {"name": cand.name, "path": cand.path, "kind": cand.kind, "overall": judged.summary(rows),
+            "sun_zenith_ge_60": judged.summary(rows, rows.sz >= 60), "bins": bins(judged, rows),
+            "azimuth_bins": azimuth_bins(judged, rows),
+            "area": {"mean": float(area.mean()), "median": float(area.median()),
+                     "p10": float(area.quantile(0.1)), "p90": float(area.quantile(0.9))},
+            "scene_pfa_by_family": judged.scene_by_family(rows)}
+
+
+def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Sequence[float] = ROC_SCALES,
+             min_reflectance: float = MIN_REFLECTANCE) -> dict:
+    """Every model of ``model_paths`` and the static box on the held-out dataset at ``data_dir``, all under the
+    brightness floor ``min_reflectance``: Pd of skin pixels (sunlit, glint-affected, shadowed), Pfa on the
+    earthlib test spectra and on the scene's non-skin pixels, decision-region areas, overall, at sun zenith >=
+    60° and per (sun zenith x camera zenith) bin, and, when the first model has boxes, its ROC.
+
+    Args:
+        data_dir: a generated dataset folder (``torchskin generate``; rows of frames with a valid ELM).
+        model_paths: one path or a list (see ``load_candidate``: .pt checkpoints, boundaries.onnx /
+            baseline_box.onnx, detector.onnx, or "static"); all must take the same features.
+        scales: the box scale factors of the ROC (``ROC_SCALES``).
+        min_reflectance: the brightness floor, in [0, 1) (``MIN_REFLECTANCE``).
+
+    Returns:
+        A JSON-ready dict, complete (what ``torchskin evaluate --save`` writes): ``models`` (one entry per model,
+        the static box last: name, path, kind, overall, sun_zenith_ge_60, bins, area, scene_pfa_by_family),
+        ``learned`` / ``static`` (and ``bins``, ``sun_zenith_ge_60``, ``roc``) comparing the first model with
+        the static box, the dataset's features, rows, rows_excluded_no_sunlit_panels, configurations,
+        glint_reflectance, min_reflectance, and the provenance (``evaluation.provenance.provenance``:
+        ``warnings`` when a model was trained in another world, ``data``, ``data_manifest_sha256``, ``model``).
+    """
+    if not (0.0 <= float(min_reflectance) < 1.0) or not math.isfinite(min_reflectance):
+        raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
+    cands = load_candidates(model_paths)
+    features = cands[0].features
+    cands.append(static_candidate())
+    rows = held_out(data_dir, features)
+    test_R, test_pts = earthlib_test()
+    judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
+    models = [model_entry(c, j, rows) for c, j in zip(cands, judged)]
+    first, static = models[0], models[-1]
+    out = {"models": models, "learned": first["overall"], "static": static["overall"],
+           "sun_zenith_ge_60": {"learned": first["sun_zenith_ge_60"], "static": static["sun_zenith_ge_60"]},
+           "bins": [{"sun_zenith_deg": a["sun_zenith_deg"], "camera_zenith_deg": a["camera_zenith_deg"],
+                     "learned": {k: v for k, v in a.items() if not k.endswith("_deg")},
+                     "static": {k: v for k, v in b.items() if not k.endswith("_deg")}}
+                    for a, b in zip(first["bins"], static["bins"])],
+           "features": features, "rows": rows.n, "rows_excluded_no_sunlit_panels": rows.excluded,
+           "configurations": rows.n_cfg, "glint_reflectance": GLINT_REFLECTANCE,
+           "render_revision": render_revision(data_dir),
+           "backlit_min_relative_azimuth_deg": BACKLIT_MIN_DEG,
+           "min_reflectance": float(min_reflectance)}
+    if cands[0].boxes is not None:
+        out["roc"] = roc(cands[0], cands[-1], rows, test_pts, scales, float(min_reflectance))
+    out.update(provenance(data_dir, model_paths))
+    return out
+
+
+_TABLE = (("Pd sunlit", "pd_sunlit"), ("no glint", "pd_sunlit_no_glint"), ("glint", "pd_glint"),
+          ("shadow", "pd_shadow"), ("backlit", "pd_backlit"), ("mean/config", "pd_sunlit_mean_over_configs"))
+
+
+def table(result: dict) -> str:
+    """The comparison as a text table: one row per model (the static box last)."""
+    head = (f"{'model':<26}" + "".join(f"{h:>12}" for h, _ in _TABLE) + f"{'sun>=60 m/c':>12}{'Pfa earthlib':>13}"
+            f"{'Pfa scene':>11}{'area':>7}")
+    lines = [head]
+    for m in result["models"]:
+        o, hi = m["overall"], m["sun_zenith_ge_60"]
+        lines.append(f"{m['name'][:25]:<26}" + "".join(f"{o[k]:>12.3f}" for _, k in _TABLE)
+                     + f"{hi['pd_sunlit_mean_over_configs']:>12.3f}{o['pfa']:>13.2e}{o['pfa_scene']:>11.2e}"
+                     + f"{m['area']['mean']:>7.3f}")
+    lines.append(f"({result['rows']} rows, {result['configurations']} configurations; Pd sunlit split into glint-"
+                 f"affected (specular >= {result['glint_reflectance']:g} at 1580 nm) and not; shadow: skin without "
+                 f"direct sun; backlit: all skin of configurations with relative azimuth >= {BACKLIT_MIN_DEG:g}° (the "
+                 "camera looks towards the sun); area: mean decision-region area per configuration in the (NDGRI, "
+                 "NDSI) plane)")
+    return "\n".join(lines)
+
+
+__all__ = ["evaluate", "model_entry", "table"]

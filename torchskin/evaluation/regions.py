@@ -1,0 +1,123 @@
+"""What an evaluation measures in the (NDGRI, NDSI) index plane: a model's false alarms on the earthlib test
+spectra and the area of its decision region per configuration, and the ROC of a box model as its boxes scale
+about their centres. The per-row decisions and their rates are ``evaluation.metrics``'s."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import cast
+
+import numpy as np
+import torch
+
+from ..bands import INDEX_BANDS_NM
+from ..detectors.boxes import false_alarm_rate, inside_box
+from ..detectors.features import ratio_indices
+from .candidates import Candidate
+from .metrics import HeldOut, Judged, rate
+
+#: index-plane grid (per axis, over [-1, 1]) on which the decision region of a non-box model is measured
+AREA_GRID = 64
+ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
+
+
+def earthlib_test() -> tuple[torch.Tensor, torch.Tensor]:
+    """The earthlib test spectra in the index bands: reflectance (m, 4) float32 and, row for row, their
+    (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined)."""
+    from ..confusers import band_reflectance
+
+    _, test_R = band_reflectance(INDEX_BANDS_NM, "test")
+    test_R = test_R.float()
+    return test_R, torch.stack(ratio_indices(test_R), -1)
+
+
+def judge(cand: Candidate, rows: HeldOut, test_R: torch.Tensor, test_pts: torch.Tensor, floor: float) -> Judged:
+    """One model's decisions on the rows (under the brightness ``floor``), its earthlib-test Pfa and region area
+    per configuration."""
+    if cand.features != rows.features:
+        raise ValueError(f"{cand.name} takes features {cand.features}, the rows hold {rows.features}")
+    cfg_X = rows.cfg_X
+    hit = cand.decide(rows.R, rows.X).bool() & (rows.R.mean(-1) > floor)
+    bright = test_R.mean(-1) > floor
+    if cand.boxes is not None:
+        bx = cand.boxes(cfg_X)
+        pts = torch.where(bright[:, None], test_pts, torch.full_like(test_pts, math.nan))  # aligned with test_R
+        pfa_cfg = false_alarm_rate(bx, pts).double()
+        w = (bx[:, 1].clamp(-1, 1) - bx[:, 0].clamp(-1, 1)).clamp_min(0)
+        h = (bx[:, 3].clamp(-1, 1) - bx[:, 2].clamp(-1, 1)).clamp_min(0)
+        area_cfg = (w * h).double()
+    else:
+        pfa_cfg = pfa_by_config(cand, cfg_X, test_R, bright)
+        area_cfg = grid_area(cand, cfg_X, rows)
+    return Judged(hit, pfa_cfg, area_cfg)
+
+
+def pfa_by_config(cand: Candidate, cfg_X: torch.Tensor, test_R: torch.Tensor, bright: torch.Tensor,
+                  chunk: int = 1 << 20) -> torch.Tensor:
+    """Per configuration, the fraction of the earthlib test spectra (reflectance (m, 4), as measured) that the
+    model calls skin (only ``bright`` ones can be)."""
+    m = test_R.shape[0]
+    out = torch.empty(cfg_X.shape[0], dtype=torch.float64)
+    per = max(1, chunk // m)
+    for lo in range(0, cfg_X.shape[0], per):
+        c = cfg_X[lo:lo + per]
+        X = c.repeat_interleave(m, 0)
+        R = test_R.repeat(c.shape[0], 1)
+        out[lo:lo + c.shape[0]] = (cand.decide(R, X).reshape(c.shape[0], m) & bright).double().mean(1)
+    return out
+
+
+def grid_area(cand: Candidate, cfg_X: torch.Tensor, rows: HeldOut) -> torch.Tensor:
+    """Per configuration, the area of the (NDGRI, NDSI) plane (over [-1, 1]^2) that the model calls skin, at
+    the band-pair brightness of that configuration's sunlit skin (median (g + r) / 2 and (n + s) / 2)."""
+    lit = rows.label & ~rows.shadow
+    pair = torch.stack([(rows.R[:, 0] + rows.R[:, 1]) / 2, (rows.R[:, 2] + rows.R[:, 3]) / 2], -1)
+    default = pair[lit].median(0).values if bool(lit.any()) else torch.tensor([0.4, 0.3])
+    med = default.expand(rows.n_cfg, 2).clone()
+    order = torch.argsort(rows.cfg[lit], stable=True)
+    cfg_l, pair_l = rows.cfg[lit][order], pair[lit][order]
+    uniq, counts = torch.unique_consecutive(cfg_l, return_counts=True)
+    for c, part in zip(uniq.tolist(), torch.split(pair_l, counts.tolist())):  # per configuration (not per pixel)
+        med[c] = part.median(0).values
+    k = AREA_GRID
+    axis = -1 + (torch.arange(k) + 0.5) * (2.0 / k)
+    G, S = torch.meshgrid(axis, axis, indexing="ij")
+    G, S = G.reshape(-1), S.reshape(-1)
+    out = torch.empty(rows.n_cfg, dtype=torch.float64)
+    per = max(1, (1 << 20) // (k * k))
+    for lo in range(0, rows.n_cfg, per):
+        a = med[lo:lo + per]  # (c, 2)
+        n = a.shape[0]
+        R = torch.stack([a[:, :1] * (1 + G), a[:, :1] * (1 - G), a[:, 1:] * (1 + S), a[:, 1:] * (1 - S)], -1)
+        X = cfg_X[lo:lo + per].repeat_interleave(k * k, 0)
+        hit = cand.decide(R.reshape(-1, 4).float(), X).reshape(n, k * k)
+        out[lo:lo + n] = hit.double().mean(1) * 4.0
+    return out
+
+
+def scaled(b: torch.Tensor, k: float) -> torch.Tensor:
+    """Boxes (N, 4+) scaled by ``k`` about their centres in (NDGRI, NDSI) (a fifth column, d1, is kept)."""
+    ctr = torch.stack([(b[:, 0] + b[:, 1]) / 2] * 2 + [(b[:, 2] + b[:, 3]) / 2] * 2, -1)
+    return torch.cat([ctr + float(k) * (b[:, :4] - ctr), b[:, 4:]], -1)
+
+
+def roc(cand: Candidate, static: Candidate, rows: HeldOut, test_pts, scales: Sequence[float], floor: float) -> dict:
+    """Pd (sunlit) against Pfa as every box is scaled about its centre, for ``cand`` and the static box."""
+    out: dict[str, list] = {"scales": [float(k) for k in scales]}
+    lit = rows.label & ~rows.shadow
+    nonskin = ~rows.label
+    for key, c in (("learned", cand), ("static", static)):
+        boxes_of = cast(Callable, c.boxes)  # both are box models
+        bx = boxes_of(rows.X)
+        cb = boxes_of(rows.cfg_X)
+        pts = []
+        for k in scales:
+            hit = inside_box(scaled(bx, k), rows.g, rows.s, rows.v) & (rows.R.mean(-1) > floor)
+            pts.append([float(false_alarm_rate(scaled(cb, k), test_pts).mean()), rate(hit, lit),
+                        rate(hit, nonskin)])
+        out[key] = pts
+    return out
+
+
+__all__ = ["AREA_GRID", "ROC_SCALES", "earthlib_test", "grid_area", "judge", "pfa_by_config", "roc", "scaled"]
