@@ -152,7 +152,9 @@ CASES = [
     ("export --model {w}/adir --out {w}/x", "adir' is a folder"),
     ("export --model " + str(EXPORTS / "boundaries.pt") + " --out {w}/x --metrics {w}/list.json", "--metrics"),
     ("export --model " + str(EXPORTS / "boundaries.pt") + " --out {w}/afile", "--out"),
-    ("export --model " + str(EXPORTS / "classifier.pt") + " --out {w}/x", "classifier"),
+    # a model without boxes is exported as detector.onnx alone: a --detector beside it is refused
+    ("export --model " + str(EXPORTS / "classifier.pt") + " --detector " + str(EXPORTS / "boundaries.pt")
+     + " --out {w}/x", "classifier"),
     ("evaluate --data {w}/notadataset --model {w}/junk.pt", "junk.pt"),
     ("evaluate --data {w}/nothere --model " + BND, "nothere"),
     ("evaluate --data {w}/notadataset --model " + BND, "notadataset"),

@@ -171,23 +171,6 @@ def test_training_settings_are_dataclasses_and_the_keyword_call_still_works():
     assert ClassifierTraining().with_options(hidden=8).hidden == 8 and ClassifierTraining().hidden == 32
 
 
-@pytest.fixture(scope="module")
-def tiny_dataset(tmp_path_factory):
-    from torchskin.dataset.config import resolve_config
-    from torchskin.dataset.generate import generate
-    from torchskin.render.meshes import sphere_mesh, write_obj
-
-    d = tmp_path_factory.mktemp("registry")
-    v, f = sphere_mesh(0.35, 3)
-    write_obj(d / "head.obj", v + [0.0, 0.0, 0.9], f)
-    cfg = resolve_config({"camera": {"width": 64, "height": 64, "range_m": [5.0, 10.0]}, "sun": {"per_pose": 3},
-                          "skin": {"per_pose": 2}, "subject": {"meshes": [str(d / "head.obj")]},
-                          "sampling": {"groups_per_shard": 2, "pixels_per_class": 24},
-                          "confusers": {"partition": "test"}, "clothing": {"partition": "test"}})
-    generate(cfg, 12, 7, d / "ds", quiet=True)
-    return d / "ds"
-
-
 @pytest.mark.slow
 def test_a_new_kind_runs_through_evaluate_export_and_the_cards(toy_kind, tiny_dataset, tmp_path):
     """The toy kind (NDSI > 0.5) registered in one call: ``evaluate`` judges its checkpoint by its own decisions,

@@ -38,7 +38,7 @@ def metadata(model: DetectorModel, manifest_sha256: str = "", surface: str = "")
     band set (``bands``: ``BandSet.to_json``, centres and FWHM, in the cube's order; ``bands_nm``: the centres
     alone, as exports before ``bands`` recorded them), band units, feature order, units and domain, box order, NDVN
     formula, skin surface model, training manifest hash, package version (every key is part of the shipped files:
-    keep them as they are).
+    keep them as they are), and, for a kind whose onboard head its name does not tell, ``onboard_head``.
 
     >>> from torchskin.detectors.boxes import BoxModel
     >>> m = metadata(BoxModel())
@@ -59,7 +59,18 @@ def metadata(model: DetectorModel, manifest_sha256: str = "", surface: str = "")
         "box_order": json.dumps(list(BOX_ORDER)),
         "ndvn": "((g + r) - (n + s)) / (g + r + n + s) with (g, r, n, s) the 544, 633, 1080, 1580 nm reflectance",
         "training_manifest_sha256": manifest_sha256,
+        **_head(model.kind),
     }
+
+
+def _head(kind: str) -> dict[str, str]:
+    """The metadata ``onboard_head`` of a kind whose head (``registry.onboard_head``) the onboard runtime would not
+    tell from its name (``onboard.BOX_HEAD_KINDS``); nothing otherwise (the built-in kinds)."""
+    from .detectors import registry
+    from .onboard import BOX_HEAD_KINDS
+
+    head = registry.onboard_head(kind) if kind in registry.kinds() else "generic"
+    return {} if head == ("boxes" if kind in BOX_HEAD_KINDS else "generic") else {"onboard_head": head}
 
 
 def detector_graph(model: DetectorModel, meta: dict[str, str]) -> onnx.ModelProto:
@@ -68,18 +79,19 @@ def detector_graph(model: DetectorModel, meta: dict[str, str]) -> onnx.ModelProt
     return model.detector_graph(meta)
 
 
-def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256: str = "", *, surface: str = "",
+def export(model: DetectorModel, out_dir: str | os.PathLike, manifest_sha256: str = "", *, surface: str = "",
            baseline: BoxDetectorModel | None = None, detector: DetectorModel | None = None,
            detector_meta: dict[str, str] | None = None,
            checkpoints: dict[str, str] | None = None,
            provenance: dict[str, dict[str, str]] | None = None) -> dict[str, str]:
-    """Write ``boundaries.onnx`` (``model``), ``baseline_box.onnx`` (``baseline``, a constant box with the same
+    """Write ``boundaries.onnx`` (``model``, a model of a box kind; none for another kind), ``baseline_box.onnx`` (``baseline``, a constant box with the same
     inputs and outputs, when given) and ``detector.onnx`` (``detector``: a model of any detector kind; default
     ``model``) into ``out_dir``, opset 17, with metadata (``metadata``). Every graph is built and checked before
     any file is written; each file is written atomically. The same models give the same bytes.
 
     Args:
-        model: the box model of ``boundaries.onnx`` (and of ``detector.onnx`` by default).
+        model: the box model of ``boundaries.onnx`` (and of ``detector.onnx`` by default), or a model of any
+            other kind (``detector.onnx`` alone).
         out_dir: the output folder (created if missing).
         manifest_sha256: the training dataset's manifest hash, recorded in the metadata.
         surface: the skin surface model of the training renders ("thesis" or "conserving"), recorded likewise.
@@ -99,7 +111,7 @@ def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256:
         (B, 4, H, W) and ``config`` (B, k) -> ``mask`` bool and ``score`` float32, (B, H, W).
 
     Returns:
-        ``{name: path}`` of the files written ("boundaries", "detector" and, with ``baseline``,
+        ``{name: path}`` of the files written ("boundaries" for a box model, "detector" and, with ``baseline``,
         "baseline_box").
     """
     ck = checkpoints or {}
@@ -110,7 +122,9 @@ def export(model: BoxDetectorModel, out_dir: str | os.PathLike, manifest_sha256:
         return {**metadata(m, manifest_sha256, surface), **({"checkpoint": ck[name]} if name in ck else {}),
                 **own.get(name, {})}
 
-    graphs = {"boundaries": model.boundaries_graph(meta(model, "boundaries"))}
+    graphs = {}
+    if isinstance(model, BoxDetectorModel):  # a kind without boxes writes detector.onnx alone
+        graphs["boundaries"] = model.boundaries_graph(meta(model, "boundaries"))
     if baseline is not None:
         graphs["baseline_box"] = baseline.boundaries_graph(meta(baseline, "baseline_box"))
     det = model if detector is None else detector

@@ -20,9 +20,7 @@ _INPUTS = {
                      "NDVN min"),
     "detector": ("`cube` float32 (B, 4, H, W): ELM-calibrated reflectance at 544, 633, 1080, 1580 nm (bands on "
                  "axis 1, values in [0, 1]); `config` float32 (B, k): the frame's configuration features",
-                 "`mask` bool (B, H, W): skin; `score` float32 (B, H, W): positive for skin (box models: the "
-                 "smallest margin to a box edge in index units times the band-pair sum (g + r or n + s); the "
-                 "classifier: its logit minus the calibrated threshold)"),
+                 "`mask` bool (B, H, W): skin; `score` float32 (B, H, W): positive for skin"),
 }
 _TITLES = {"boundaries": "configuration-dependent skin-detector boundaries (the auditable rules model)",
            "baseline_box": "the single refitted rules box (baseline: one box for every configuration)",
@@ -104,9 +102,17 @@ def _kind(train: dict) -> Any:
     return registry.kind_for_method(train.get("method"))
 
 
+def _score_words() -> str:
+    """What a ``detector.onnx`` score is, in each registered kind's words (``card_score``), "" when none has any."""
+    from .detectors import registry
+
+    words = registry.card_scores()
+    return f" ({'; '.join(words)})" if words else ""
+
+
 def _false_alarm_line(train: dict) -> str:
-    # "calibration" here (and "calibrated threshold" in ``_INPUTS``) means the false-alarm tuning
-    # (``boxes.tune_false_alarms``, ``classifier.tune_threshold``); the words and the summary key
+    # "calibration" here (and "calibrated threshold" in the classifier's ``card_score``) means the false-alarm tuning
+    # (each kind's own: its ``card_false_alarms``); the words and the summary key
     # ``calibration_configs`` are part of the shipped cards and checkpoints (exports/), so they stay. Each kind
     # words its own tuning (``card_false_alarms``)
     kind = _kind(train)
@@ -126,6 +132,8 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
     units = json.loads(meta.get("feature_units", "[]"))
     domain = json.loads(meta.get("feature_domain", "[]"))
     inp, outp = _INPUTS[kind]
+    if kind == "detector":
+        outp += _score_words()
     opts = train.get("options", {})
     lines = [
         f"# torchskin {kind}.onnx: {_TITLES[kind]}", "",

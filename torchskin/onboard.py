@@ -194,7 +194,10 @@ def model_inputs(path: str | os.PathLike) -> list[str]:
 
 
 #: the detector kinds (metadata ``kind``) whose graph runs on the box head (``_split_box_graph``): the edge forms of
-#: ``detectors.boxes.edge_detector_graph``; every other kind runs on the generic head, its graph as it is, per tile
+#: ``detectors.boxes.edge_detector_graph``; every other kind runs on the generic head, its graph as it is, per tile,
+#: unless its metadata names its head (``onboard_head``). The built-in kinds' ``onboard_head``
+#: (``detectors.registry.onboard_head``) agree with it: their graphs record no ``onboard_head`` (this module reads
+#: graphs without torch, so without the registry)
 BOX_HEAD_KINDS = frozenset({"boxes"})
 
 
@@ -271,9 +274,11 @@ def detector_head(meta: dict[str, str], path: str, options: Any) -> tuple[str, t
     ``"generic"`` (any other kind: the graph as it is, per tile), and the box head's parts (None for the generic
     head). A graph without ``kind`` (exported before graphs recorded it) is told by today's node names instead
     (``_edges_by_name``: the Split of ``det_w``); a box graph whose edges are not found runs on the generic head
-    (the same results, slower)."""
+    (the same results, slower). A kind's graph may name its head in the metadata ``onboard_head`` (written by
+    ``export.metadata`` where the kind asks for another head than ``BOX_HEAD_KINDS`` gives it), which wins."""
     kind = meta.get("kind")
-    if kind is not None and kind not in BOX_HEAD_KINDS:
+    head = meta.get("onboard_head") or ("boxes" if kind is None or kind in BOX_HEAD_KINDS else "generic")
+    if head != "boxes":
         return "generic", None
     split = _split_box_graph(path, options, by_name=kind is None)
     return ("generic", None) if split is None else ("boxes", split)

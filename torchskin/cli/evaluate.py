@@ -47,7 +47,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     ev.add_argument("--data", required=True, help="held-out dataset folder")
     ev.add_argument("--model", required=True, action="append",
                     help="a model to evaluate (repeatable; one table row each, the static thesis box always last): "
-                         "a checkpoint (.pt: boxes or classifier), boundaries.onnx / baseline_box.onnx or "
+                         "a checkpoint (.pt, of any detector kind), boundaries.onnx / baseline_box.onnx or "
                          "detector.onnx")
     ev.add_argument("--plots", metavar="DIR", help="write roc.png, pd_heatmap.png and boxes.png here")
     ev.add_argument("--save", metavar="FILE", help="write the full result (JSON, with ROC points) here")

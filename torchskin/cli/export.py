@@ -12,7 +12,7 @@ from .options import add_json, add_out_folder
 
 
 def _checkpoint(path: str, what: str) -> tuple[Any, dict[str, Any]]:
-    """(model, training summary) of a boundary or classifier checkpoint; one-line errors for bad files."""
+    """(model, training summary) of a checkpoint of any detector kind; one-line errors for bad files."""
     from pathlib import Path
 
     from ..detectors import registry
@@ -56,9 +56,11 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.metrics:
         check_input_file(args.metrics, "--metrics", (".json",))
     model, train = _checkpoint(args.model, "--model")
-    if registry.boxes_of(model) is None:
-        raise ValueError(f"--model {args.model!r} is a {registry.kind_of(model)} model; boundaries.onnx needs a box "
-                         "model (pass this one as --detector)")
+    boxes = registry.boxes_of(model) is not None  # a model without boxes is exported as detector.onnx alone
+    if not boxes and args.detector:
+        raise ValueError(f"--model {args.model!r} is a {registry.kind_of(model)} model (no boxes for boundaries.onnx): "
+                         "it is exported as detector.onnx, so --detector is refused with it (pass a box model as "
+                         "--model, or drop --detector)")
     trains = {"boundaries": train}
     baseline = None
     if args.baseline:
@@ -76,7 +78,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise ValueError(f"cannot read --metrics {args.metrics!r}: {e}") from None
         if not isinstance(evaluation, dict) or not {"learned", "static"} <= set(evaluation):
             raise ValueError(f"--metrics {args.metrics!r} is not a torchskin evaluate --save result")
-    reason = args.detector_reason or ("the configuration-dependent boxes of --model" if not args.detector else "")
+    reason = args.detector_reason or ("" if args.detector else "the configuration-dependent boxes of --model" if boxes
+                                      else f"the {registry.kind_of(model)} model of --model")
     from ..evaluation import MIN_REFLECTANCE
 
     floor = (evaluation or {}).get("min_reflectance", MIN_REFLECTANCE)
@@ -101,12 +104,13 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     xp = sub.add_parser("export", help="export a boundary checkpoint to boundaries.onnx and detector.onnx",
                         description="Export checkpoints to ONNX (boundaries.onnx, baseline_box.onnx, detector.onnx) with "
                                     "metadata and model cards.")
-    xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train")
+    xp.add_argument("--model", required=True, help="checkpoint (.pt) from torchskin train (a model without boxes: "
+                                                    "detector.onnx alone)")
     add_out_folder(xp, "the ONNX graphs and model cards (e.g. exports/)")
     xp.add_argument("--baseline", metavar="PT", help="a single-box checkpoint (train --hidden 0) exported as "
                                                      "baseline_box.onnx, same inputs and outputs as boundaries.onnx")
-    xp.add_argument("--detector", metavar="PT", help="the checkpoint detector.onnx is made from: a box model or a "
-                                                     "classifier (default: --model)")
+    xp.add_argument("--detector", metavar="PT", help="the checkpoint detector.onnx is made from: a model of any "
+                                                     "detector kind (default: --model)")
     xp.add_argument("--detector-reason", metavar="TEXT", help="why that model: recorded in detector.onnx's "
                                                               "metadata and model card")
     xp.add_argument("--metrics", metavar="EVAL.json", help="torchskin evaluate --save output for the model cards")

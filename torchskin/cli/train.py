@@ -33,9 +33,35 @@ def cmd_train(args: argparse.Namespace) -> int:
     model, info, text = registry.train(TrainRequest(
         args.data, args.method, pfa_budget=args.pfa_budget, scene_budget=scene_budget,
         use_scene=not args.no_scene, sunlit_only=args.sunlit_only, hidden=args.hidden, steps=args.steps,
-        seed=args.seed, ndvn_rule=not args.no_ndvn_rule, q=args.q, margin=args.margin,
-        width_cost=args.width_cost, spread_cost=args.spread_cost, frames=args.frames))
+        seed=args.seed, frames=args.frames, options=kind_options(args)))
     return _save_trained(args, registry.save, model, info, text)
+
+
+def kind_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The options of ``--method``'s kind given on the command line (``registry.train`` fills in the others'
+    defaults); ``ValueError`` for a flag of another kind (it would be ignored)."""
+    from ..detectors import registry
+
+    kind = registry.kind_for_method(args.method, default=None)
+    given = {}
+    for k, cls in registry.kinds().items():
+        for o in registry.options(cls):
+            if not hasattr(args, o.name):  # not given (the parser's default is SUPPRESS)
+                continue
+            if k != kind.kind:
+                raise ValueError(f"{o.cli_flag} is an option of --method {'|'.join(cls.methods)}, not of --method "
+                                 f"{args.method} (it would be ignored)")
+            given[o.name] = getattr(args, o.name)
+    return given
+
+
+def _add_kind_option(tp: argparse.ArgumentParser, o: Any) -> None:
+    """A kind's option (``protocol.KindOption``) as a flag whose value, when given, lands on ``o.name``."""
+    if o.value_type is bool:
+        tp.add_argument(o.cli_flag, dest=o.name, action="store_false" if o.default else "store_true",
+                        default=argparse.SUPPRESS, help=o.help)
+    else:
+        tp.add_argument(o.cli_flag, dest=o.name, type=o.value_type, default=argparse.SUPPRESS, help=o.help)
 
 
 def _save_trained(args: argparse.Namespace, save: Callable[..., None], model: Any, info: dict, text: str) -> int:
@@ -58,22 +84,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                     "dataset, tuned to a false-alarm budget on the earthlib train spectra.")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     add_out_file(tp, "the checkpoint (.pt)")
-    tp.add_argument("--method", choices=registry.methods(), default="boxes",
-                    help="boxes: most sunlit skin per configuration with the earthlib train spectra kept a margin "
-                         "outside (default); quantiles: conditional quantiles of NDGRI and NDSI (pinball loss); "
-                         "classifier: a configuration-conditioned MLP on scale-invariant band ratios "
-                         "(torchskin.detectors.classifier), thresholded at the false-alarm budget")
-    tp.add_argument("--margin", type=float, default=0.03,
-                    help="boxes: distance (index units) kept from every earthlib train spectrum (default 0.03)")
-    tp.add_argument("--width-cost", type=float, default=0.05,
-                    help="boxes: cost per unit of box width, keeps the box tight (default 0.05)")
-    tp.add_argument("--spread-cost", type=float, default=0.1,
-                    help="boxes: cost of the boxes' spread over configurations (squared distance to their mean): "
-                         "the box moves with the configuration only where the data pay for it (default 0.1)")
-    tp.add_argument("--q", type=float, default=0.15, help="quantiles: quantile of the box edges (default 0.15)")
-    tp.add_argument("--no-ndvn-rule", action="store_true",
-                    help="boxes and quantiles: no visible/NIR rule (NDVN >= d1, d1 just below the training skin's "
-                         "NDVN): the thesis's two indices alone")
+    tp.add_argument("--method", choices=registry.methods(), default=registry.methods()[0],
+                    help="; ".join(registry.method_help(c) for c in registry.kinds().values()))
+    for cls in registry.kinds().values():  # each kind's own options (refused with another kind's --method)
+        for o in registry.options(cls):
+            _add_kind_option(tp, o)
     tp.add_argument("--steps", type=int, default=1500, help="optimisation steps (default 1500)")
     tp.add_argument("--hidden", type=int, default=32, help="MLP width (0: one constant box; default 32)")
     add_seed(tp, "the initial weights and batches")

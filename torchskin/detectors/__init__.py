@@ -14,7 +14,8 @@ Modules, lowest first (each imports only those above it):
 - ``registry``: kind name -> model class; ``load`` / ``save`` / ``train`` / ``kind_of``. ``torchskin.evaluation``,
   ``torchskin.export``, the model cards and the command line dispatch through it.
 
-A new kind is one module (a class that satisfies ``DetectorModel``) plus one call, ``registry.register(MyKind)``.
+A new kind is one module (a class that satisfies ``DetectorModel``) plus one call, ``registry.register(MyKind)``;
+its ``options`` (``protocol.KindOption``) become ``torchskin train`` flags.
 
 This package's ``__init__`` imports nothing: ``import torchskin.detectors.features`` loads no learner. Submodules
 load on first use (``torchskin.detectors.registry``).

@@ -61,7 +61,7 @@ from .features import (
     tuning_configs,
 )
 from .graphs import add_metadata, torch_graph
-from .protocol import write_checkpoint
+from .protocol import KindOption, write_checkpoint
 
 if TYPE_CHECKING:
     import onnx
@@ -102,6 +102,28 @@ class BoxModel(nn.Module):
     #: the band centres (nm) its training and evaluation data must hold (``registry.required_bands``): the four
     #: index bands, whose columns (``BAND_COLUMNS``) it reads
     required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
+    #: its training options, each a ``torchskin train`` flag (``protocol.KindOption``; ``train_on_dataset``)
+    options: ClassVar[tuple[KindOption, ...]] = (
+        KindOption("margin", 0.03, "boxes: distance (index units) kept from every earthlib train spectrum "
+                                   "(default 0.03)"),
+        KindOption("width_cost", 0.05, "boxes: cost per unit of box width, keeps the box tight (default 0.05)"),
+        KindOption("spread_cost", 0.1, "boxes: cost of the boxes' spread over configurations (squared distance to "
+                                       "their mean): the box moves with the configuration only where the data pay "
+                                       "for it (default 0.1)"),
+        KindOption("q", 0.15, "quantiles: quantile of the box edges (default 0.15)"),
+        KindOption("ndvn_rule", True, "boxes and quantiles: no visible/NIR rule (NDVN >= d1, d1 just below the "
+                                      "training skin's NDVN): the thesis's two indices alone", bool, "--no-ndvn-rule"))
+    #: its methods in ``torchskin train --method``'s help
+    method_help: ClassVar[str] = ("boxes: most sunlit skin per configuration with the earthlib train spectra kept a "
+                                  "margin outside (default); quantiles: conditional quantiles of NDGRI and NDSI "
+                                  "(pinball loss)")
+    #: its detector graph runs on the onboard box head (``onboard.detector_head``), and meets the onboard budget
+    #: (five edge forms, ~4 ms per 1024² frame on 2 cores: ``evaluation.select_detector`` may ship it)
+    onboard_head: ClassVar[str] = "boxes"
+    onboard_selectable: ClassVar[bool] = True
+    #: the model card's words for its ``detector.onnx`` score
+    card_score: ClassVar[str] = ("box models: the smallest margin to a box edge in index units times the band-pair "
+                                 "sum (g + r or n + s)")
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
@@ -830,12 +852,13 @@ def train_on_dataset(req: TrainRequest) -> tuple[BoxModel, dict, str]:
     scene = load_scene_rows(req.data, frames=req.frames) if req.use_scene else None
     opts: dict[str, Any] = {"hidden": req.hidden, "steps": req.steps, "seed": req.seed}
     domain = domain_from_manifest(req.data)
+    own = {o.name: req.options.get(o.name, o.default) for o in BoxModel.options}
     if req.method == "quantiles":
-        opts["q"] = req.q
+        opts["q"] = own["q"]
     else:
-        opts.update(margin=req.margin, width_cost=req.width_cost, spread_cost=req.spread_cost)
+        opts.update(margin=own["margin"], width_cost=own["width_cost"], spread_cost=own["spread_cost"])
     model, info = learn(X, Y, req.method, req.pfa_budget, domain=domain,
-                        ndvn_quantile=NDVN_QUANTILE if req.ndvn_rule else None, scene=scene,
+                        ndvn_quantile=NDVN_QUANTILE if own["ndvn_rule"] else None, scene=scene,
                         scene_budget=req.scene_budget, **opts)
     info["options"].pop("domain", None)
     info["light_classes"] = ["sunlit"] if req.sunlit_only else ["sunlit", "shadow"]

@@ -84,6 +84,16 @@ class SkinClassifier(nn.Module):
     #: the band centres (nm) its training and evaluation data must hold (``registry.required_bands``): the four
     #: index bands, whose columns (``BAND_COLUMNS``) it reads
     required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
+    #: its method in ``torchskin train --method``'s help (its options are the command's common ones: --hidden,
+    #: --steps, --seed)
+    method_help: ClassVar[str] = ("classifier: a configuration-conditioned MLP on scale-invariant band ratios "
+                                  "(torchskin.detectors.classifier), thresholded at the false-alarm budget")
+    #: the onboard runtime runs its graph as it is (``onboard.detector_head``); its per-pixel MLP (3 -> 32 -> 32 ->
+    #: 1) takes ~170 ms per 1024² frame, 40x the box graph: evaluated and reported, not shipped as detector.onnx
+    onboard_head: ClassVar[str] = "generic"
+    onboard_selectable: ClassVar[bool] = False
+    #: the model card's words for its ``detector.onnx`` score
+    card_score: ClassVar[str] = "the classifier: its logit minus the calibrated threshold"
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor

@@ -14,6 +14,18 @@ A kind is a class (usually an ``nn.Module``) with:
 - ``checkpoint(meta)`` and ``from_checkpoint(ck)``: its torch checkpoint dict (without ``kind``: the registry adds
   it) and back.
 
+What a kind contributes to the command line and the exports, class attributes with defaults (``registry``):
+
+- ``options``: its own training options (``KindOption``), each a ``torchskin train`` flag, refused with another
+  kind's ``--method``; ``registry.train`` hands them, defaults filled in, to ``from_training`` as
+  ``TrainRequest.options`` (default: none);
+- ``method_help``: the words of its methods in ``torchskin train --method``'s help (default: the method names);
+- ``onboard_head``: the onboard runtime head its ``detector.onnx`` runs on (``onboard.detector_head``): "boxes"
+  (box edge forms) or "generic" (default: any graph, per tile);
+- ``onboard_selectable``: whether its detector graph meets the onboard budget, so that
+  ``evaluation.select_detector`` may ship it as ``detector.onnx`` (default False);
+- ``card_score``: the model card's words for its ``detector.onnx`` score (default: none).
+
 Everything else is optional, and found on the class when it is there:
 
 - ``required_bands``: the band centres (nm) a dataset must hold for it (``registry.required_bands``; default the
@@ -29,8 +41,9 @@ Everything else is optional, and found on the class when it is there:
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Protocol, runtime_checkable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import torch
 
@@ -86,6 +99,35 @@ class BoxDetectorModel(DetectorModel, Protocol):
 
 
 @dataclass(frozen=True)
+class KindOption:
+    """One training option of a detector kind (its ``options``): the ``torchskin train`` flag ``flag`` (default
+    ``--`` + ``name`` with dashes), read by the kind as ``TrainRequest.options[name]``. ``value_type`` is the
+    flag's value type (``float``, the default, ``int``, ``str``); ``bool`` makes a switch without a value, which
+    sets ``not default`` (a default-True option is a ``--no-...`` flag).
+
+    Attributes:
+        name: the option's key in ``TrainRequest.options`` (and the parsed namespace's attribute).
+        default: its value when the flag is not given.
+        help: the flag's help text.
+        flag: the command-line flag (default ``"--" + name.replace("_", "-")``).
+
+    >>> KindOption("width_cost", 0.05, "cost per unit of box width").cli_flag
+    '--width-cost'
+    """
+
+    name: str
+    default: Any
+    help: str
+    value_type: Callable[[str], Any] = float
+    flag: str = ""
+
+    @property
+    def cli_flag(self) -> str:
+        """The ``torchskin train`` flag of the option."""
+        return self.flag or "--" + self.name.replace("_", "-")
+
+
+@dataclass(frozen=True)
 class TrainRequest:
     """What ``torchskin train`` asks of a kind (``registry.train``): the dataset, the method and the options of the
     command line (each kind reads those it has; defaults are the command's).
@@ -101,9 +143,8 @@ class TrainRequest:
             frame whose panels are sunlit and whose empirical line is a line, also where the panels receive less
             light than sun-facing surfaces; "physical", only the frames evaluation uses (``elm_valid``).
         hidden, steps, seed: network width, optimisation steps, seed.
-        ndvn_rule: boxes and quantiles: the visible/NIR rule (NDVN >= d1).
-        q: quantiles: the quantile of the box edges.
-        margin, width_cost, spread_cost: boxes: ``BoxTraining``'s fields of those names.
+        options: the kind's own options (its ``options``, ``KindOption.name`` -> value); ``registry.train`` fills
+            in the defaults of those not given and refuses names the kind does not have.
     """
 
     data: str | os.PathLike
@@ -116,11 +157,7 @@ class TrainRequest:
     hidden: int = 32
     steps: int = 1500
     seed: int = 0
-    ndvn_rule: bool = True
-    q: float = 0.15
-    margin: float = 0.03
-    width_cost: float = 0.05
-    spread_cost: float = 0.1
+    options: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -157,4 +194,4 @@ def write_checkpoint(model: DetectorModel, path: str | os.PathLike, meta: dict |
     save_torch(path, {"kind": model.kind, **model.checkpoint(meta or {})})
 
 
-__all__ = ["BoxDetectorModel", "CalibrationData", "DetectorModel", "TrainRequest", "write_checkpoint"]
+__all__ = ["BoxDetectorModel", "CalibrationData", "DetectorModel", "KindOption", "TrainRequest", "write_checkpoint"]

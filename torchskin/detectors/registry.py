@@ -4,19 +4,37 @@ every checkpoint names its kind; box checkpoints written before they did are ``b
 (``train``), tell a model's kind (``kind_of``) and its boxes (``boxes_of``), and find the kind a training summary
 describes (``kind_for_method``: the model cards).
 
+What a kind contributes beyond its model (``protocol``'s module docstring): its training options
+(``options``: ``torchskin train`` builds a flag of each), its ``--method`` help, its onboard head, whether
+``evaluation.select_detector`` may ship it, its model-card words; read here with their defaults (``options``,
+``method_help``, ``onboard_head``, ``onboard_kinds``, ``card_scores``). The command line, ``torchskin.evaluation``,
+``torchskin.export`` and the model cards name no kind.
+
 The built-in kinds, ``boxes`` (``boxes.BoxModel``) and ``classifier`` (``classifier.SkinClassifier``), are
-registered when this module loads. A new kind is one module plus one call:
+registered when this module loads. A new kind is one module plus one call (``unregister`` removes it):
 
 >>> from torchskin.detectors import registry
 >>> sorted(registry.kinds())
 ['boxes', 'classifier']
 >>> registry.kind_for_method("quantiles").kind
 'boxes'
+>>> [o.cli_flag for o in registry.options(registry.get("boxes"))][-1], registry.onboard_kinds()
+('--no-ndvn-rule', ('boxes',))
+>>> class Tiny(registry.get("classifier")):
+...     kind, methods = "tiny", ("tiny",)
+...     options = (registry.KindOption("level", 0.5, "tiny: the level"),)
+>>> _ = registry.register(Tiny)
+>>> registry.methods()[-1], registry.option_kinds()["--level"]
+('tiny', 'tiny')
+>>> registry.unregister("tiny")
+>>> "tiny" in registry.kinds()
+False
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from typing import Any, cast
 
 import torch
@@ -25,7 +43,7 @@ from ..bands import INDEX_BANDS_NM
 from ..dataset.files import require_bands
 from .boxes import BoxModel
 from .classifier import SkinClassifier
-from .protocol import BoxDetectorModel, DetectorModel, TrainRequest, write_checkpoint
+from .protocol import BoxDetectorModel, DetectorModel, KindOption, TrainRequest, write_checkpoint
 
 #: the kind of a checkpoint without a ``kind`` key: box checkpoints were written without one
 LEGACY_KIND = "boxes"
@@ -35,14 +53,33 @@ _KINDS: dict[str, type[DetectorModel]] = {}
 
 def register(cls: type[DetectorModel], replace: bool = False) -> type[DetectorModel]:
     """Register a detector kind under ``cls.kind`` (usable as a class decorator); its ``methods`` become training
-    methods of ``train`` and ``kind_for_method``. ``ValueError`` when the name or a method is taken (unless
-    ``replace``) or when the class lacks a part of ``DetectorModel``."""
+    methods of ``train`` and ``kind_for_method``, its ``options`` flags of ``torchskin train``. ``ValueError`` when
+    the name or a method is taken (unless ``replace``), when an option's flag or name is another kind's or the
+    command's own, when ``onboard_head`` is not one of ``ONBOARD_HEADS``, or when the class lacks a part of
+    ``DetectorModel``."""
     kind = getattr(cls, "kind", None)
     if not isinstance(kind, str) or not kind:
         raise ValueError(f"{cls.__name__} needs a class attribute kind (a non-empty string)")
     missing = [a for a in ("decide", "detector_graph", "checkpoint", "from_checkpoint", "methods") if not hasattr(cls, a)]
     if missing:
         raise ValueError(f"detector kind {kind!r} ({cls.__name__}) lacks {', '.join(missing)} (protocol.DetectorModel)")
+    opts = options(cls)
+    if not all(isinstance(o, KindOption) for o in opts):
+        raise ValueError(f"detector kind {kind!r}: options must be protocol.KindOption")
+    if getattr(cls, "onboard_head", "generic") not in ONBOARD_HEADS:
+        raise ValueError(f"detector kind {kind!r}: onboard_head must be one of {', '.join(ONBOARD_HEADS)}")
+    mine = [o.cli_flag for o in opts]
+    common = {*COMMON_FLAGS, *(f"--{n}" for n in ("func", "command", "debug"))}
+    if (len(set(mine)) != len(mine) or len({o.name for o in opts}) != len(opts)
+            or {*mine, *(f"--{o.name.replace('_', '-')}" for o in opts)} & common):
+        raise ValueError(f"detector kind {kind!r}: its option flags must be distinct and not torchskin train's own")
+    owners = {f: k for f, k in option_kinds().items() if k != kind}  # another kind's flag or option name
+    names = {o.name: k for k, c in _KINDS.items() if k != kind for o in options(c)}
+    taken = {o.cli_flag: owners.get(o.cli_flag) or names[o.name] for o in opts
+             if o.cli_flag in owners or o.name in names}
+    if taken:
+        raise ValueError(f"option(s) {', '.join(taken)} of kind {kind!r} already belong to "
+                         f"{', '.join(sorted(set(taken.values())))}")
     if not replace:
         if kind in _KINDS and _KINDS[kind] is not cls:
             raise ValueError(f"detector kind {kind!r} is already registered ({_KINDS[kind].__name__})")
@@ -53,6 +90,50 @@ def register(cls: type[DetectorModel], replace: bool = False) -> type[DetectorMo
                              f"{', '.join(sorted({taken[m] for m in clash}))}")
     _KINDS[kind] = cls
     return cls
+
+
+#: the onboard runtime's heads (``onboard.detector_head``): a kind's ``onboard_head`` is one of them
+ONBOARD_HEADS = ("boxes", "generic")
+#: the flags ``torchskin train`` has for every kind (a kind's options may not take them)
+COMMON_FLAGS = ("--data", "--out", "--method", "--steps", "--hidden", "--seed", "--pfa-budget", "--scene-budget",
+                "--no-scene", "--sunlit-only", "--frames", "--json", "--help", "-h")
+
+
+def options(cls: type[DetectorModel]) -> tuple[KindOption, ...]:
+    """A kind's own training options (``protocol.KindOption``; none by default)."""
+    return tuple(getattr(cls, "options", ()))
+
+
+def option_kinds() -> dict[str, str]:
+    """Every registered kind's option flags, flag -> kind name, in registration order."""
+    return {o.cli_flag: k for k, c in _KINDS.items() for o in options(c)}
+
+
+def method_help(cls: type[DetectorModel]) -> str:
+    """The words of a kind's methods in ``torchskin train --method``'s help (default: the method names)."""
+    return str(getattr(cls, "method_help", "; ".join(f"{m}: a {cls.kind} model" for m in cls.methods)))
+
+
+def onboard_head(kind: str) -> str:
+    """The onboard head a kind's ``detector.onnx`` runs on (its ``onboard_head``, default "generic")."""
+    return str(getattr(get(kind), "onboard_head", "generic"))
+
+
+def onboard_kinds() -> tuple[str, ...]:
+    """The kinds whose detector graph meets the onboard budget (``onboard_selectable``), in registration order."""
+    return tuple(k for k, c in _KINDS.items() if getattr(c, "onboard_selectable", False))
+
+
+def box_kinds() -> tuple[str, ...]:
+    """The kinds that decide by a box per configuration (``protocol.BoxDetectorModel``), in registration order."""
+    return tuple(k for k, c in _KINDS.items() if hasattr(c, "boxes") and hasattr(c, "boundaries_graph"))
+
+
+def card_scores() -> tuple[str, ...]:
+    """The registered kinds' model-card words for a ``detector.onnx`` score (``card_score``), in registration
+    order."""
+    words = (getattr(c, "card_score", None) for c in _KINDS.values())
+    return tuple(str(w) for w in words if w)
 
 
 def unregister(kind: str) -> None:
@@ -156,12 +237,18 @@ def train(req: TrainRequest) -> tuple[DetectorModel, dict, str]:
     fn = getattr(cls, "from_training", None)
     if fn is None:
         raise ValueError(f"detector kind {cls.kind!r} does not train from datasets")
+    known = {o.name: o.default for o in options(cls)}
+    other = [n for n in req.options if n not in known]
+    if other:
+        raise ValueError(f"--method {req.method} (kind {cls.kind!r}) has no option(s) {', '.join(other)}; its "
+                         f"options: {', '.join(known) or 'none'}")
     require_bands(req.data, required_bands(cls), f"--method {req.method}")  # before anything is read or written
-    return cast(tuple[DetectorModel, dict, str], fn(req))
+    return cast(tuple[DetectorModel, dict, str], fn(replace(req, options={**known, **req.options})))
 
 
 register(cast(type[DetectorModel], BoxModel))
 register(cast(type[DetectorModel], SkinClassifier))
 
-__all__ = ["LEGACY_KIND", "boxes_of", "get", "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint",
-           "methods", "register", "required_bands", "save", "train", "unregister"]
+__all__ = ["COMMON_FLAGS", "LEGACY_KIND", "ONBOARD_HEADS", "box_kinds", "boxes_of", "card_scores", "get",
+           "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint", "method_help", "methods", "onboard_head",
+           "onboard_kinds", "option_kinds", "options", "register", "required_bands", "save", "train", "unregister"]

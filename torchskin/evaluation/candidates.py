@@ -28,7 +28,7 @@ class Candidate:
     1080, 1580 nm and configuration features; ``boxes(X) -> (n, 4)`` for box models (None otherwise)."""
 
     name: str
-    kind: str  # "static", "detector" (a detector.onnx), "boxes" (also boundaries.onnx) or a checkpoint's kind
+    kind: str  # "static", "detector" (a detector.onnx), or the kind of a checkpoint or of a boundaries.onnx
     features: list[str]
     decide: Callable
     boxes: Callable | None = None
@@ -51,7 +51,7 @@ def static_candidate() -> Candidate:
 
 
 def load_candidate(spec: str | os.PathLike) -> Candidate:
-    """A candidate from a path: a torch checkpoint (.pt: boundary boxes or a classifier), an exported
+    """A candidate from a path: a torch checkpoint (.pt, any registered kind), an exported
     ``boundaries.onnx`` / ``baseline_box.onnx`` (configuration -> boxes) or a ``detector.onnx`` (cube +
     configuration -> mask), or the word "static"."""
     from pathlib import Path
@@ -74,7 +74,8 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
             return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta))
         b = OnboardBoxes(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
-        return Candidate(name, "boxes", list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
+        kind = b.meta.get("kind", registry.LEGACY_KIND)  # exports before graphs recorded their kind: boxes
+        return Candidate(name, kind, list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
     model, ck = registry.load(p)
     return model_candidate(model, name, p, ck.get("meta", {}))
 
