@@ -543,7 +543,7 @@ def test_a_detector_reused_across_calls_gives_a_fresh_ones_bits(trained, tmp_pat
 
 
 def test_tile_head_takes_every_path_with_the_whole_graphs_bits(trained, tmp_path):
-    """The rebuilt per-tile head (``onboard._EdgeHead``: two-band MatMuls for L1-L4, the minimum in numpy, the
+    """The rebuilt per-tile head (``onboard.heads._EdgeHead``: two-band MatMuls for L1-L4, the minimum in numpy, the
     floor skipped, gathered or summed by tile) gives the bits of the whole graph run per tile, on tiles with no
     skin, a few skin pixels and many, and tiles that fail the one-pass range check (a glint above
     REFLECTANCE_MAX, -0.0)."""

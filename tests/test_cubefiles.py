@@ -16,6 +16,7 @@ spectral = pytest.importorskip("spectral")
 tifffile = pytest.importorskip("tifffile")
 
 from torchskin import cubefiles  # noqa: E402
+from torchskin.cubefiles.tiff import _gdal_items  # noqa: E402
 from torchskin.onboard import OnboardDetector, apply_plan, band_plan, calibrate_file, detect_file  # noqa: E402
 
 DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
@@ -120,7 +121,7 @@ def test_written_geotiff_carries_band_wavelengths_read_by_tifffile(tmp_path):
     with tifffile.TiffFile(str(p)) as tif:
         np.testing.assert_array_equal(tif.asarray(), cube)
         xml = tif.pages[0].tags[cubefiles.GDAL_METADATA_TAG].value
-    top, per = cubefiles._gdal_items(xml)
+    top, per = _gdal_items(xml)
     assert [float(per[i]["wavelength"]) for i in range(4)] == MODEL_BANDS
     assert {per[i]["wavelength_units"] for i in range(4)} == {"Nanometers"}
     assert [float(per[i]["fwhm"]) for i in range(4)] == [5.0] * 4 and per[0]["unittype"] == "DN"

@@ -223,9 +223,9 @@ def test_a_ray_address_where_no_cluster_answers_fails_in_bounded_time(monkeypatc
 
     pytest.importorskip("ray")
     from torchskin.cli import main
-    from torchskin.dataset import generate as G
+    from torchskin.dataset import ray_backend
 
-    monkeypatch.setattr(G, "RAY_CONNECT_TIMEOUT_S", 2.0)
+    monkeypatch.setattr(ray_backend, "RAY_CONNECT_TIMEOUT_S", 2.0)
     out = tmp_path / "d"
     t0 = time.monotonic()
     rc = main(["generate", "--configs", "48", "--out", str(out), "--quiet", "--backend", "ray",

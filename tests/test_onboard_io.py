@@ -1,6 +1,6 @@
 """Reading cubes and writing masks live in one place: ``cubefiles.open_npy`` reads every ``.npy`` cube (one frame
 for ``open_cube``, frames for ``onboard.load_cube``) with the union of their checks, and ``onboard.write_mask``
-writes a whole mask through the row writers a streamed frame's mask goes through (``onboard._mask_writer``)."""
+writes a whole mask through the row writers a streamed frame's mask goes through (``onboard.stream._mask_writer``)."""
 
 import json
 

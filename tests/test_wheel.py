@@ -63,7 +63,8 @@ def test_the_wheel_holds_the_package_the_shipped_detector_and_the_licence(wheel)
     assert "torchskin/data/detector.onnx" in names
     assert zipfile.ZipFile(wheel).read("torchskin/data/detector.onnx") == (ROOT / "exports" / "detector.onnx").read_bytes()
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names), "no LICENSE in the wheel"
-    assert {"torchskin/cli/__init__.py", "torchskin/onboard.py", "torchskin/py.typed"} <= set(names)
+    assert {"torchskin/cli/__init__.py", "torchskin/onboard/__init__.py", "torchskin/onboard/runtime.py",
+            "torchskin/py.typed"} <= set(names)
     meta = next(zipfile.ZipFile(wheel).read(n).decode() for n in names if n.endswith(".dist-info/METADATA"))
     assert "Requires-Dist: onnxruntime" in meta and "License-Expression: Apache-2.0" in meta
     assert "Project-URL: Source," in meta

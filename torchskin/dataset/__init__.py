@@ -1,6 +1,7 @@
 """Randomized datasets, lowest module first: ``schema`` (the columns, their version and ``Rows``), ``files`` (the
 folder's files, the manifest's checks, ``read_valid`` / ``read_rows``), ``verify`` (``torchskin dataset verify``),
-``config`` (configuration sampling) and ``generate`` (the renderer's rows, shards and backends).
+``config`` (configuration sampling), ``rows`` (a pose group's rows), ``images`` (its full reflectance cubes),
+``ray_backend`` (the Ray backend) and ``generate`` (the renderer's groups, shards, manifest and the local backend).
 
 This ``__init__`` imports nothing: ``import torchskin.dataset.files`` (every reader) or ``.verify`` loads neither
 torch nor the renderer. The configuration names below load ``config`` on first use.
@@ -11,7 +12,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-_SUBMODULES = ("config", "files", "generate", "schema", "verify")
+_SUBMODULES = ("config", "files", "generate", "images", "ray_backend", "rows", "schema", "verify")
 _CONFIG_NAMES = ("PoseGroup", "default_config", "load_config", "resolve_config", "sample_group")
 
 

@@ -20,44 +20,51 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 import torch
 
-from .. import __version__, tissue
-from ..angles import BACKLIT_MIN_DEG, relative_azimuth_deg
-from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths, per_band
-from ..detect import DEFAULT_BOX, normalized_difference
+from .. import __version__
+from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths
 from ..errors import check_folder_empty
-from ..io import atomic_path, save_npy, write_text
-from ..optics import local_angles
+from ..io import atomic_path, write_text
 from ..render.elm import (
     ELM_MAX_IRRADIANCE_RATIO,
     ELM_MIN_SUNLIT,
-    elm_line_valid,
     panel_irradiance_ratio,
-    panel_median_noise_dn,
     panel_normals,
     panel_pixels,
     panel_subset,
 )
 from ..render.kernels import cos_to
-from ..render.light import LightTables, path_terms, uses_atmosphere
+from ..render.light import LightTables, path_terms
 from ..render.meshes import anny_batch
-from ..render.pipeline import PIXEL_MULTIPLE, RenderResult, calibrate_detect, render, render_pixels, scene_light
+from ..render.pipeline import render, render_pixels, scene_light
 from ..render.raycast import GBuffer, Raycaster
 from ..render.rtlsr import RHO_MAX
 from ..render.scene import Atmosphere, Camera, Material, MeshSpec, Scene, Sun, panel_materials, reference_panels
-from ..render.sensor import Sensor, sensor_signal
+from ..render.sensor import Sensor
 from .config import LIGHT_ATMOSPHERE, PoseGroup, config_bands, default_config, sample_group
 from .files import IMAGES_DIR, MANIFEST, RENDER_REVISION, dataset_files, intact, sha256_file, shard_name
-from .schema import INDICES, SCHEMA_VERSION, SINGLE_BAND_COLUMNS, STORED_INDICES, columns_for, has_band
+from .images import frame_cubes, write_images
+from .ray_backend import _run_ray, wait_for_cluster
+from .ray_backend import ray_endpoint as ray_endpoint
+from .rows import NO_DAY_OF_YEAR as NO_DAY_OF_YEAR
+from .rows import PHENOTYPES as PHENOTYPES
+from .rows import SHARE_BANDS as SHARE_BANDS
+from .rows import PixelLabels as PixelLabels
+from .rows import atmosphere_columns as atmosphere_columns
+from .rows import band_position as band_position
+from .rows import configuration_rows, line_valid, pixel_labels, share_bands
+from .rows import pixel_angles_deg as pixel_angles_deg
+from .rows import sky_fraction as sky_fraction
+from .rows import stored_indices as stored_indices
+from .rows import strings as strings
+from .schema import SCHEMA_VERSION, columns_for
 
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
-PHENOTYPES = ("gender", "age", "muscle", "weight", "height", "proportions")
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
 GROUND_REFLECTANCE = [0.12, 0.16, 0.30, 0.28]
 #: the reference panels' interior pixels a group renders for its ELM medians (per panel, a regular sample:
@@ -66,15 +73,8 @@ PANEL_SAMPLE = 256
 #: a shard's anny bodies are built this many at a time in one batched anny call (``meshes.anny_batch``): ~4 ms a
 #: body instead of ~20 ms one by one, and memory bounded whatever ``sampling.groups_per_shard`` says
 BODY_BATCH = 16
-#: the bands whose direct share each row records (544 and 1580 nm: direct_share_544, direct_share_1580): their
-#: positions in the index bands; ``share_bands`` finds them in any band set
-SHARE_BANDS = (0, 3)
 #: the clothing reflectance at 544, 633, 1080, 1580 nm when the config's clothing partition is "fixed"
 FIXED_CLOTHING = [0.12, 0.10, 0.35, 0.30]
-
-#: ``day_of_year`` of the rows of a light model without an atmosphere ("thesis"; the float atmosphere columns are
-#: NaN there): no day of year is 0
-NO_DAY_OF_YEAR = 0
 
 
 def _arrow_schema(columns: dict[str, tuple[str, str, str]]):
@@ -82,21 +82,6 @@ def _arrow_schema(columns: dict[str, tuple[str, str, str]]):
 
     types = {"bool": pa.bool_(), "string": pa.string()}
     return pa.schema([(k, types.get(v[0]) or getattr(pa, v[0])()) for k, v in columns.items()])
-
-
-def band_position(bands: BandSet, nm: float) -> int | None:
-    """The position of ``bands``' band at ``nm`` (within ``bands.BAND_MATCH_NM``), None without one."""
-    return bands.index(nm) if has_band(bands, nm) else None
-
-
-def share_bands(bands: BandSet) -> dict[str, int]:
-    """The direct-share columns the band set defines -> the position of their band (``SINGLE_BAND_COLUMNS``).
-
-    >>> share_bands(BandSet.of(INDEX_BANDS_NM)), share_bands(BandSet.of([450.0, 1580.0]))
-    ({'direct_share_544': 0, 'direct_share_1580': 3}, {'direct_share_1580': 1})
-    """
-    out = {k: band_position(bands, SINGLE_BAND_COLUMNS[k]) for k in ("direct_share_544", "direct_share_1580")}
-    return {k: v for k, v in out.items() if v is not None}
 
 
 #: the steepest view onto a reference panel, degrees from its normal (level panels up to this camera zenith)
@@ -181,13 +166,6 @@ def group_sensor(group: PoseGroup, light: LightTables | None = None) -> Sensor:
                   atmosphere_transmittance=tau, path_radiance=path)
 
 
-def pixel_angles_deg(gb: GBuffer, idx: torch.Tensor, sun_dir: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Local (θi, θr, Δφ) in degrees of the flat pixels ``idx`` of camera 0 (``optics.local_angles``, float64)."""
-    normal = gb.normal.reshape(-1, 3)[idx].double()
-    view = -gb.rays.reshape(-1, 6)[idx][:, 3:].double()
-    return tuple(a * (180.0 / math.pi) for a in local_angles(normal, sun_dir.double(), view))
-
-
 def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
                   min_fraction: float = ELM_MIN_SUNLIT, pixels: list[list[torch.Tensor]] | None = None) -> torch.Tensor:
     """Per sun (S,): whether every reference panel has at least ``min_fraction`` of its interior pixels
@@ -202,35 +180,6 @@ def panels_sunlit(gb: GBuffer, panel_names: list[str], sun_dirs: torch.Tensor,
         lit = (cos_to(normal[ix], sun_dirs.to(normal.dtype)) > 0) & ~shadow[:, ix]  # (S, K)
         ok &= lit.float().mean(1) >= min_fraction
     return ok
-
-
-@dataclass
-class PixelLabels:
-    """What each pixel of camera 0 of a group's G-buffer shows (flat H*W arrays)."""
-
-    skin: np.ndarray  # flat indices of skin pixels
-    other: np.ndarray  # flat indices of the other hit pixels (not skin, not a reference panel)
-    mesh: np.ndarray  # (H*W,) mesh id of each pixel (-1: no hit)
-    material: np.ndarray  # (H*W,) material id of each pixel (-1: no hit)
-    confuser_names: np.ndarray  # by mesh id + 1: the earthlib confuser name ("" for none)
-    material_labels: np.ndarray  # by material id + 1: skin, clothing, ground, confuser, white/dark ("" for no hit)
-
-
-def pixel_labels(group: PoseGroup, scene: Scene, gb: GBuffer) -> PixelLabels:
-    """The skin and candidate non-skin pixels of a group's frame, and each pixel's confuser and material."""
-    conf_names = np.full(len(gb.mesh_names) + 1, "", dtype=object)  # indexed by mesh id + 1 (-1: no hit)
-    for k, c in enumerate(group.confusers):
-        conf_names[gb.mesh_names.index(f"confuser{k}") + 1] = c["name"]
-    mat_labels = np.array(["", *("confuser" if n.startswith("confuser") else n for n in gb.material_names)],
-                          dtype=object)  # indexed by material id + 1
-    is_panel = torch.zeros_like(gb.hit[0].reshape(-1))
-    for k in [gb.mesh_names.index(p) for p in scene.panels]:
-        is_panel |= gb.mesh[0].reshape(-1) == k
-    hit = gb.hit[0].reshape(-1)
-    skin_px = hit & (gb.material[0].reshape(-1) == gb.material_names.index("skin"))
-    other_px = hit & ~is_panel & ~skin_px
-    return PixelLabels(skin_px.nonzero().flatten().numpy(), other_px.nonzero().flatten().numpy(),
-                       gb.mesh[0].reshape(-1).numpy(), gb.material[0].reshape(-1).numpy(), conf_names, mat_labels)
 
 
 def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | str = "cpu",
@@ -287,190 +236,7 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     return {k: [v] for k, v in rows.items()}
 
 
-def frame_cubes(scene: Scene, gb: GBuffer, rc: Raycaster, sensor: Sensor, skins: tissue.SkinParams,
-                pix: list[list[torch.Tensor]], picks: np.ndarray, res: RenderResult, device: torch.device | str = "cpu",
-                compile: bool = False) -> np.ndarray:
-    """The full reflectance frames of a group's configurations, (skins·suns, bands, H, W) float16, made with the
-    draw of its rows (``res``: ``render_pixels`` of the flat pixels ``picks`` and the panels' sample ``pix``): the
-    same automatic exposure (the brightest of those pixels, per configuration and band), the same sensor noise at
-    those pixels (fresh draws from the same stream elsewhere) and the same empirical line (``res``'s panel
-    medians). So a row is its cube's pixel: its reflectance columns are the cube's value there (float16-rounded),
-    and the rows are the bytes they are without ``--images``. The frames' radiance is ``render``'s (a pixel's
-    shading and sky view do not depend on which other pixels are rendered)."""
-    full = render(scene, device=device, sensor=None, gbuffer=gb, raycaster=rc, skins=skins, panel_pixels=pix,
-                  compile=compile)
-    rad = full.radiance  # (S·K, 1, H, W, B)
-    n_cfg, n_bands = rad.shape[0], rad.shape[-1]
-    flat = rad.view(n_cfg, 1, -1, n_bands)
-    # the pixels render_pixels rendered, in its order (before its padding to PIXEL_MULTIPLE: copies of the first)
-    drawn = torch.cat([torch.from_numpy(picks).long(), *[per_cam[0].cpu().long() for per_cam in pix]]).to(rad.device)
-    reference = flat.index_select(2, drawn).amax(2)  # render_pixels' exposure: its brightest pixel, (S·K, 1, B)
-    noise = None
-    if sensor.noise:  # render_pixels' draws (render_gbuffer: a generator seeded with the sensor's seed), then more
-        gen = torch.Generator(device=rad.device)
-        gen.manual_seed(int(sensor.seed))
-        rendered = len(drawn) + (-len(drawn) % PIXEL_MULTIPLE)
-        rows_z = torch.randn((n_cfg, 1, 1, rendered, n_bands), generator=gen, dtype=rad.dtype, device=rad.device)
-        noise = torch.randn(rad.shape, generator=gen, dtype=rad.dtype, device=rad.device)
-        noise.view(n_cfg, 1, -1, n_bands)[:, :, drawn] = rows_z[:, :, 0, :len(drawn)]
-    signal = sensor_signal(rad, sensor, scene.band_list, scene.cameras[0].focal, reference=reference,
-                           compile=compile, noise=noise)
-    panels = [[res.panels[p][k] for p in res.panels] for k in ("signal", "reference")]  # (P, S·K, C, B) each
-    pv, refs = (torch.tensor(x, dtype=signal.dtype, device=signal.device).permute(1, 2, 0, 3).contiguous()
-                for x in panels)
-    refl = calibrate_detect(signal, pv, refs, full.gbuffer.hit, scene.band_list, DEFAULT_BOX, compile)[0]
-    return refl[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
-
-
-def line_valid(res: RenderResult, sensor: Sensor) -> np.ndarray:
-    """Per configuration (the render's leading axis, (S·K,)), whether the empirical line through the reference
-    panels' medians is a line (``elm.elm_line_valid``): the panels separated by ``ELM_MIN_SEPARATION_SIGMA``
-    σ of the medians' noise in every band (``elm.panel_median_noise_dn``, from the sensor's shot, read and ADC
-    noise and each panel's sample size) and a finite positive gain."""
-    names = list(res.panels)
-    pv = torch.tensor([res.panels[p]["signal"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
-    refs = torch.tensor([res.panels[p]["reference"] for p in names], dtype=torch.float64)[:, :, 0].transpose(0, 1)
-    n = torch.tensor([float(len(per_cam[0])) for per_cam in res.panel_pixels], dtype=torch.float64)[:, None]
-    dn_per_e = 2.0 ** int(sensor.adc_bits) / sensor.full_well_e
-    noise = panel_median_noise_dn(pv, n, sensor.read_noise_e, dn_per_e, sensor.quantize, sensor.noise)
-    return elm_line_valid(pv, refs, noise).numpy()
-
-
-def configuration_rows(group: PoseGroup, res: RenderResult, idx: np.ndarray, pos: np.ndarray, gb: GBuffer,
-                       sun_dirs: torch.Tensor, labels: PixelLabels, elm_valid: np.ndarray,
-                       light: LightTables, sensor: Sensor, irradiance_ratio: np.ndarray,
-                       elm_line_valid: np.ndarray) -> dict[str, np.ndarray]:
-    """The rows of every configuration (skin x sun, skin-major) of a group as one table: configuration c's 2m
-    rows (first half skin, second half other pixels) are the flat pixels ``idx[c·2m:(c+1)·2m]`` of camera 0,
-    found at ``pos`` (same slice) of the pixel render ``res``'s row c (rendered with ``irradiance``);
-    ``elm_valid`` (S·K,) per configuration; ``light``: the scene's light tables (S rows, float64); ``sensor``: the group's
-    (``group_sensor``); ``irradiance_ratio`` (S,): per sun, ``elm.panel_irradiance_ratio``; ``elm_line_valid``
-    (S·K,): ``elm_valid`` but for the irradiance-ratio bound."""
-    n_suns, n_skins = len(group.suns), len(group.skin_types)
-    n_cfg = n_suns * n_skins
-    per = len(idx) // n_cfg  # 2m
-    cfg = np.repeat(np.arange(n_cfg), per)
-    ki, si = cfg // n_suns, cfg % n_suns
-    skins = cast(tissue.SkinParams, group.skins)
-    bands = group.bands
-    k544 = band_position(bands, SINGLE_BAND_COLUMNS["atmosphere_transmittance"])
-    const = {"group": group.index, "camera_zenith_deg": group.camera["zenith_deg"],
-             "camera_azimuth_deg": group.camera["azimuth_deg"], "range_m": group.camera["range_m"],
-             "atmosphere_transmittance": math.nan if k544 is None else
-             per_band(sensor.atmosphere_transmittance, bands.bands, "transmittance")[k544],
-             "path_radiance_scale": group.atmosphere["path_radiance_scale"],
-             **atmosphere_columns(group.light),
-             "subject_yaw_deg": group.subject["yaw_deg"], "subject": group.subject.get("path", "anny"),
-             "head_yaw_deg": group.subject.get("head_yaw_deg", math.nan),
-             "head_pitch_deg": group.subject.get("head_pitch_deg", math.nan),
-             **{k: group.subject.get("phenotype", {}).get(k, math.nan) for k in PHENOTYPES},
-             "panels": group.panels, "surface": group.surface, "clothing": group.clothing}
-    n = len(idx)
-    rows: dict[str, Any] = {k: strings(np.zeros(n, np.int32), [v]) if isinstance(v, str) else np.full(n, v)
-                            for k, v in const.items()}
-
-    def per_sun(values: list) -> np.ndarray:
-        return np.array(values)[si]
-
-    rows.update({"sun": si, "skin": ki, "sun_zenith_deg": per_sun([s["zenith_deg"] for s in group.suns]),
-                 "sun_azimuth_deg": per_sun([s["azimuth_deg"] for s in group.suns]),
-                 "relative_azimuth_deg": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
-                                                  for s in group.suns]),
-                 "sky_fraction": (np.full(n_suns, np.nan, np.float32) if k544 is None else
-                                  sky_fraction(light, [s["zenith_deg"] for s in group.suns], k544))[si],
-                 "panel_irradiance_ratio": irradiance_ratio.astype(np.float32)[si],
-                 "backlit": per_sun([relative_azimuth_deg(s["azimuth_deg"], group.camera["azimuth_deg"])
-                                     >= BACKLIT_MIN_DEG for s in group.suns]),
-                 "skin_type": strings(ki, group.skin_types),
-                 **{k: np.array([float(x) for x in getattr(skins, k)])[ki]
-                    for k in ("melanosome", "blood", "oxygenation", "reticular_depth", "collagen", "subcutaneous_scale")}})
-    at = (torch.from_numpy(cfg), torch.from_numpy(pos))
-    refl = res.reflectance[:, 0, 0].cpu()[at].float()
-    ti, tr, dp = pixel_angles_deg(gb, torch.from_numpy(idx), sun_dirs[torch.from_numpy(si)])
-    rows.update({"confuser": strings(labels.mesh[idx] + 1, labels.confuser_names),
-                 "material": strings(labels.material[idx] + 1, labels.material_labels),
-                 "label": np.tile(np.repeat(np.array([True, False]), per // 2), n_cfg), "theta_i_deg": ti.numpy(),
-                 "theta_r_deg": tr.numpy(), "delta_phi_deg": dp.numpy(),
-                 "shadow": (~res.lit[:, 0, 0].cpu()[at]).numpy(),  # cast shadow or facing away from the sun
-                 "elm_valid": elm_valid[cfg],
-                 "elm_line_valid": elm_line_valid[cfg],
-                 **stored_indices(res, at, refl, bands)})
-    rows.update({name: refl[:, b].numpy() for b, name in enumerate(bands.columns)})
-    shadow = rows["shadow"]
-    rows["light"] = strings(shadow, ["sunlit", "shadow"])
-    sky = res.gbuffer.sky  # None where the light has no sky or ground light (no sky rays cast): NaN
-    rows["sky_view"] = np.full(n, np.nan, dtype=np.float32) if sky is None else \
-        sky.reshape(-1).cpu()[torch.from_numpy(pos)].float().numpy()
-    shares = share_bands(bands)  # the irradiance bands render_pixels was asked for, in this order
-    rows["direct_share_544"] = rows["direct_share_1580"] = np.full(n, np.nan, dtype=np.float32)
-    if shares:
-        direct, diffuse = (x[:, 0, 0].cpu().double()[at] for x in cast(tuple, res.irradiance))  # (n, B')
-        total = direct + diffuse
-        share = torch.where(total > 0, direct / total.clamp_min(1e-300), torch.zeros_like(total)).float().numpy()
-        rows.update({name: share[:, j] for j, name in enumerate(shares)})
-    return {k: rows[k] for k in columns_for(bands)}
-
-
-def stored_indices(res: RenderResult, at: tuple[torch.Tensor, torch.Tensor], refl: torch.Tensor,
-                   bands: BandSet) -> dict[str, np.ndarray]:
-    """The stored indices of the rows (``STORED_INDICES``) at ``at`` of the render ``res``: the renderer's own where
-    the bands hold all four index bands (within ``bands.BAND_MATCH_NM``); else, per index, from the rows' float32
-    reflectance ``refl`` (n, B) where its two bands are there, NaN where one is not (the renderer matches bands
-    within 30 nm: a 540 nm band is not the 544 nm the column names)."""
-    if all(has_band(bands, w) for w in INDEX_BANDS_NM):
-        return {name: getattr(res, name)[:, 0, 0].cpu()[at].numpy() for name in STORED_INDICES}
-    out = {}
-    for name in STORED_INDICES:
-        (a,), (b,) = INDICES[name]
-        ia, ib = band_position(bands, a), band_position(bands, b)
-        out[name] = np.full(len(refl), np.nan, np.float32) if ia is None or ib is None else \
-            normalized_difference(refl[:, ia], refl[:, ib]).float().numpy()
-    return out
-
-
-def atmosphere_columns(light: dict) -> dict[str, float | int]:
-    """The light-model atmosphere columns of a pose group's rows (``LIGHT_ATMOSPHERE``): the drawn atmosphere
-    under a light model that reads one (``light.uses_atmosphere``: "spectrl2"); under one that does not
-    ("thesis"), empty: NaN, and ``NO_DAY_OF_YEAR`` for the integer ``day_of_year``.
-
-    >>> atmosphere_columns({"model": "thesis", "aerosol_500nm": 0.2, "precipitable_water_cm": 1.0,
-    ...                     "ozone_atm_cm": 0.3, "pressure_pa": 9e4, "day_of_year": 100})
-    {'aerosol_500nm': nan, 'precipitable_water_cm': nan, 'ozone_atm_cm': nan, 'pressure_pa': nan, 'day_of_year': 0}
-    """
-    if uses_atmosphere(light["model"]):
-        return {k: light[k] for k in LIGHT_ATMOSPHERE}
-    return {k: NO_DAY_OF_YEAR if k == "day_of_year" else math.nan for k in LIGHT_ATMOSPHERE}
-
-
-def strings(codes: np.ndarray, vocabulary: Sequence[str] | np.ndarray):
-    """A string column chunk as a pyarrow dictionary array: ``vocabulary[codes]`` (written as plain strings,
-    ``write_shard``; building it costs a fraction of converting Python strings one by one)."""
-    import pyarrow as pa
-
-    return pa.DictionaryArray.from_arrays(pa.array(np.asarray(codes, dtype=np.int32)),
-                                          pa.array([str(v) for v in vocabulary], type=pa.string()))
-
-
-def sky_fraction(light: LightTables, zenith_deg: list[float], band: int = 0) -> np.ndarray:
-    """Per sun, diffuse horizontal over direct normal irradiance in band ``band`` (the 544 nm band: the index bands'
-    first): the thesis model's ``sky_fraction``, derived (NaN where no direct light reaches a horizontal surface)."""
-    cz = torch.cos(torch.deg2rad(torch.tensor(zenith_deg, dtype=torch.float64)))
-    dni = light.direct_horizontal[:, band].double() / cz
-    return torch.where(dni > 0, light.diffuse_horizontal[:, band].double() / dni, torch.nan).float().numpy()
-
-
 # -------------------------------------------------------------------------------------------------- shards
-def write_images(out_dir: Path, k: int, cubes: list) -> dict:
-    """Write a shard's image cubes, (groups, skins, suns, bands, H, W) float16, as ``images/images-NNNNN.npy``
-    (a subfolder, so that Parquet readers of the dataset folder see only shards)."""
-    arr = np.stack(cubes)
-    (out_dir / IMAGES_DIR).mkdir(exist_ok=True)
-    path = out_dir / IMAGES_DIR / f"images-{k:05d}.npy"
-    save_npy(path, arr, suffix=".tmp")
-    return {"name": f"{IMAGES_DIR}/{path.name}", "shape": list(arr.shape), "sha256": sha256_file(path),
-            "bytes": path.stat().st_size}
-
-
 def write_shard(out_dir: Path, k: int, rows: dict[str, list], bands: BandSet | None = None) -> dict:
     """Write one shard atomically (temporary name, fsync, rename) of a dataset of ``bands`` (default the index
     bands; its columns: ``schema.columns_for``); return its manifest entry."""
@@ -626,7 +392,7 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
 
     ``backend="local"`` runs the shards in this process; ``backend="ray"`` runs one Ray task per shard on the
     cluster at ``address`` (a local cluster of ``workers`` CPUs when None; GPUs requested when ``device`` is
-    cuda); a cluster that accepts no connection within ``RAY_CONNECT_TIMEOUT_S`` (30 s) is an error. Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
+    cuda); a cluster that accepts no connection within ``ray_backend.RAY_CONNECT_TIMEOUT_S`` (30 s) is an error. Ray tasks write their shards themselves, so on a multi-machine cluster ``out_dir`` must be a
     shared filesystem. Both backends give the same bytes. ``images`` also stores every group's full
     reflectance cubes in ``images-NNNNN.npy`` shards (much larger, and slower: full frames are rendered).
     ``compile``: render with the compiled kernels (``render.kernels``; "auto": for runs of at least
@@ -728,74 +494,6 @@ def _generate_into(out: Path, cfg, n_configs, seed, n_groups, n_shards, done, qu
                 record(k, entry)
                 bar.update(per_shard(k))
         else:
-            _run_ray(cfg, seed, todo, n_groups, out, device, address, workers, images, compile,
+            _run_ray(_ray_shard, cfg, seed, todo, n_groups, out, device, address, workers, images, compile,
                      lambda k, e: (record(k, e), bar.update(per_shard(k))))
     return manifest()
-
-
-#: how long ``generate(backend="ray", address=...)`` waits for the cluster at ``address`` to accept a connection
-#: before it gives up (seconds): a cluster that is still starting gets this long, one that does not exist fails
-#: in one line instead of Ray's own minutes of retries
-RAY_CONNECT_TIMEOUT_S = 30.0
-
-
-def ray_endpoint(address: str) -> tuple[str, int] | None:
-    """(host, port) that a Ray ``address`` names: "host:port", "ray://host:port" (Ray Client) or "[v6]:port";
-    None for "auto" and "local" (Ray finds those itself). Raises ``ValueError`` naming ``--address`` otherwise.
-
-    >>> ray_endpoint("ray://head.example:10001"), ray_endpoint("10.0.0.2:6379"), ray_endpoint("auto")
-    (('head.example', 10001), ('10.0.0.2', 6379), None)
-    """
-    if address in ("auto", "local"):
-        return None
-    rest = address.split("://", 1)[1] if "://" in address else address
-    host, sep, port = rest.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise ValueError(f"--address must be host:port, ray://host:port or auto, got {address!r}")
-    return host, int(port)
-
-
-def wait_for_cluster(address: str, timeout_s: float | None = None) -> None:
-    """Return once the Ray cluster at ``address`` accepts a TCP connection (``ray_endpoint``); raise
-    ``ValueError`` (one line naming ``--address``) when none does within ``timeout_s`` seconds (default
-    ``RAY_CONNECT_TIMEOUT_S``; retrying every second while the deadline allows)."""
-    import socket
-    import time
-
-    timeout_s = RAY_CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
-    end = ray_endpoint(address)
-    if end is None:
-        return
-    deadline = time.monotonic() + timeout_s
-    why = "no answer"
-    while True:
-        left = deadline - time.monotonic()
-        try:
-            with socket.create_connection(end, timeout=max(0.1, min(5.0, left))):
-                return
-        except OSError as e:  # refused, unreachable, unknown host, timed out
-            why = e.strerror or type(e).__name__
-        if time.monotonic() + 1.0 >= deadline:
-            raise ValueError(f"--address: no Ray cluster answered at {address!r} within {timeout_s:g} s ({why})")
-        time.sleep(1.0)
-
-
-def _run_ray(cfg, seed, todo, n_groups, out: Path, device, address, workers, images, compile, on_done) -> None:
-    import ray  # the ray extra: a ModuleNotFoundError names it (errors.missing_extra)
-    started = not ray.is_initialized()
-    if started:
-        kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}
-        ray.init(include_dashboard=False, log_to_driver=False, **kw)
-    try:
-        opts: dict[str, Any] = {"num_cpus": 1, "num_gpus": 1 if str(device).startswith("cuda") else 0, "max_retries": 2}
-        task = ray.remote(**opts)(_ray_shard)
-        pending = {task.remote(cfg, seed, k, n_groups, str(out), device, images, compile): k for k in todo}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            for ref in ready:
-                k = pending.pop(ref)
-                on_done(k, ray.get(ref))
-    finally:
-        if started:
-            ray.shutdown()

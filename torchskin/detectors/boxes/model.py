@@ -1,58 +1,24 @@
-"""Configuration-dependent rules-detector boundaries: configuration features -> box (b1, b2, c1, c2, d1):
-NDGRI in [b1, b2] and NDSI in [c1, c2] (the thesis's rules, eq 2.5.10, with the box chosen per configuration),
-and NDVN >= d1, a visible/NIR rule on NDVN = ((g + r) - (n + s)) / (g + r + n + s), learned from generated
-datasets.
-
-Why the third rule: under eq 3.1.1 with the thesis's surface model, sunlit skin seen at grazing local
-incidence (and in glints) adds a spectrally flat front-surface reflection, which pulls NDGRI and NDSI along
-straight lines towards (0, 0); a box that keeps that skin must reach down in NDSI towards where litter, bark
-and dry vegetation sit. Those are far darker in the visible than in the NIR (NDVN around -0.5), while skin,
-from Type I to VI, stays above about -0.35, and the flat reflection only raises it towards 0. d1 is one value
-for every configuration, set below the training skin's NDVN (``ndvn_rule``); with d1 = -1 the rule is inactive
-(the 2-index rules alone: ``ndvn_quantile=None``).
-
-The model is a small MLP on standardised features with an output that keeps b1 <= b2 and c1 <= c2::
-
-    (lo_g, w_g, lo_s, w_s) -> b1 = lo_g, b2 = lo_g + softplus(w_g), c1 = lo_s, c2 = lo_s + softplus(w_s).
-
-``hidden=0`` gives a constant box (one box for every configuration: the refitted static baseline).
-
-Two trainers:
-
-- ``train_boxes`` (default): per configuration, the box that covers the most sunlit skin pixels while every
-  earthlib *train* spectrum stays at least ``margin`` (index units, L-infinity) outside it, for the training
-  configurations and for random configurations over the training domain; a small cost per unit of box width
-  keeps the edges where the skin pixels are (soft, sigmoid edges during training; hard boxes afterwards). It
-  starts from the data: the conditional quantile box (``fit_quantiles``) first, then the coverage loss.
-- ``train_quantiles``: the box edges as conditional quantiles of skin NDGRI and NDSI (pinball loss).
-
-Both are followed by ``tune_false_alarms`` (a hard guarantee on the train spectra). The model is exported
-to ONNX (``torchskin.export``: ``boundaries.onnx`` from ``boundaries_graph``, ``detector.onnx`` from
-``BoxModel.detector_graph``, the five edge forms of ``BoxDetector``) and run onboard without torch
-(``torchskin.onboard``: ``OnboardBoxes``, ``OnboardDetector``).
-
-This module is the ``boxes`` detector kind (``torchskin.detectors.registry``); ``BoxModel`` is its model.
-"""
+"""The ``boxes`` detector kind's model, ``BoxModel`` (registered by ``torchskin.detectors.registry``), and what
+constructs one: its data-driven start (``_initial_model``), the trainers (``train_boxes``, ``train_quantiles``,
+``learn``, ``train_on_dataset``: the trainers construct the model and ``BoxModel.from_training`` calls them, so
+they share this module) and its checkpoints (``save``, ``load``). The package's docstring
+(``torchskin.detectors.boxes``) says what the boxes are and how they are learned."""
 
 from __future__ import annotations
 
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
-import numpy as np
 import torch
 from torch import nn
 
-from ..bands import INDEX_BANDS_NM
-from ..detect import rules_detector
-from ..errors import Failure
-from .features import (
-    BAND_COLUMNS,
+from ...bands import INDEX_BANDS_NM
+from ...errors import Failure
+from ..features import (
     FEATURES,
-    MIN_REFLECTANCE,
     config_buffers,
     confuser_indices,
     distinct_configs,
@@ -60,30 +26,27 @@ from .features import (
     ratio_indices,
     tuning_configs,
 )
-from .graphs import add_metadata, torch_graph
-from .protocol import KindOption, write_checkpoint
+from ..protocol import KindOption, write_checkpoint
+from .data import load_scene_rows, load_skin_rows
+from .fit import (
+    MIN_TRAIN_COVERAGE,
+    BoxTraining,
+    _check_xy,
+    fit_quantiles,
+    margin_violation,
+    scene_rate,
+    scene_violation,
+    soft_inside,
+    train_coverage,
+    tune_false_alarms,
+)
+from .onnx import BoxDetector, boundaries_graph, edge_detector_graph
+from .rules import NDVN_MARGIN, NDVN_QUANTILE, false_alarm_rate, inside_box, ndvn_rule
 
 if TYPE_CHECKING:
     import onnx
 
-    from .protocol import CalibrationData, TrainRequest
-
-#: the columns of a box: NDGRI min, NDGRI max, NDSI min, NDSI max, NDVN min
-BOX_ORDER = ("b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max", "d1_ndvn_min")
-#: ``ndvn_rule``: d1 = this quantile of the training skin's NDVN minus ``NDVN_MARGIN``
-NDVN_QUANTILE = 0.01
-NDVN_MARGIN = 0.05
-
-
-def ndvn_rule(v: torch.Tensor, quantile: float | None = NDVN_QUANTILE, margin: float = NDVN_MARGIN) -> float:
-    """d1 of the visible/NIR rule from the NDVN of training skin pixels ``v``: its ``quantile`` less ``margin``
-    (-1, the rule off, when ``quantile`` is None)."""
-    if quantile is None:
-        return -1.0
-    v = v[torch.isfinite(v)]
-    if v.numel() == 0:
-        return -1.0
-    return max(-1.0, float(torch.quantile(v.double(), quantile)) - margin)
+    from ..protocol import CalibrationData, TrainRequest
 
 
 class BoxModel(nn.Module):
@@ -266,89 +229,11 @@ class BoxModel(nn.Module):
                 f"configurations (worst case after calibration: {f(train.get('pfa_train_worst'))})")
 
 
-def folded(model: BoxModel) -> BoxModel:
-    """A copy of ``model`` for export, the same function with fewer graph nodes: the feature standardisation
-    folded into the first linear layer, and d1 (the NDVN rule) carried by a fifth output of the last layer
-    (zero weights, bias d1) instead of being added to the boxes."""
-    import copy
-
-    m = copy.deepcopy(model).eval()
-    first = cast(nn.Linear, m.net[0])
-    with torch.no_grad():
-        w = first.weight / m.std
-        first.bias.sub_(w @ m.mean)
-        first.weight.copy_(w)
-        last = cast(nn.Linear, m.net[-1])
-        if last.out_features == 5:  # d1 is already the fifth output (``ndvn_head``)
-            m.standardize = False
-            return m
-        packed = nn.Linear(last.in_features, 5)
-        packed.weight.zero_()
-        packed.weight[:4] = last.weight
-        packed.bias[:4] = last.bias
-        packed.bias[4] = m.ndvn_min
-        m.net[-1] = packed
-    m.standardize = False
-    return m
-
-
 @dataclass
 class TrainResult:
     model: BoxModel
     loss: float
     rows: int
-
-
-def load_skin_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
-                   sunlit_only: bool = False, frames: str = "physical") -> tuple[torch.Tensor, torch.Tensor]:
-    """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the skin pixels of a generated dataset (float32),
-    sunlit and shadowed (``sunlit_only``: sunlit only), from the frames ``frames`` names
-    (``dataset.files.read_rows``: "physical", ``elm_valid``; "line", ``elm_line_valid``)."""
-    X, Y = _index_rows(data_dir, features, skin=True, sunlit_only=sunlit_only, frames=frames)
-    if len(X) == 0:
-        raise ValueError(f"no usable {'sunlit ' if sunlit_only else ''}skin pixels in {str(data_dir)!r}")
-    return X, Y
-
-
-def load_scene_rows(data_dir: str | os.PathLike, features: Sequence[str] = FEATURES,
-                    min_reflectance: float = MIN_REFLECTANCE, frames: str = "physical"
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Features (n, k) and (NDGRI, NDSI, NDVN) (n, 3) of the non-skin pixels of a generated dataset (clothing,
-    ground and confuser patches, in sun and in shadow, as the camera saw them; the frames ``frames`` names, as
-    ``load_skin_rows``; float32): the
-    scene false alarms ``learn`` holds to its scene budget. Pixels whose mean reflectance is not above
-    ``min_reflectance`` (the detector's brightness floor: never skin) keep their row with NaN indices, which no
-    box holds: they count in the budget's denominator, as in the evaluation, and constrain nothing."""
-    return _index_rows(data_dir, features, skin=False, sunlit_only=False, floor=min_reflectance, frames=frames)
-
-
-def _index_rows(data_dir: str | os.PathLike, features: Sequence[str], skin: bool,
-                sunlit_only: bool, floor: float | None = None, frames: str = "physical"
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    from ..dataset.files import read_rows
-
-    rows = read_rows(data_dir, [*features, "ndgri", "ndsi", "label", "shadow", *BAND_COLUMNS], frames)
-    keep = rows["label"].copy() if skin else ~rows["label"]
-    if sunlit_only:
-        keep &= ~rows["shadow"]
-    X = rows.stack(features)[keep]
-    R = rows.bands(np.float64)[keep]
-    v = rows.index("ndvn", np.float64)[keep]  # NDVN in float64 (NaN where the band sum is 0)
-    Y = np.stack([rows["ndgri"][keep], rows["ndsi"][keep], v], -1)
-    ok = np.isfinite(X).all(1) & np.isfinite(Y).all(1)
-    if floor is not None:  # below the brightness floor: never a detection (NaN indices), still a row
-        Y[~(R.mean(1) > floor)] = np.nan
-        ok = np.isfinite(X).all(1)
-    return torch.from_numpy(X[ok].astype(np.float32)), torch.from_numpy(Y[ok].astype(np.float32))
-
-
-def _check_xy(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str]) -> None:
-    if (X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] != len(features)
-            or Y.shape[1] not in (2, 3)):
-        raise ValueError(f"X (n, {len(features)}) and Y (n, 2) or (n, 3) (NDGRI, NDSI[, NDVN]) expected, got "
-                         f"{tuple(X.shape)} and {tuple(Y.shape)}")
-    if X.shape[0] < 10:
-        raise ValueError(f"at least 10 skin pixels are needed to learn boundaries, got {X.shape[0]}")
 
 
 def _initial_model(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str], hidden: int, q: float, seed: int,
@@ -378,48 +263,6 @@ def _initial_model(X: torch.Tensor, Y: torch.Tensor, features: Sequence[str], hi
     return model
 
 
-def quantile_loss(box: torch.Tensor, Y: torch.Tensor, q: float, w: torch.Tensor | None = None,
-                  ndvn_quantile: float | None = None) -> torch.Tensor:
-    """The pinball loss of the box edges as conditional quantiles of (NDGRI, NDSI) ``Y`` (n, 2+): b1, c1 at
-    ``q``, b2, c2 at ``1 - q``, each pixel weighted by ``w`` (n,) (None: 1); with ``ndvn_quantile`` (and a fifth
-    box column, a third of ``Y``), d1 at that quantile of NDVN less ``NDVN_MARGIN``."""
-    cols = [Y[:, 0] - box[:, 0], Y[:, 0] - box[:, 1], Y[:, 1] - box[:, 2], Y[:, 1] - box[:, 3]]
-    levels = [q, 1 - q, q, 1 - q]
-    if ndvn_quantile is not None and box.shape[1] > 4 and Y.shape[1] > 2:
-        cols.append(Y[:, 2] - NDVN_MARGIN - box[:, 4])
-        levels.append(ndvn_quantile)
-    e = torch.stack(cols, -1)
-    lv = box.new_tensor(levels)
-    loss = torch.maximum(lv * e, (lv - 1) * e).sum(-1)
-    return (loss if w is None else loss * w).mean()
-
-
-def fit_quantiles(model: BoxModel, X: torch.Tensor, Y: torch.Tensor, q: float, steps: int, lr: float,
-                  w: torch.Tensor | None = None, batch: int | None = None, g: torch.Generator | None = None,
-                  decay: bool = False, ndvn_quantile: float | None = None) -> float:
-    """Adam on ``quantile_loss`` (in place): ``model``'s boxes become the conditional ``q`` / ``1 - q`` quantiles
-    of ``Y`` given ``X``, pixels weighted by ``w``, on random batches of ``batch`` pixels drawn with ``g`` (None:
-    all of them), the learning rate decaying from ``lr`` to ``lr``/100 when ``decay`` (cosine). Pixels that share
-    a configuration share its box (one forward pass per distinct configuration). Returns the last loss."""
-    cfg, inv = distinct_configs(X)
-    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(1, steps), eta_min=lr * 0.01) if decay else None
-    loss = torch.tensor(0.0)
-    for _ in range(steps):
-        if batch is not None and batch < len(Y):
-            idx = torch.randint(len(Y), (batch,), generator=g)
-            yb, ib, wb = Y[idx], inv[idx], None if w is None else w[idx]
-        else:
-            yb, ib, wb = Y, inv, w
-        opt.zero_grad()
-        loss = quantile_loss(model(cfg).index_select(0, ib), yb, q, wb, ndvn_quantile)
-        loss.backward()
-        opt.step()
-        if sched is not None:
-            sched.step()
-    return float(loss.detach())
-
-
 def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features: Sequence[str] = FEATURES,
                     hidden: int = 32, steps: int = 2000, lr: float = 3e-3, seed: int = 0, domain: Any = None) -> TrainResult:
     """Fit the box as conditional quantiles: b1, c1 at ``q`` and b2, c2 at ``1 - q`` of sunlit skin NDGRI and
@@ -431,98 +274,6 @@ def train_quantiles(X: torch.Tensor, Y: torch.Tensor, q: float = 0.01, features:
     model = _initial_model(X, Y, features, hidden, q, seed, domain)
     loss = fit_quantiles(model, X, Y, q, steps, lr)
     return TrainResult(model.eval(), loss, X.shape[0])
-
-
-def soft_inside(boxes: torch.Tensor, points: torch.Tensor, tau: float) -> torch.Tensor:
-    """Smooth indicator that (NDGRI, NDSI) ``points`` (n, 2+) lie in ``boxes`` (n, 4+): the product of four
-    sigmoids of the edge distances over ``tau`` (index units; the NDVN rule is not part of it)."""
-    g, s = points[:, 0], points[:, 1]
-    d = torch.stack([g - boxes[:, 0], boxes[:, 1] - g, s - boxes[:, 2], boxes[:, 3] - s], -1)
-    return torch.sigmoid(d / tau).prod(-1)
-
-
-def margin_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, allow: int = 0) -> torch.Tensor:
-    """Per box (N, 4), the summed violation of ``points`` (n, 2) that lie inside it or within ``margin``
-    (L-infinity, index units) of it: sum_j relu(min(edge distances_j) + margin), less the ``allow`` largest
-    violations (the points the false-alarm budget lets a box hold)."""
-    g, s = points[:, 0][None], points[:, 1][None]
-    b = boxes[:, :, None]
-    depth = torch.minimum(torch.minimum(g - b[:, 0], b[:, 1] - g), torch.minimum(s - b[:, 2], b[:, 3] - s))
-    v = torch.relu(depth + margin)
-    if boxes.shape[1] > 4 and points.shape[1] > 2:  # points the box's own NDVN rule rejects need no margin
-        v = v * (points[:, 2][None] >= b[:, 4].detach())
-    total = v.sum(-1)
-    if allow > 0:
-        total = total - v.topk(min(int(allow), v.shape[-1]), dim=-1).values.sum(-1)
-    return total
-
-
-def scene_violation(boxes: torch.Tensor, points: torch.Tensor, margin: float, allow: int = 0) -> torch.Tensor:
-    """The summed violation of scene non-skin ``points`` (n, 2) each against its own configuration's box (n, 4+):
-    sum_j relu(min(edge distances_j) + margin), less the ``allow`` largest (the pixels the scene budget lets the
-    boxes hold)."""
-    g, s = points[:, 0], points[:, 1]
-    depth = torch.minimum(torch.minimum(g - boxes[:, 0], boxes[:, 1] - g),
-                          torch.minimum(s - boxes[:, 2], boxes[:, 3] - s))
-    v = torch.relu(depth + margin)
-    if boxes.shape[1] > 4 and points.shape[1] > 2:  # pixels the box's own NDVN rule rejects need no margin
-        v = v * (points[:, 2] >= boxes[:, 4].detach())
-    total = v.sum()
-    if allow > 0:
-        total = total - v.topk(min(int(allow), v.numel())).values.sum()
-    return total
-
-
-@dataclass(frozen=True)
-class BoxTraining:
-    """The settings of ``train_boxes`` (see there for what each does).
-
-    Attributes:
-        features: the names of the columns of ``X``.
-        hidden: network width (0: a constant box).
-        steps, lr, batch, seed: Adam steps (cosine-decayed rate from ``lr``), batch size (None: all pixels), seed.
-        tau: the sigmoid edges' width at the end (index units).
-        margin: the distance kept from every confuser (index units, L-infinity).
-        width_cost, fa_weight, spread_cost: the weights of the width, confuser and spread terms.
-        domain_configs: random configurations over the training domain per step.
-        domain: the training domain (k, 2) (None: the extremes of ``X``).
-        per_config: every configuration weighs the same (else every pixel).
-        allow: the confusers a box may hold at no cost.
-        ndvn_min: d1 of the visible/NIR rule, fixed (-1: inactive).
-        init_quantile, init_steps: the quantile start (``fit_quantiles``; None: ``steps // 2``).
-        scene_budget, scene_weight: the scene pixels' budget and weight.
-        ndvn_quantile: a learned d1 per configuration at this skin NDVN quantile (None: ``ndvn_min``).
-    """
-
-    features: Sequence[str] = FEATURES
-    hidden: int = 32
-    steps: int = 1500
-    lr: float = 1e-2
-    tau: float = 0.01
-    margin: float = 0.03
-    width_cost: float = 0.05
-    fa_weight: float = 10.0
-    domain_configs: int = 128
-    batch: int | None = 32768
-    seed: int = 0
-    domain: Any = None
-    per_config: bool = True
-    spread_cost: float = 0.1
-    allow: int = 0
-    ndvn_min: float = -1.0
-    init_quantile: float = 0.02
-    init_steps: int | None = None
-    scene_budget: float = 1e-4
-    scene_weight: float = 3000.0
-    ndvn_quantile: float | None = None
-
-    def with_options(self, **options: Any) -> BoxTraining:
-        """A copy with ``options`` (field names) changed; ``TypeError`` naming an unknown one."""
-        names = {f.name for f in fields(self)}
-        unknown = sorted(set(options) - names)
-        if unknown:
-            raise TypeError(f"train_boxes got unexpected option(s) {', '.join(unknown)}")
-        return replace(self, **options)
 
 
 def train_boxes(X: torch.Tensor, Y: torch.Tensor, confusers: torch.Tensor, settings: BoxTraining | None = None, *,
@@ -751,17 +502,6 @@ def learn(X: torch.Tensor, Y: torch.Tensor, method: str = "boxes", pfa_budget: f
                        "calibration_configs": int(cfg.shape[0]), "options": options}
 
 
-#: ``learn`` refuses a model whose boxes hold less than this fraction of the training skin pixels
-MIN_TRAIN_COVERAGE = 0.5
-
-
-def train_coverage(model: BoxModel, X: torch.Tensor, Y: torch.Tensor) -> float:
-    """Fraction of the training skin pixels ``Y`` (n, 2 or 3) inside the hard box of their configuration ``X``."""
-    uniq, inv = distinct_configs(X)
-    v = Y[:, 2] if Y.shape[1] > 2 else None
-    return float(inside_box(model(uniq).index_select(0, inv), Y[:, 0], Y[:, 1], v).float().mean())
-
-
 def save(model: BoxModel, path: str | os.PathLike, meta: dict | None = None) -> None:
     """A torch checkpoint (kind "boxes"): state, features and hidden size (+ metadata), written atomically through
     a buffer: the same model gives the same bytes."""
@@ -772,76 +512,6 @@ def load(path: str | os.PathLike) -> BoxModel:
     """A ``BoxModel`` from a checkpoint written by ``save`` (those written before checkpoints carried a kind,
     and older ones without a stored domain or NDVN rule, included), in eval mode."""
     return BoxModel.from_checkpoint(torch.load(path, map_location="cpu", weights_only=True))
-
-
-def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
-    """The rules detector (eq 2.5.10 with a box per configuration): whether (NDGRI, NDSI) = (``g``, ``s``) lies in
-    the box, b1 <= g <= b2 and c1 <= s <= c2 (edges included), and, with ``v`` (NDVN) and a fifth column,
-    NDVN >= d1. The box test itself is ``detect.rules_detector``'s (the onboard runtime's is the exported
-    detector graph).
-
-    Args:
-        boxes: (b1, b2, c1, c2[, d1]) on axis 1 (``BOX_ORDER``).
-        g, s: NDGRI and NDSI.
-        v: NDVN (None: the fifth rule is not applied).
-
-    Shape:
-        boxes: (N, 4 or 5, ...); g, s, v and the result: broadcast with ``boxes[:, 0]``, e.g. (N, ...).
-
-    Returns:
-        A bool tensor, True inside.
-
-    >>> boxes = torch.tensor([[-0.5, 0.0, 0.3, 0.9, -0.4]])
-    >>> inside_box(boxes, torch.tensor([-0.3, 0.2]), torch.tensor([0.6, 0.6]))
-    tensor([ True, False])
-    >>> inside_box(boxes, torch.tensor([-0.3]), torch.tensor([0.6]), torch.tensor([-0.6]))
-    tensor([False])
-    """
-    ok = rules_detector(g, s, torch.movedim(boxes[:, :4], 1, -1))  # eq 2.5.10's test, the box on the last axis
-    if v is not None and boxes.shape[1] > 4:
-        ok = ok & (v >= boxes[:, 4])
-    return ok
-
-
-def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Per box (N, 4 or 5): the fraction of ``points`` (n, 2 or 3: NDGRI, NDSI[, NDVN]) inside it."""
-    v = points[:, 2][None] if points.shape[1] > 2 else None
-    return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None], v).float().mean(-1)
-
-
-def tune_false_alarms(model: BoxModel, configs: torch.Tensor, points: torch.Tensor,
-                      budget: float = 1e-3, iters: int = 30,
-                      scene: tuple[torch.Tensor, torch.Tensor] | None = None, scene_budget: float = 1e-4) -> float:
-    """Shrink every box about its centre (one global scale, found by bisection) until the false-alarm rate on
-    ``points`` (the earthlib *train* partition) is within ``budget`` for every configuration in ``configs`` and,
-    with ``scene`` (features (q, k), points (q, 2 or 3): ``load_scene_rows``), the share of those non-skin pixels
-    inside their own configuration's box is within ``scene_budget``. Sets and returns ``model.scale``."""
-    def ok(scale: float) -> bool:
-        model.scale.fill_(scale)
-        with torch.no_grad():
-            if float(false_alarm_rate(model(configs), points).max()) > budget:
-                return False
-            return scene is None or scene_rate(model, *scene) <= scene_budget
-
-    if ok(1.0):
-        return 1.0
-    lo, hi = 0.0, 1.0
-    for _ in range(iters):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
-    ok(lo)
-    return lo
-
-
-def scene_rate(model: BoxModel, X: torch.Tensor, P: torch.Tensor) -> float:
-    """The share of non-skin pixels (features ``X`` (q, k), (NDGRI, NDSI[, NDVN]) ``P``) that their own
-    configuration's box calls skin (0 for none)."""
-    if len(X) == 0:
-        return 0.0
-    uniq, inv = distinct_configs(X)
-    with torch.no_grad():
-        box = model(uniq).index_select(0, inv)
-    return float(inside_box(box, P[:, 0], P[:, 1], P[:, 2] if P.shape[1] > 2 else None).float().mean())
 
 
 def train_on_dataset(req: TrainRequest) -> tuple[BoxModel, dict, str]:
@@ -872,106 +542,5 @@ def train_on_dataset(req: TrainRequest) -> tuple[BoxModel, dict, str]:
     return model, info, text
 
 
-# --------------------------------------------------------------------------------------------------- ONNX export
-#: the edge forms as a linear function of the box: W(box) = box @ EDGE_M + EDGE_C, reshaped to (5 edges, 4 bands)
-#: with bands (g, r, n, s) = (544, 633, 1080, 1580) nm and edges::
-#:
-#:   L1 = (g - r) - b1 (g + r),  L2 = b2 (g + r) - (g - r),  L3 = (n - s) - c1 (n + s),  L4 = c2 (n + s) - (n - s),
-#:   L5 = (g + r) - (n + s) - d1 (g + r + n + s)   (the visible/NIR rule NDVN >= d1)
-EDGE_C = ((1.0, -1.0, 0.0, 0.0), (-1.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, -1.0), (0.0, 0.0, -1.0, 1.0),
-          (1.0, 1.0, -1.0, -1.0))
-EDGE_M = tuple(tuple(float(v) for v in row) for row in (
-    [-1, -1, 0, 0] + [0] * 16, [0] * 4 + [1, 1, 0, 0] + [0] * 12, [0] * 10 + [-1, -1] + [0] * 8,
-    [0] * 14 + [1, 1] + [0] * 4, [0] * 16 + [-1, -1, -1, -1]))
-
-
-def edge_matrix(boxes: torch.Tensor) -> torch.Tensor:
-    """(B, E) boxes (E = 4: b1, b2, c1, c2; E = 5 with d1) -> (B, E, 4) matrices whose rows, applied to a
-    pixel's (g, r, n, s), give the edge forms L1..LE: each is the pixel's index margin to that edge times its
-    band sum (g + r, n + s, or g + r + n + s for the NDVN rule)."""
-    e = boxes.shape[1]
-    M = torch.tensor(EDGE_M, dtype=boxes.dtype, device=boxes.device)[:e, :4 * e]
-    C = torch.tensor(EDGE_C, dtype=boxes.dtype, device=boxes.device)[:e].reshape(4 * e)
-    return (boxes @ M + C).reshape(-1, e, 4)
-
-
-class BoxDetector(nn.Module):
-    """Rules detector with configuration-dependent boxes, written without divisions (the torch reference of
-    ``detector.onnx`` for a box model; ``classifier.ClassifierDetector`` is the classifier's):
-    NDGRI in [b1, b2], NDSI in [c1, c2] and NDVN >= d1 <=> the five edge forms L1..L5 (``edge_matrix``) are
-    positive. ``score`` = min(L1..L5): the smallest index margin to a box edge, weighted by the band sum
-    (g + r, n + s or g + r + n + s), in reflectance units; positive inside. ``mask`` = score > 0 (a pixel with
-    g + r = 0 or n + s = 0 has undefined indices and is never skin). This module is the reference;
-    ``edge_detector_graph`` writes the same arithmetic as a short ONNX graph (one one-row MatMul per edge, Min,
-    Greater)."""
-
-    def __init__(self, model: BoxModel):
-        super().__init__()
-        self.model = model
-
-    def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Mask and score (B, H, W) of a reflectance cube (B, 4, H, W) under configurations (B, k)."""
-        B, _, H, W = cube.shape
-        lin = edge_matrix(self.model(config)) @ cube.reshape(B, 4, H * W)  # (B, E, HW)
-        score = lin.amin(1).reshape(B, H, W)
-        return score > 0, score
-
-
-def boundaries_graph(model: BoxModel, meta: dict[str, str]) -> onnx.ModelProto:
-    """The ONNX graph configuration (N, k) -> boxes (N, 5) of a box model (its ``folded`` copy)."""
-    cfg = torch.zeros(2, len(model.features))
-    return torch_graph(folded(model.eval()), (cfg,), ["config"], ["boxes"], {"config": {0: "N"}, "boxes": {0: "N"}},
-                       meta)
-
-
-def edge_detector_graph(boundaries_model: onnx.ModelProto, meta: dict[str, str]) -> onnx.ModelProto:
-    """``detector.onnx`` from the exported ``boundaries.onnx`` graph (boxes (N, E), E = 4 or 5) plus a
-    hand-written head: the edge matrices from the boxes (MatMul, Add, Reshape), then per pixel one one-row
-    MatMul per edge form (viewed as (B, H, W)) -> Min -> Greater."""
-    import onnx
-    from onnx import TensorProto, helper, numpy_helper
-
-    from .. import __version__
-
-    g = boundaries_model.graph
-    box = g.output[0].name
-    e = int(g.output[0].type.tensor_type.shape.dim[1].dim_value) or 5
-    inits = list(g.initializer) + [
-        numpy_helper.from_array(np.array(EDGE_M, dtype=np.float32)[:e, :4 * e], "det_edge_M"),
-        numpy_helper.from_array(np.array(EDGE_C, dtype=np.float32)[:e].reshape(4 * e), "det_edge_C"),
-        numpy_helper.from_array(np.array([-1, e, 4], dtype=np.int64), "det_w_shape"),
-        numpy_helper.from_array(np.array([0, 4, -1], dtype=np.int64), "det_flat_shape"),
-        numpy_helper.from_array(np.array([0, 2, 3], dtype=np.int64), "det_bhw_index"),
-        numpy_helper.from_array(np.array(0.0, dtype=np.float32), "det_zero"),
-    ]
-    head = [
-        helper.make_node("MatMul", [box, "det_edge_M"], ["det_wm"]),
-        helper.make_node("Add", ["det_wm", "det_edge_C"], ["det_wflat"]),
-        helper.make_node("Reshape", ["det_wflat", "det_w_shape"], ["det_w"]),
-        helper.make_node("Shape", ["cube"], ["det_cube_shape"]),
-        helper.make_node("Gather", ["det_cube_shape", "det_bhw_index"], ["det_bhw"]),
-        helper.make_node("Reshape", ["cube", "det_flat_shape"], ["det_flat"]),
-        helper.make_node("Split", ["det_w"], [f"det_w{k}" for k in range(e)], axis=1),
-    ]
-    for k in range(e):  # one edge form per MatMul, viewed as (B, H, W): no (B, E, HW) intermediate to split
-        head += [helper.make_node("MatMul", [f"det_w{k}", "det_flat"], [f"det_e{k}"]),
-                 helper.make_node("Reshape", [f"det_e{k}", "det_bhw"], [f"det_l{k}"])]
-    head += [helper.make_node("Min", [f"det_l{k}" for k in range(e)], ["score"]),
-             helper.make_node("Greater", ["score", "det_zero"], ["mask"])]
-    cube = helper.make_tensor_value_info("cube", TensorProto.FLOAT, ["B", 4, "H", "W"])
-    outputs = [helper.make_tensor_value_info("mask", TensorProto.BOOL, ["B", "H", "W"]),
-               helper.make_tensor_value_info("score", TensorProto.FLOAT, ["B", "H", "W"])]
-    graph = helper.make_graph(list(g.node) + head, "torchskin_detector", [cube] + list(g.input), outputs, inits)
-    m = helper.make_model(graph, opset_imports=list(boundaries_model.opset_import),
-                          producer_name="torchskin", producer_version=__version__)
-    m.ir_version = boundaries_model.ir_version
-    add_metadata(m, meta)
-    onnx.checker.check_model(m, full_check=True)
-    return m
-
-
-__all__ = ["BOX_ORDER", "METHODS", "BoxDetector", "BoxModel", "BoxTraining", "EDGE_C", "EDGE_M", "MIN_TRAIN_COVERAGE",
-           "NDVN_MARGIN", "NDVN_QUANTILE", "TrainResult", "boundaries_graph", "edge_detector_graph", "edge_matrix",
-           "false_alarm_rate", "fit_quantiles", "folded", "inside_box", "learn", "load", "load_scene_rows",
-           "load_skin_rows", "margin_violation", "ndvn_rule", "quantile_loss", "save", "scene_rate", "scene_violation",
-           "soft_inside", "train_boxes", "train_coverage", "train_on_dataset", "train_quantiles", "tune_false_alarms"]
+__all__ = ["METHODS", "BoxModel", "TrainResult", "learn", "load", "save", "train_boxes", "train_on_dataset",
+           "train_quantiles"]
