@@ -71,3 +71,31 @@ def tiny_dataset(tmp_path_factory):
                           "confusers": {"partition": "test"}, "clothing": {"partition": "test"}})
     generate(cfg, 12, 7, d / "ds", quiet=True)
     return d / "ds"
+
+
+def rows_with_pixels(cfg, master_seed, df):
+    """Each (skin, sun) group of a shard's rows ``df`` (one pose group) with the frame pixel of every row, flat
+    indices into H*W. The rows keep no pixel index, but their local (θi, θr, Δφ) and material are a key: they
+    are recomputed here from the group's G-buffer with the generator's own angle function, and each row must
+    match its pixel's float32 angles to 1e-4 degrees."""
+    import numpy as np
+
+    import torchskin.dataset.generate as gen
+    from torchskin.dataset.config import sample_group
+    from torchskin.render.raycast import Raycaster
+
+    group = sample_group(cfg, master_seed, int(df.group.iloc[0]))
+    scene = gen.group_scene(group)
+    suns = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
+    gb = Raycaster.from_scene(scene).gbuffer(scene.cameras, suns.numpy(), shadows=False)
+    labels = gen.pixel_labels(group, scene, gb)
+    material = labels.material_labels[labels.material + 1]
+    every = torch.arange(gb.hit[0].numel())
+    for (k, s), rows in df.groupby(["skin", "sun"]):
+        angles = np.stack([a.float().numpy() for a in gen.pixel_angles_deg(gb, every, suns[s].expand(len(every), 3))], -1)
+        key = rows[["theta_i_deg", "theta_r_deg", "delta_phi_deg"]].to_numpy()
+        dist = np.abs(key[:, None] - angles[None]).max(-1)  # (rows, pixels), degrees
+        dist[rows.material.to_numpy()[:, None] != material[None]] = np.inf
+        px = dist.argmin(1)
+        assert (dist[np.arange(len(px)), px] <= 1e-4).all()  # the same float32 angles: the same pixel
+        yield k, s, rows, px

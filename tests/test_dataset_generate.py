@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import rows_with_pixels  # a row's frame pixel
 
 from torchskin.cli import main
 from torchskin.dataset.config import resolve_config
@@ -184,12 +185,9 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj, mon
     import dataclasses
 
     import pandas as pd
-    import torch
 
     import torchskin.dataset.generate as gen
-    from torchskin.dataset.config import sample_group
     from torchskin.dataset.schema import BAND_COLUMNS
-    from torchskin.render.raycast import Raycaster
 
     sensor = gen.group_sensor
     monkeypatch.setattr(gen, "group_sensor", lambda g, light=None: dataclasses.replace(sensor(g, light), quantize=False))
@@ -204,22 +202,8 @@ def test_images_option_stores_cubes_matching_the_rows(tmp_path, subject_obj, mon
     df = pd.read_parquet(d / man["shards"][0]["name"])
     assert len(df) == 2 * 3 * 2 * 16  # skins x suns x (16 skin + 16 other pixels)
 
-    # the pixel of each row: the rows keep no pixel index, but its local (θi, θr, Δφ) and material are a key
-    # (recomputed here from the group's G-buffer with the generator's own angle function)
-    group = sample_group(cfg, 3, 0)
-    scene = gen.group_scene(group)
-    suns = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
-    gb = Raycaster.from_scene(scene).gbuffer(scene.cameras, suns.numpy(), shadows=False)
-    labels = gen.pixel_labels(group, scene, gb)
-    material = labels.material_labels[labels.material + 1]
-    every = torch.arange(48 * 64)
-    for (k, s), rows in df.groupby(["skin", "sun"]):
-        angles = np.stack([a.float().numpy() for a in gen.pixel_angles_deg(gb, every, suns[s].expand(len(every), 3))], -1)
-        key = rows[["theta_i_deg", "theta_r_deg", "delta_phi_deg"]].to_numpy()
-        dist = np.abs(key[:, None] - angles[None]).max(-1)  # (rows, pixels), degrees
-        dist[rows.material.to_numpy()[:, None] != material[None]] = np.inf
-        px = dist.argmin(1)
-        assert (dist[np.arange(len(px)), px] <= 1e-4).all()  # same float32 angles, same pixel
+    # the pixel of each row, from its local angles and material (conftest.rows_with_pixels)
+    for k, s, rows, px in rows_with_pixels(cfg, 3, df):
         stored = cube[0, k, s].reshape(4, -1).T[px].astype(np.float64)  # (rows, bands)
         r = rows[list(BAND_COLUMNS)].to_numpy(np.float64)
         assert np.isfinite(r).all() and np.isfinite(stored).all()

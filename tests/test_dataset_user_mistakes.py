@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import rows_with_pixels  # a row's frame pixel
 
 from torchskin.cli import main
 from torchskin.dataset.config import resolve_config
@@ -95,12 +96,9 @@ def test_a_cube_pixel_is_its_row_with_sensor_noise_on(dataset):
     The rows record no pixel index: a row's pixel is found by its local angles (θi, θr, Δφ, float32) and its
     material, recomputed from the group's G-buffer with the generator's own angle function."""
     import pandas as pd
-    import torch
 
     import torchskin.dataset.generate as gen
-    from torchskin.dataset.config import sample_group
     from torchskin.dataset.schema import BAND_COLUMNS
-    from torchskin.render.raycast import Raycaster
 
     d, cfg = dataset
     man = json.loads((d / gen.MANIFEST).read_text())
@@ -108,20 +106,7 @@ def test_a_cube_pixel_is_its_row_with_sensor_noise_on(dataset):
     for shard in man["shards"]:  # one pose group a shard
         cube = np.load(d / shard["images"]["name"])[0]  # (skins, suns, bands, H, W) float16
         df = pd.read_parquet(d / shard["name"])
-        group = sample_group(cfg, man["master_seed"], int(df.group.iloc[0]))
-        scene = gen.group_scene(group)
-        suns = torch.tensor(np.stack([s.direction for s in scene.suns]), dtype=torch.float32)
-        gb = Raycaster.from_scene(scene).gbuffer(scene.cameras, suns.numpy(), shadows=False)
-        labels = gen.pixel_labels(group, scene, gb)
-        material = labels.material_labels[labels.material + 1]
-        every = torch.arange(cube.shape[-2] * cube.shape[-1])
-        for (k, s), rows in df.groupby(["skin", "sun"]):
-            angles = np.stack([a.float().numpy() for a in gen.pixel_angles_deg(gb, every, suns[s].expand(len(every), 3))], -1)
-            key = rows[["theta_i_deg", "theta_r_deg", "delta_phi_deg"]].to_numpy()
-            dist = np.abs(key[:, None] - angles[None]).max(-1)  # (rows, pixels), degrees
-            dist[rows.material.to_numpy()[:, None] != material[None]] = np.inf
-            px = dist.argmin(1)
-            assert (dist[np.arange(len(px)), px] <= 1e-4).all()  # the same float32 angles: the same pixel
+        for k, s, rows, px in rows_with_pixels(cfg, man["master_seed"], df):  # each row's pixel
             stored = cube[k, s].reshape(len(BAND_COLUMNS), -1).T[px]  # (rows, bands)
             row = rows[list(BAND_COLUMNS)].to_numpy(np.float32)
             assert np.isfinite(row).all()
