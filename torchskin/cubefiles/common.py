@@ -201,3 +201,19 @@ def iter_row_tiles(H: int, tile_rows: int) -> Iterator[tuple[int, int]]:
     """(r0, r1) row ranges of ``tile_rows`` rows covering ``0..H``."""
     for r0 in range(0, H, tile_rows):
         yield r0, min(r0 + tile_rows, H)
+
+
+class MappedOutput:
+    """A file written through a memory map ``_mm`` inside an atomic-write context ``_ctx`` (a temporary name,
+    renamed on success): ``abort`` drops the map and removes the temporary file, leaving the target as it was."""
+
+    _mm: Any
+    _ctx: Any
+
+    def abort(self, exc: BaseException | None = None) -> None:
+        """Remove the temporary file (the target stays as it was)."""
+        with contextlib.suppress(AttributeError):
+            del self._mm
+        e = exc or RuntimeError("aborted")
+        with contextlib.suppress(BaseException):
+            self._ctx.__exit__(type(e), e, e.__traceback__)

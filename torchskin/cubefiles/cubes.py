@@ -17,7 +17,16 @@ from ..io import (
     bands_sidecar_text,
     sidecar_path,
 )
-from .common import CUBE_SUFFIXES, ENVI_DATA_SUFFIXES, QUANTITY_UNITS, CubeFile, _need, cube_format, release_pages
+from .common import (
+    CUBE_SUFFIXES,
+    ENVI_DATA_SUFFIXES,
+    QUANTITY_UNITS,
+    CubeFile,
+    MappedOutput,
+    _need,
+    cube_format,
+    release_pages,
+)
 from .envi import _open_envi, envi_header_text
 from .npy import _open_npy
 from .tiff import _open_tiff, tiff_extratags
@@ -41,7 +50,7 @@ def open_cube(path: StrPath, option: str = "--cube", max_megapixels: float = MAX
     return _open_tiff(p, option, max_megapixels, need_wavelengths)
 
 
-class CubeWriter:
+class CubeWriter(MappedOutput):
     """A float32 (or ``dtype``: ENVI masks are uint8) (bands, H, W) cube written rows by rows (``write_rows``) into a memory-mapped temporary file in
     ``fmt`` ("npy": + the sidecar; "envi": ``.hdr`` + ``.img``; "tiff"), renamed onto ``path`` by ``close()``;
     ``abort()`` (or an exception inside ``with``) removes it and leaves ``path`` as it was."""
@@ -116,14 +125,6 @@ class CubeWriter:
             with contextlib.suppress(BaseException):
                 self._ctx.__exit__(type(e), e, e.__traceback__)
             raise
-
-    def abort(self, exc: BaseException | None = None) -> None:
-        """Remove the temporary file (the target stays as it was)."""
-        with contextlib.suppress(AttributeError):
-            del self._mm
-        e = exc or RuntimeError("aborted")
-        with contextlib.suppress(BaseException):
-            self._ctx.__exit__(type(e), e, e.__traceback__)
 
     def __enter__(self) -> CubeWriter:
         return self

@@ -15,7 +15,7 @@ from ..io import (
     StrPath,
     atomic_path,
 )
-from .common import _need, release_pages
+from .common import MappedOutput, _need, release_pages
 from .tiff import tiff_extratags
 
 
@@ -57,7 +57,7 @@ class PngRows:
             self._ctx.__exit__(type(e), e, e.__traceback__)
 
 
-class TiffMaskRows:
+class TiffMaskRows(MappedOutput):
     """A uint8 (H, W) mask GeoTIFF (skin 255) with ``geotags``, written rows by rows into a memory-mapped
     temporary file, renamed on ``close()``."""
 
@@ -83,13 +83,6 @@ class TiffMaskRows:
         self._mm.flush()
         del self._mm
         self._ctx.__exit__(None, None, None)
-
-    def abort(self, exc: BaseException | None = None) -> None:
-        with contextlib.suppress(AttributeError):
-            del self._mm
-        e = exc or RuntimeError("aborted")
-        with contextlib.suppress(BaseException):
-            self._ctx.__exit__(type(e), e, e.__traceback__)
 
 
 def read_png_gray(path: StrPath) -> np.ndarray:
