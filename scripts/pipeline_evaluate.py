@@ -4,7 +4,7 @@
 
     python scripts/pipeline_evaluate.py [--work out/pipeline]
 
-Each WORK/<model>.pt is first calibrated on the held-out set (evaluation.calibrate_to_budget: one scalar per model,
+Each model of the pipeline (``registry.pipeline_runs``), WORK/<model>.pt, is first calibrated on the held-out set (evaluation.calibrate_to_budget: one scalar per model,
 the box scale or the classifier's threshold, so that held-out scene non-skin Pfa <= 1e-4 and earthlib test Pfa
 <= 1e-3) from the trained WORK/<model>.trained.pt; the calibration is recorded in the checkpoint's metadata. Writes WORK/evaluation.json (every model: Pd sunlit / glint-affected / shadowed, Pfa earthlib test and scene
 non-skin by family, decision-region areas, per-bin figures), WORK/plots/{roc,pd_heatmap,boxes,comparison}.png
@@ -16,16 +16,16 @@ import sys
 from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.detectors import registry
 from torchskin.evaluation import calibrate_to_budget, select_detector
 from torchskin.io import write_text
-
-MODELS = ("boundaries.pt", "baseline_box.pt", "classifier.pt")
 
 
 def run(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", default="out/pipeline")
     a = ap.parse_args(argv)
+    MODELS = [r.checkpoint for r in registry.pipeline_runs()]
     for m in MODELS:
         trained = Path(a.work) / m.replace(".pt", ".trained.pt")  # pipeline_train's output
         rec = calibrate_to_budget(trained, f"{a.work}/heldout", Path(a.work) / m)

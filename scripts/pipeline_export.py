@@ -3,8 +3,9 @@
 
     python scripts/pipeline_export.py [--work out/pipeline] [--exports exports]
 
-Writes boundaries.onnx (WORK/boundaries.pt), baseline_box.onnx (WORK/baseline_box.pt) and detector.onnx (the
-checkpoint chosen in step 3, WORK/selection.json) with model cards quoting the held-out comparison; keeps the
+Writes detector.onnx (the checkpoint chosen in step 3, WORK/selection.json) and the pipeline models' exports
+(``registry.pipeline_runs``' ``export_flag``: boundaries.onnx from WORK/boundaries.pt, baseline_box.onnx from
+WORK/baseline_box.pt) with model cards quoting the held-out comparison; keeps the
 checkpoints, the held-out evaluation and its plots beside them; evaluates the three ONNX files on WORK/test (a
 seed used for nothing else) into evaluation_test.json and comparison_test.png; and draws thesis_frame.png (the
 exported detector on the thesis geometry, against the static box)."""
@@ -16,9 +17,12 @@ import sys
 from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.detectors import registry
 from torchskin.io import atomic_path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: the graph `torchskin export` writes for each of its checkpoint flags (a pipeline run's ``export_flag``)
+EXPORTED = {"--model": "boundaries.onnx", "--baseline": "baseline_box.onnx"}
 
 
 def run(argv=None) -> int:
@@ -30,19 +34,20 @@ def run(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     sel = json.loads((work / "selection.json").read_text())
     print(f"[export] to {out}; detector.onnx from {sel['detector']}", flush=True)
-    rc = main(["export", "--model", str(work / "boundaries.pt"), "--baseline", str(work / "baseline_box.pt"),
-               "--detector", str(work / sel["detector"]), "--detector-reason", sel["reason"], "--out", str(out),
+    runs = registry.pipeline_runs()
+    flags = [x for r in runs if r.export_flag for x in (r.export_flag, str(work / r.checkpoint))]
+    rc = main(["export", *flags, "--detector", str(work / sel["detector"]), "--detector-reason", sel["reason"], "--out", str(out),
                "--metrics", str(work / "evaluation.json")])
     if rc:
         return rc
-    copies = [(work / f, out / f) for f in ("boundaries.pt", "baseline_box.pt", "classifier.pt", "evaluation.json",
-                                             "selection.json")]
+    copies = [(work / f, out / f) for f in (*(r.checkpoint for r in runs), "evaluation.json", "selection.json")]
     copies += [(work / "plots" / f, out / f) for f in ("roc.png", "pd_heatmap.png", "boxes.png", "comparison.png")]
     for src, dst in copies:
         with atomic_path(dst) as tmp:
             shutil.copyfile(src, tmp)
     print("[export] the exports on the fresh test set (seed 3)", flush=True)
-    models = [x for m in ("boundaries.onnx", "baseline_box.onnx", "detector.onnx") for x in ("--model", str(out / m))]
+    exported = [EXPORTED[r.export_flag] for r in runs if r.export_flag in EXPORTED]
+    models = [x for m in (*exported, "detector.onnx") for x in ("--model", str(out / m))]
     rc = main(["evaluate", "--data", str(work / "test"), *models, "--save", str(work / "evaluation_test.json"),
                "--plots", str(work / "plots_test")])
     if rc:

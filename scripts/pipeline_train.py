@@ -3,19 +3,17 @@
 
     python scripts/pipeline_train.py [--work out/pipeline] [--steps 1000]
 
-Writes WORK/boundaries.trained.pt (configuration-dependent coverage boxes of sunlit and shadowed skin with a
-learned visible/NIR rule, earthlib train spectra kept 0.03 outside at Pfa <= 1e-3 and the dataset's own non-skin
-pixels at <= 1e-4: `torchskin train` defaults), WORK/baseline_box.trained.pt (the same training with one box for
-every configuration: --hidden 0) and WORK/classifier.trained.pt (a configuration-conditioned MLP on band
-ratios, thresholded at the same budgets); step 3 calibrates them on the held-out set."""
+Writes WORK/<name>.trained.pt for each model the registered detector kinds contribute to the pipeline
+(``registry.pipeline_runs``: the name and its `torchskin train` arguments, the command's defaults otherwise,
+including the false-alarm budgets: earthlib train spectra Pfa <= 1e-3, the dataset's own non-skin pixels
+<= 1e-4); step 3 calibrates them on the held-out set. Today: boundaries (configuration-dependent boxes),
+baseline_box (one box for every configuration) and classifier (an MLP on band ratios)."""
 
 import argparse
 import sys
 
 from torchskin.cli import main
-
-#: extra box training options of the shipped models (none: the defaults of `torchskin train`)
-BOX_OPTIONS: list[str] = []
+from torchskin.detectors import registry
 
 
 def run(argv=None) -> int:
@@ -24,10 +22,9 @@ def run(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=1000)
     a = ap.parse_args(argv)
     common = ["--data", f"{a.work}/train", "--steps", str(a.steps)]
-    for name, extra in (("boundaries", BOX_OPTIONS), ("baseline_box", [*BOX_OPTIONS, "--hidden", "0"]),
-                        ("classifier", ["--method", "classifier"])):
-        print(f"[train] {name}", flush=True)
-        rc = main(["train", *common, "--out", f"{a.work}/{name}.trained.pt", *extra])
+    for r in registry.pipeline_runs():
+        print(f"[train] {r.name}", flush=True)
+        rc = main(["train", *common, "--out", f"{a.work}/{r.name}.trained.pt", *r.args])
         if rc:
             return rc
     return 0

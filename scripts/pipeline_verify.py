@@ -4,7 +4,7 @@
     python scripts/pipeline_verify.py [--exports exports]
 
 Checks: onnx.checker and metadata (bands, features, domain, box order, skin surface model, manifest hash,
-version) of boundaries.onnx, baseline_box.onnx and detector.onnx; the two box exports equal their checkpoints to
+version) of detector.onnx and the box exports (boundaries.onnx, baseline_box.onnx); the box exports equal their checkpoints to
 1e-5 over the training domain; detector.onnx run by the torch-free onboard runtime equals the torch reference of
 the checkpoint it was made from (scores to 1e-5, masks except on a boundary) on a rendered-like cube; on the
 thesis geometry (render, onboard ELM from the panels, detector) the shipped detector keeps > 90 % of the
@@ -19,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-FILES = ("boundaries.pt", "baseline_box.pt", "classifier.pt", "boundaries.onnx", "baseline_box.onnx", "detector.onnx",
-         "boundaries.md", "baseline_box.md", "detector.md", "evaluation.json", "evaluation_test.json", "selection.json")
+#: the exports every pipeline writes, beside each pipeline model's checkpoint (``registry.pipeline_runs``)
+FILES = ("detector.onnx", "detector.md", "evaluation.json", "evaluation_test.json", "selection.json")
+#: the box graphs ``torchskin export`` writes from a pipeline run's ``export_flag``
+BOX_EXPORTS = {"--model": "boundaries", "--baseline": "baseline_box"}
 
 
 #: Pd figures of the fresh test set (every model: sunlit, mean over configurations, sun >= 60°, shadowed, all
@@ -70,12 +72,14 @@ def run(argv=None) -> int:
 
     from torchskin import tissue
     from torchskin.bands import BandSet
-    from torchskin.detectors import boxes as Bx
     from torchskin.detectors import registry
     from torchskin.onboard import OnboardBoxes, OnboardDetector
 
     out = Path(a.exports)
-    missing = [f for f in FILES if not (out / f).is_file()]
+    runs = registry.pipeline_runs()
+    box_names = [BOX_EXPORTS[r.export_flag] for r in runs if r.export_flag in BOX_EXPORTS]
+    files = (*FILES, *(r.checkpoint for r in runs), *(f"{n}.{x}" for n in box_names for x in ("onnx", "md")))
+    missing = [f for f in files if not (out / f).is_file()]
     if missing:
         print(f"[verify] FAIL {out} lacks {', '.join(missing)} (scripts/pipeline_export.py writes them)")
         return 1
@@ -86,7 +90,7 @@ def run(argv=None) -> int:
         if not ok:
             failures.append(what)
 
-    for name in ("boundaries", "baseline_box", "detector"):
+    for name in (*box_names, "detector"):
         m = onnx.load(str(out / f"{name}.onnx"))
         onnx.checker.check_model(m, full_check=True)
         meta = {p.key: p.value for p in m.metadata_props}
@@ -97,13 +101,12 @@ def run(argv=None) -> int:
               and list(BandSet.from_json(meta["bands"]).centers) == json.loads(meta["bands_nm"]),
               f"{name}.onnx: checker, opset >= 17, metadata (kind {meta.get('kind')!r}, band set, skin surface model "
               f"{meta.get('skin_surface_model')!r})")
-    model = Bx.load(out / "boundaries.pt")
-    lo, hi = model.domain[:, 0], model.domain[:, 1]
-    cfg = lo + (hi - lo) * torch.rand(4096, len(model.features), generator=torch.Generator().manual_seed(0))
-    for name in ("boundaries", "baseline_box"):
-        m = Bx.load(out / f"{name}.pt")
+    for name in box_names:
+        box_model = registry.load(out / f"{name}.pt")[0]
+        lo, hi = box_model.domain[:, 0], box_model.domain[:, 1]
+        cfg = lo + (hi - lo) * torch.rand(4096, len(box_model.features), generator=torch.Generator().manual_seed(0))
         with torch.no_grad():
-            ref = m(cfg).numpy()
+            ref = registry.boxes_of(box_model)(cfg).numpy()
         got = OnboardBoxes(out / f"{name}.onnx")(cfg.numpy())
         err = float(np.abs(got["boxes"] - ref).max())
         check(err < 1e-5 and not got["out_of_domain"].any(), f"{name}.onnx vs {name}.pt: max |diff| {err:.1e}")
@@ -139,8 +142,7 @@ def run(argv=None) -> int:
     ev = json.loads((out / "evaluation.json").read_text())
     det_entry = next(m for m in ev["models"] if m["name"] == sel["detector"])
     card = (out / "detector.md").read_text()
-    check(f"{det_entry['overall']['pd_sunlit']:.3f}" in card and sel["detector"] in card
-          and (out / "boundaries.md").is_file() and (out / "baseline_box.md").is_file(),
+    check(f"{det_entry['overall']['pd_sunlit']:.3f}" in card and sel["detector"] in card,
           "model cards quote the held-out evaluation")
     test = json.loads((out / "evaluation_test.json").read_text())
     for m in test["models"]:

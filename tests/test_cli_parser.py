@@ -152,3 +152,14 @@ def test_python_dash_m_runs_the_command_line():
     r = subprocess.run([sys.executable, "-m", "torchskin.cli", "calibrate", "--help"], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.startswith("usage: torchskin calibrate"), r.stderr
+
+
+def test_dataset_verify_imports_neither_torch_nor_the_renderer(tiny_dataset):
+    """``torchskin dataset verify`` reads the folder's files only: its parser alone is built (``build_parser(only=)``),
+    and a good dataset verifies (status 0) with no torch, open3d or ``torchskin.render`` in the process."""
+    script = ("import sys; from torchskin.cli import main; rc = main(['dataset', 'verify', sys.argv[1]]); "
+              "heavy = [m for m in ('torch', 'open3d', 'torchskin.render', 'torchskin.detectors') if m in sys.modules]; "
+              "assert not heavy, heavy; sys.exit(rc)")
+    r = subprocess.run([sys.executable, "-c", script, str(tiny_dataset)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "ok" in r.stdout.lower()

@@ -74,14 +74,21 @@ def test_a_five_band_set_end_to_end_through_read_rows(five):
 
 
 @pytest.mark.parametrize("command", [["train", "--method", "boxes"], ["train", "--method", "classifier"],
-                                     ["evaluate", "--model", "none.pt"]])
-def test_a_kind_refuses_a_dataset_without_its_bands_in_one_line(five, tmp_path, capsys, command):
+                                     ["evaluate", "--model", "MODEL"], ["evaluate", "--model", "static"]])
+def test_a_kind_refuses_a_dataset_without_its_bands_in_one_line(five, tmp_path, tmp_path_factory, capsys, command):
+    from torchskin.detectors import registry
+    from torchskin.detectors.boxes import BoxModel
+
+    model = tmp_path_factory.mktemp("model") / "untrained.pt"
+    registry.save(BoxModel(), model)  # a boxes checkpoint: its kind's required_bands are the index bands
     out = tmp_path / "model.pt"
-    args = [command[0], "--data", str(five), *command[1:]] + (["--out", str(out)] if command[0] == "train" else [])
+    args = [command[0], "--data", str(five), *[str(model) if a == "MODEL" else a for a in command[1:]]]
+    args += ["--out", str(out)] if command[0] == "train" else ["--save", str(tmp_path / "e.json")]
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith(f"torchskin {command[0]}: error: dataset {str(five)!r} lacks the 1580 nm")
-    assert "(its bands: 500, 544, 633, 1080, 1300 nm)" in err
+    who = {"MODEL": "--model untrained.pt", "static": "the static thesis box"}.get(command[-1], f"--method {command[-1]}")
+    assert f"band that {who} needs (its bands: 500, 544, 633, 1080, 1300 nm)" in err
     assert list(tmp_path.iterdir()) == []  # wrote nothing
 
 

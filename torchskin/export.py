@@ -13,9 +13,8 @@ from typing import TYPE_CHECKING
 
 from . import __version__
 from .bands import INDEX_BANDS, BandSet
-from .detectors.boxes import BOX_ORDER
 from .detectors.features import FEATURE_UNITS
-from .detectors.protocol import BoxDetectorModel, DetectorModel
+from .detectors.protocol import BOX_ORDER, BoxDetectorModel, DetectorModel
 from .io import atomic_path
 
 if TYPE_CHECKING:

@@ -12,8 +12,6 @@ from .options import add_json
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..bands import INDEX_BANDS_NM
-    from ..dataset.files import require_bands
     from ..evaluation import evaluate, table, write_figures
     from ..io import write_text
 
@@ -21,9 +19,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         check_output_folder(args.plots, "--plots")
     if args.save:
         check_output_file(args.save, "--save", (".json",))
-    # the static thesis box every evaluation compares against reads NDGRI and NDSI: the index bands (the built-in
-    # kinds' required_bands, registry.required_bands), checked before anything is read or written
-    require_bands(args.data, INDEX_BANDS_NM, "evaluate (the thesis box, NDGRI and NDSI)")
     res = evaluate(args.data, args.model)  # complete: provenance and warnings included
     for w in res.get("warnings", ()):  # a model of another world: said, not refused
         print(f"torchskin evaluate: warning: {w}", file=sys.stderr)

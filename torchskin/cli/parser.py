@@ -24,21 +24,26 @@ DESCRIPTION = ("Physics-based multispectral skin toolkit. Errors print one line 
                "failure); --debug (anywhere on the command line) shows the traceback instead.")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The complete parser, every command's options included (``detect`` and ``calibrate`` too, from their
-    torch-free modules; the other commands' modules import torch)."""
+    torch-free modules; most other commands' modules import torch), or, with ``only`` (a name of ``COMMANDS``),
+    the parser of that one command: only its module is imported (``torchskin dataset verify`` imports neither
+    torch nor the renderer)."""
     ap = Parser(prog="torchskin", description=DESCRIPTION)
     ap.add_argument("--version", action="version", version=f"torchskin {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
-    for _, module in COMMANDS:
-        importlib.import_module(f"{__package__}.{module}").add_parser(sub)
+    for name, module in COMMANDS:
+        if only is None or name == only:
+            importlib.import_module(f"{__package__}.{module}").add_parser(sub)
     return ap
 
 
 def run(argv: list[str]) -> int:
-    """Parse ``argv`` with the whole parser and run the command's handler; errors propagate to
-    ``torchskin.cli.main`` (``errors.run_command``)."""
-    args = build_parser().parse_args(argv)
+    """Parse ``argv`` and run the command's handler; errors propagate to ``torchskin.cli.main``
+    (``errors.run_command``). A line that starts with a command's name is parsed by that command's parser alone
+    (``build_parser(only=...)``); anything else (``--help``, an unknown command) by the whole parser."""
+    name = argv[0] if argv else ""
+    args = build_parser(name if name in dict(COMMANDS) else None).parse_args(argv)
     return int(args.func(args))
 
 

@@ -1,5 +1,5 @@
-"""``torchskin train``: configuration-dependent rules boxes (or a classifier) learned from a generated dataset,
-tuned to a false-alarm budget on the earthlib train spectra."""
+"""``torchskin train``: a detector of any registered kind (``--method``) learned from a generated dataset, tuned
+to a false-alarm budget on the earthlib train spectra."""
 
 from __future__ import annotations
 
@@ -80,8 +80,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     from ..detectors import registry  # imports torch: train is not one of the torch-free commands
 
     tp = sub.add_parser("train", help="learn configuration-dependent boundaries from a generated dataset",
-                        description="Learn configuration-dependent rules boxes (or a classifier) from a generated "
-                                    "dataset, tuned to a false-alarm budget on the earthlib train spectra.")
+                        description="Learn a configuration-dependent skin detector (--method: its kind) from a "
+                                    "generated dataset, tuned to a false-alarm budget on the earthlib train spectra.")
     tp.add_argument("--data", required=True, help="dataset folder (torchskin generate)")
     add_out_file(tp, "the checkpoint (.pt)")
     tp.add_argument("--method", choices=registry.methods(), default=registry.methods()[0],

@@ -50,7 +50,7 @@ from .features import (
     tuning_configs,
 )
 from .graphs import torch_detector_graph
-from .protocol import write_checkpoint
+from .protocol import PipelineRun, write_checkpoint
 
 if TYPE_CHECKING:
     import onnx
@@ -94,6 +94,8 @@ class SkinClassifier(nn.Module):
     onboard_selectable: ClassVar[bool] = False
     #: the model card's words for its ``detector.onnx`` score
     card_score: ClassVar[str] = "the classifier: its logit minus the calibrated threshold"
+    #: ``make demo`` trains, calibrates and compares one classifier
+    pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("classifier", ("--method", "classifier")),)
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor

@@ -24,7 +24,9 @@ What a kind contributes to the command line and the exports, class attributes wi
   (box edge forms) or "generic" (default: any graph, per tile);
 - ``onboard_selectable``: whether its detector graph meets the onboard budget, so that
   ``evaluation.select_detector`` may ship it as ``detector.onnx`` (default False);
-- ``card_score``: the model card's words for its ``detector.onnx`` score (default: none).
+- ``card_score``: the model card's words for its ``detector.onnx`` score (default: none);
+- ``pipeline_runs``: the models of it that ``make demo``'s pipeline trains, calibrates and compares
+  (``PipelineRun``; default: none).
 
 Everything else is optional, and found on the class when it is there:
 
@@ -46,6 +48,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import torch
+
+from ..detect import rules_detector
 
 if TYPE_CHECKING:
     import onnx
@@ -86,7 +90,7 @@ class DetectorModel(Protocol):
 @runtime_checkable
 class BoxDetectorModel(DetectorModel, Protocol):
     """A kind whose decision region is a box per configuration: ``boxes(config)`` (n, k) -> (n, 4 or 5),
-    (b1, b2, c1, c2[, d1]) (``boxes.BOX_ORDER``). ``torchskin.evaluation`` measures its false alarms and areas on
+    (b1, b2, c1, c2[, d1]) (``BOX_ORDER``). ``torchskin.evaluation`` measures its false alarms and areas on
     the boxes, draws its ROC by scaling them, and ``torchskin export`` writes them as ``boundaries.onnx``."""
 
     def boxes(self, config: torch.Tensor) -> torch.Tensor:
@@ -96,6 +100,46 @@ class BoxDetectorModel(DetectorModel, Protocol):
     def boundaries_graph(self, meta: dict[str, str]) -> onnx.ModelProto:
         """The ONNX graph config (N, k) -> boxes (N, 5), with ``meta`` as its metadata."""
         ...
+
+
+#: the columns of a box of a ``BoxDetectorModel``: NDGRI min, NDGRI max, NDSI min, NDSI max, NDVN min
+BOX_ORDER = ("b1_ndgri_min", "b2_ndgri_max", "c1_ndsi_min", "c2_ndsi_max", "d1_ndvn_min")
+
+
+def inside_box(boxes: torch.Tensor, g: torch.Tensor, s: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
+    """The rules detector (eq 2.5.10 with a box per configuration): whether (NDGRI, NDSI) = (``g``, ``s``) lies in
+    the box, b1 <= g <= b2 and c1 <= s <= c2 (edges included), and, with ``v`` (NDVN) and a fifth column,
+    NDVN >= d1. The box test itself is ``detect.rules_detector``'s (the onboard runtime's is the exported
+    detector graph).
+
+    Args:
+        boxes: (b1, b2, c1, c2[, d1]) on axis 1 (``BOX_ORDER``).
+        g, s: NDGRI and NDSI.
+        v: NDVN (None: the fifth rule is not applied).
+
+    Shape:
+        boxes: (N, 4 or 5, ...); g, s, v and the result: broadcast with ``boxes[:, 0]``, e.g. (N, ...).
+
+    Returns:
+        A bool tensor, True inside.
+
+    >>> boxes = torch.tensor([[-0.5, 0.0, 0.3, 0.9, -0.4]])
+    >>> inside_box(boxes, torch.tensor([-0.3, 0.2]), torch.tensor([0.6, 0.6]))
+    tensor([ True, False])
+    >>> inside_box(boxes, torch.tensor([-0.3]), torch.tensor([0.6]), torch.tensor([-0.6]))
+    tensor([False])
+    """
+    ok = rules_detector(g, s, torch.movedim(boxes[:, :4], 1, -1))  # eq 2.5.10's test, the box on the last axis
+    if v is not None and boxes.shape[1] > 4:
+        ok = ok & (v >= boxes[:, 4])
+    return ok
+
+
+def false_alarm_rate(boxes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Per box (N, 4 or 5): the fraction of ``points`` (n, 2 or 3: NDGRI, NDSI[, NDVN]) inside it."""
+    v = points[:, 2][None] if points.shape[1] > 2 else None
+    return inside_box(boxes[:, :, None], points[:, 0][None], points[:, 1][None], v).float().mean(-1)
+
 
 
 @dataclass(frozen=True)
@@ -125,6 +169,28 @@ class KindOption:
     def cli_flag(self) -> str:
         """The ``torchskin train`` flag of the option."""
         return self.flag or "--" + self.name.replace("_", "-")
+
+
+@dataclass(frozen=True)
+class PipelineRun:
+    """One model a kind contributes to ``make demo``'s pipeline (its ``pipeline_runs``; ``registry.pipeline_runs``
+    lists them all): ``scripts/pipeline_train.py`` writes ``WORK/<name>.trained.pt`` with ``torchskin train
+    <args>``, ``pipeline_evaluate.py`` calibrates it to ``WORK/<name>.pt`` and compares it, and
+    ``pipeline_export.py`` keeps the checkpoint and, with ``export_flag``, hands it to ``torchskin export`` by that
+    flag (``--model``: ``boundaries.onnx``; ``--baseline``: ``baseline_box.onnx``).
+
+    >>> PipelineRun("tiny", ("--method", "tiny")).checkpoint
+    'tiny.pt'
+    """
+
+    name: str
+    args: tuple[str, ...]
+    export_flag: str | None = None
+
+    @property
+    def checkpoint(self) -> str:
+        """The calibrated checkpoint's file name in the pipeline's work folder."""
+        return f"{self.name}.pt"
 
 
 @dataclass(frozen=True)
@@ -194,4 +260,5 @@ def write_checkpoint(model: DetectorModel, path: str | os.PathLike, meta: dict |
     save_torch(path, {"kind": model.kind, **model.checkpoint(meta or {})})
 
 
-__all__ = ["BoxDetectorModel", "CalibrationData", "DetectorModel", "KindOption", "TrainRequest", "write_checkpoint"]
+__all__ = ["BOX_ORDER", "BoxDetectorModel", "CalibrationData", "DetectorModel", "KindOption", "PipelineRun", "TrainRequest",
+           "false_alarm_rate", "inside_box", "write_checkpoint"]

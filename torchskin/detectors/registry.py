@@ -43,7 +43,7 @@ from ..bands import INDEX_BANDS_NM
 from ..dataset.files import require_bands
 from .boxes import BoxModel
 from .classifier import SkinClassifier
-from .protocol import BoxDetectorModel, DetectorModel, KindOption, TrainRequest, write_checkpoint
+from .protocol import BoxDetectorModel, DetectorModel, KindOption, PipelineRun, TrainRequest, write_checkpoint
 
 #: the kind of a checkpoint without a ``kind`` key: box checkpoints were written without one
 LEGACY_KIND = "boxes"
@@ -134,6 +134,16 @@ def card_scores() -> tuple[str, ...]:
     order."""
     words = (getattr(c, "card_score", None) for c in _KINDS.values())
     return tuple(str(w) for w in words if w)
+
+
+def pipeline_runs() -> tuple[PipelineRun, ...]:
+    """The models ``make demo``'s pipeline trains, calibrates, compares and exports: every registered kind's
+    ``pipeline_runs``, in registration order (the order of ``evaluation.json``).
+
+    >>> [r.name for r in pipeline_runs()]
+    ['boundaries', 'baseline_box', 'classifier']
+    """
+    return tuple(r for c in _KINDS.values() for r in getattr(c, "pipeline_runs", ()))
 
 
 def unregister(kind: str) -> None:
@@ -251,4 +261,5 @@ register(cast(type[DetectorModel], SkinClassifier))
 
 __all__ = ["COMMON_FLAGS", "LEGACY_KIND", "ONBOARD_HEADS", "box_kinds", "boxes_of", "card_scores", "get",
            "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint", "method_help", "methods", "onboard_head",
-           "onboard_kinds", "option_kinds", "options", "register", "required_bands", "save", "train", "unregister"]
+           "onboard_kinds", "option_kinds", "options", "pipeline_runs", "register", "required_bands", "save", "train",
+           "unregister"]

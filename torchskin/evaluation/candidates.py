@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -12,11 +13,11 @@ from typing import cast
 import numpy as np
 import torch
 
+from ..bands import INDEX_BANDS_NM, BandSet
 from ..detect import DEFAULT_BOX
 from ..detectors import registry
-from ..detectors.boxes import inside_box
 from ..detectors.features import FEATURES, ratio_indices
-from ..detectors.protocol import DetectorModel
+from ..detectors.protocol import DetectorModel, inside_box
 
 #: one model path or several (``load_candidate``)
 ModelPaths = str | os.PathLike | Sequence[str | os.PathLike]
@@ -25,7 +26,8 @@ ModelPaths = str | os.PathLike | Sequence[str | os.PathLike]
 @dataclass
 class Candidate:
     """A detector under evaluation: ``decide(R (n, 4), X (n, k)) -> (n,) bool`` on ELM reflectance at 544, 633,
-    1080, 1580 nm and configuration features; ``boxes(X) -> (n, 4)`` for box models (None otherwise)."""
+    1080, 1580 nm and configuration features; ``boxes(X) -> (n, 4)`` for box models (None otherwise); ``bands``,
+    the band centres (nm) a dataset must hold for it (a kind's ``required_bands``, a graph's metadata)."""
 
     name: str
     kind: str  # "static", "detector" (a detector.onnx), or the kind of a checkpoint or of a boundaries.onnx
@@ -34,6 +36,7 @@ class Candidate:
     boxes: Callable | None = None
     path: str = ""
     meta: dict = field(default_factory=dict)
+    bands: tuple[float, ...] = INDEX_BANDS_NM
 
 
 def _box_decide(boxes_of):
@@ -71,11 +74,12 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
         if "cube" in model_inputs(p):
             d = OnboardDetector(p)
             decide = lambda R, X: torch.from_numpy(d.pixels(R.numpy(), X.numpy())["mask"])  # noqa: E731
-            return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta))
+            return Candidate(name, "detector", list(d.features), decide, None, p, dict(d.meta), graph_bands(d.meta))
         b = OnboardBoxes(p)
         boxes_of = lambda X: torch.from_numpy(b(np.asarray(X, dtype=np.float32))["boxes"])  # noqa: E731
         kind = b.meta.get("kind", registry.LEGACY_KIND)  # exports before graphs recorded their kind: boxes
-        return Candidate(name, kind, list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta))
+        return Candidate(name, kind, list(b.features), _box_decide(boxes_of), boxes_of, p, dict(b.meta),
+                         graph_bands(b.meta))
     model, ck = registry.load(p)
     return model_candidate(model, name, p, ck.get("meta", {}))
 
@@ -84,7 +88,19 @@ def model_candidate(model: DetectorModel, name: str, path: str = "", meta: dict 
     """A candidate of a detector model of any registered kind (``detectors.registry``): its ``decide`` and, for a
     box kind, its ``boxes``."""
     return Candidate(name, registry.kind_of(model), list(model.features), model.decide, registry.boxes_of(model),
-                     path, meta or {})
+                     path, meta or {}, registry.required_bands(type(model)))
+
+
+def graph_bands(meta: dict) -> tuple[float, ...]:
+    """The band centres (nm) of an exported graph's metadata: its band set (``bands``), else ``bands_nm``, else
+    the index bands (exports before graphs recorded their bands).
+
+    >>> graph_bands({"bands_nm": "[544.0, 633.0, 1080.0, 1580.0]"})
+    (544.0, 633.0, 1080.0, 1580.0)
+    """
+    if "bands" in meta:
+        return tuple(BandSet.from_json(meta["bands"]).centers)
+    return tuple(float(w) for w in json.loads(meta["bands_nm"])) if "bands_nm" in meta else INDEX_BANDS_NM
 
 
 def load_candidates(model_paths: ModelPaths) -> list[Candidate]:

@@ -8,6 +8,7 @@ import os
 from collections.abc import Sequence
 
 from ..angles import BACKLIT_MIN_DEG
+from ..dataset.files import require_bands
 from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
 from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
 from .provenance import provenance, render_revision
@@ -53,6 +54,8 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     cands = load_candidates(model_paths)
     features = cands[0].features
     cands.append(static_candidate())
+    for c in cands:  # each model's bands (its kind's required_bands), before any row is read
+        require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
     rows = held_out(data_dir, features)
     test_R, test_pts = earthlib_test()
     judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]

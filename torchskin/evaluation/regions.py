@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from ..bands import INDEX_BANDS_NM
-from ..detectors.boxes import false_alarm_rate, inside_box
 from ..detectors.features import ratio_indices
+from ..detectors.protocol import false_alarm_rate, inside_box
 from .candidates import Candidate
 from .metrics import HeldOut, Judged, rate
 

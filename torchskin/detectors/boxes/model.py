@@ -26,7 +26,7 @@ from ..features import (
     ratio_indices,
     tuning_configs,
 )
-from ..protocol import KindOption, write_checkpoint
+from ..protocol import KindOption, PipelineRun, write_checkpoint
 from .data import load_scene_rows, load_skin_rows
 from .fit import (
     MIN_TRAIN_COVERAGE,
@@ -87,6 +87,11 @@ class BoxModel(nn.Module):
     #: the model card's words for its ``detector.onnx`` score
     card_score: ClassVar[str] = ("box models: the smallest margin to a box edge in index units times the band-pair "
                                  "sum (g + r or n + s)")
+    #: ``make demo`` trains the boxes (exported as ``boundaries.onnx``) and one box for every configuration
+    #: (``--hidden 0``, ``baseline_box.onnx``)
+    pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (
+        PipelineRun("boundaries", ("--method", "boxes"), "--model"),
+        PipelineRun("baseline_box", ("--method", "boxes", "--hidden", "0"), "--baseline"))
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     mean: torch.Tensor
