@@ -13,16 +13,19 @@ OUT ?= out
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml Makefile
-	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
-		SUDO=""; if [ "$$(id -u)" != 0 ]; then if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO=sudo; else SUDO=none; fi; fi; \
-		if [ "$$SUDO" = none ]; then \
-			echo "warning: open3d needs the system library libusb-1.0-0; install it with: sudo apt-get install -y libusb-1.0-0"; \
-		else \
-			echo "installing libusb-1.0-0 (needed by open3d)"; \
-			($$SUDO apt-get install -y libusb-1.0-0 >/dev/null 2>&1 || ($$SUDO apt-get update >/dev/null && $$SUDO apt-get install -y libusb-1.0-0 >/dev/null)) \
-			|| echo "warning: could not install libusb-1.0-0; open3d will not import (sudo apt-get install -y libusb-1.0-0)"; \
+	@for need in "libusb-1.0:libusb-1.0-0:open3d" "libgomp.so.1:libgomp1:lightgbm (the lut detector's learner)"; do \
+		lib=$${need%%:*}; rest=$${need#*:}; pkg=$${rest%%:*}; who=$${rest#*:}; \
+		if ! ldconfig -p 2>/dev/null | grep -q "$$lib"; then \
+			SUDO=""; if [ "$$(id -u)" != 0 ]; then if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO=sudo; else SUDO=none; fi; fi; \
+			if [ "$$SUDO" = none ]; then \
+				echo "warning: $$who needs the system library $$pkg; install it with: sudo apt-get install -y $$pkg"; \
+			else \
+				echo "installing $$pkg (needed by $$who)"; \
+				($$SUDO apt-get install -y $$pkg >/dev/null 2>&1 || ($$SUDO apt-get update >/dev/null && $$SUDO apt-get install -y $$pkg >/dev/null)) \
+				|| echo "warning: could not install $$pkg; $$who will not import (sudo apt-get install -y $$pkg)"; \
+			fi; \
 		fi; \
-	fi
+	done
 	@if ! command -v g++ >/dev/null 2>&1 && ! command -v c++ >/dev/null 2>&1 && ! command -v clang++ >/dev/null 2>&1; then \
 		SUDO=""; if [ "$$(id -u)" != 0 ]; then if command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO=sudo; else SUDO=none; fi; fi; \
 		if [ "$$SUDO" = none ]; then \

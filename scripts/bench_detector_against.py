@@ -10,6 +10,7 @@ checkout with the shipped floor (the shipped model's ``min_reflectance``, ``eval
 
 - ``--graphs shipped`` (default): the detector each commit shipped (``exports/detector.onnx`` at COMMIT; this
   checkout's ``torchskin/data/detector.onnx``), the trained boxes a user runs;
+- ``--model PATH``: this checkout runs that ``detector.onnx`` (a new kind's export) against COMMIT's shipped one;
 - ``--graphs default``: each commit's export code on a default box model (``BoxModel``; ``BoundaryModel`` in
   older commits) initialised from seed 0 (an untrained model's boxes, so the share of a frame they take, and with
   it the floor's path, is chance).
@@ -43,6 +44,9 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=min(os.cpu_count() or 1, 8))
     ap.add_argument("--rounds", type=int, default=60)
     ap.add_argument("--tile", type=int, default=65536)
+    ap.add_argument("--model", default=None,
+                    help="a detector.onnx this checkout runs instead of its shipped one (e.g. a new kind's export, "
+                         "timed against COMMIT's shipped detector; its own brightness floor)")
     args = ap.parse_args()
     if not 0.0 <= args.dark <= 1.0:
         ap.error(f"--dark must be a share in [0, 1], got {args.dark}")
@@ -78,7 +82,9 @@ def main() -> int:
         from torchskin.export import export
         from torchskin.onboard import SHIPPED_DETECTOR, OnboardDetector
 
-        if args.graphs == "shipped":
+        if args.model:
+            path = args.model
+        elif args.graphs == "shipped":
             path = str(SHIPPED_DETECTOR)
         else:
             torch.manual_seed(0)
@@ -92,7 +98,7 @@ def main() -> int:
             dark = rng.random((1024, 1024)) < args.dark
             cube[0][:, dark] = rng.random((4, int(dark.sum())), dtype=np.float32) * 0.004
         cfg = np.array([[40.0, 30.0, 60.0]])
-        floor = new.default_min_reflectance if args.graphs == "shipped" else MIN_REFLECTANCE
+        floor = new.default_min_reflectance if args.graphs == "shipped" or args.model else MIN_REFLECTANCE
         runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=floor),
                 "read": lambda: float(cube.sum())}
         share = {k: float(runs[k]()["mask"].mean()) for k in ("old", "new")}
@@ -110,7 +116,8 @@ def main() -> int:
           f"this checkout {1e3 * np.median(t['new']):.2f} ms per 1 MP frame; median paired ratio "
           f"{np.median(t['new'] / t['old']):.3f}; read floor {1e3 * np.median(t['read']):.2f} ms, "
           f"this checkout / floor {np.median(t['new']) / np.median(t['read']):.2f}; {args.graphs} graphs, share "
-          f"taken {share['old']:.3f} (old), {share['new']:.3f} (new, floor {floor:g})")
+          f"taken {share['old']:.3f} (old), {share['new']:.3f} (new, floor {floor:g})"
+          + (f"; new: {args.model} ({new.head_name} head)" if args.model else ""))
     return 0
 
 

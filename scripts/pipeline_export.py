@@ -6,8 +6,10 @@
 Writes detector.onnx (the checkpoint chosen in step 3, WORK/selection.json) and the pipeline models' exports
 (``registry.pipeline_runs``' ``export_flag``: boundaries.onnx from WORK/boundaries.pt, baseline_box.onnx from
 WORK/baseline_box.pt) with model cards quoting the held-out comparison; keeps the
-checkpoints, the held-out evaluation and its plots beside them; evaluates the three ONNX files on WORK/test (a
-seed used for nothing else) into evaluation_test.json and comparison_test.png; and draws thesis_frame.png (the
+checkpoints, the held-out evaluation and its plots beside them; evaluates the ONNX files on WORK/test (a
+seed used for nothing else), with the pipeline's checkpoints that are not exported (the comparison kinds), into
+evaluation_test.json and comparison_test.png; draws a kind's figure of its decision region where it has one
+(<name>_region.png) and thesis_frame.png (the
 exported detector on the thesis geometry, against the static box)."""
 
 import argparse
@@ -47,7 +49,8 @@ def run(argv=None) -> int:
             shutil.copyfile(src, tmp)
     print("[export] the exports on the fresh test set (seed 3)", flush=True)
     exported = [EXPORTED[r.export_flag] for r in runs if r.export_flag in EXPORTED]
-    models = [x for m in (*exported, "detector.onnx") for x in ("--model", str(out / m))]
+    others = [r.checkpoint for r in runs if r.export_flag not in EXPORTED and r.checkpoint != sel["detector"]]
+    models = [x for m in (*exported, "detector.onnx", *others) for x in ("--model", str(out / m))]
     rc = main(["evaluate", "--data", str(work / "test"), *models, "--save", str(work / "evaluation_test.json"),
                "--plots", str(work / "plots_test")])
     if rc:
@@ -56,6 +59,10 @@ def run(argv=None) -> int:
                      (work / "plots_test" / "comparison.png", out / "comparison_test.png")):
         with atomic_path(dst) as tmp:
             shutil.copyfile(src, tmp)
+    for r in runs:  # a kind's own figure of its decision region, over the fresh test set
+        kind = registry.get(registry.load_checkpoint(work / r.checkpoint).get("kind", registry.LEGACY_KIND))
+        if hasattr(kind, "region_figure"):
+            kind.region_figure(work / r.checkpoint, work / "test", out / f"{r.name}_region.png")
     from torchskin.evaluation import thesis_frame
 
     thesis_frame(out / "detector.onnx", plot=out / "thesis_frame.png")  # the shipped detector on the thesis geometry

@@ -317,6 +317,32 @@ INDEX_BANDS = BandSet.of(INDEX_BANDS_NM)
 DEFAULT_BANDS: tuple[Band, ...] = INDEX_BANDS.bands
 
 
+def band_tree(n: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
+    """The internal nodes (left bands, right bands) of a balanced binary tree over bands 0..n-1, children before
+    parents (``n - 1`` nodes; ``ValueError`` for fewer than 2 bands): the normalized differences (left sum - right
+    sum) / (left sum + right sum) of its nodes describe a spectrum up to its scale (the ``lut`` detector's table
+    coordinates). For the four index bands they are NDGRI, NDSI and NDVN.
+
+    >>> band_tree(4)
+    [((0,), (1,)), ((2,), (3,)), ((0, 1), (2, 3))]
+    """
+    if n < 2:
+        raise ValueError(f"a lookup table needs at least 2 bands, got {n}")
+    nodes: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
+
+    def split(bands: tuple[int, ...]) -> None:
+        if len(bands) < 2:
+            return
+        half = len(bands) // 2
+        left, right = bands[:half], bands[half:]
+        split(left)
+        split(right)
+        nodes.append((left, right))
+
+    split(tuple(range(n)))
+    return nodes
+
+
 def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:
     """The bands of a ``--bands`` list as a tuple: ``BandSet.parse`` (``within``: its default range).
 

@@ -92,6 +92,7 @@ class SkinClassifier(nn.Module):
     #: 1) takes ~170 ms per 1024² frame, 40x the box graph: evaluated and reported, not shipped as detector.onnx
     onboard_head: ClassVar[str] = "generic"
     onboard_selectable: ClassVar[bool] = False
+    onboard_cost: ClassVar[str] = "a per-pixel MLP, ~40x the box graph's time per frame"
     #: the model card's words for its ``detector.onnx`` score
     card_score: ClassVar[str] = "the classifier: its logit minus the calibrated threshold"
     #: ``make demo`` trains, calibrates and compares one classifier

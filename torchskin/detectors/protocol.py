@@ -24,6 +24,8 @@ What a kind contributes to the command line and the exports, class attributes wi
   (box edge forms) or "generic" (default: any graph, per tile);
 - ``onboard_selectable``: whether its detector graph meets the onboard budget, so that
   ``evaluation.select_detector`` may ship it as ``detector.onnx`` (default False);
+- ``onboard_cost``: why its graph misses the onboard budget, in words, where it does (``select_detector``'s
+  reason names it);
 - ``card_score``: the model card's words for its ``detector.onnx`` score (default: none);
 - ``pipeline_runs``: the models of it that ``make demo``'s pipeline trains, calibrates and compares
   (``PipelineRun``; default: none).
@@ -37,7 +39,9 @@ Everything else is optional, and found on the class when it is there:
 - ``calibrate_to_budget(data, scene_budget, pfa_budget, iters)``: ``evaluation.calibrate_to_budget``
   (``CalibrationData``);
 - ``reference_detector()``: the torch module its ``detector.onnx`` computes;
-- ``card_use`` and ``card_false_alarms(train, f)``: the model card's words for the kind.
+- ``card_use`` and ``card_false_alarms(train, f)``: the model card's words for the kind;
+- ``region_figure(model_path, data_dir, out)``: a figure of its decision region over a dataset, which ``make demo``
+  writes as ``<name>_region.png`` beside the exports.
 """
 
 from __future__ import annotations

@@ -10,12 +10,12 @@ What a kind contributes beyond its model (``protocol``'s module docstring): its 
 ``method_help``, ``onboard_head``, ``onboard_kinds``, ``card_scores``). The command line, ``torchskin.evaluation``,
 ``torchskin.export`` and the model cards name no kind.
 
-The built-in kinds, ``boxes`` (``boxes.BoxModel``) and ``classifier`` (``classifier.SkinClassifier``), are
-registered when this module loads. A new kind is one module plus one call (``unregister`` removes it):
+The built-in kinds, ``boxes`` (``boxes.BoxModel``), ``classifier`` (``classifier.SkinClassifier``) and ``lut``
+(``lut.LookupKind``), are registered when this module loads. A new kind is one module plus one call (``unregister`` removes it):
 
 >>> from torchskin.detectors import registry
 >>> sorted(registry.kinds())
-['boxes', 'classifier']
+['boxes', 'classifier', 'lut']
 >>> registry.kind_for_method("quantiles").kind
 'boxes'
 >>> [o.cli_flag for o in registry.options(registry.get("boxes"))][-1], registry.onboard_kinds()
@@ -43,6 +43,7 @@ from ..bands import INDEX_BANDS_NM
 from ..dataset.files import require_bands
 from .boxes import BoxModel
 from .classifier import SkinClassifier
+from .lut import LookupKind
 from .protocol import BoxDetectorModel, DetectorModel, KindOption, PipelineRun, TrainRequest, write_checkpoint
 
 #: the kind of a checkpoint without a ``kind`` key: box checkpoints were written without one
@@ -93,7 +94,7 @@ def register(cls: type[DetectorModel], replace: bool = False) -> type[DetectorMo
 
 
 #: the onboard runtime's heads (``onboard.detector_head``): a kind's ``onboard_head`` is one of them
-ONBOARD_HEADS = ("boxes", "generic")
+ONBOARD_HEADS = ("boxes", "generic", "lut")
 #: the flags ``torchskin train`` has for every kind (a kind's options may not take them)
 COMMON_FLAGS = ("--data", "--out", "--method", "--steps", "--hidden", "--seed", "--pfa-budget", "--scene-budget",
                 "--no-scene", "--sunlit-only", "--frames", "--json", "--help", "-h")
@@ -124,6 +125,18 @@ def onboard_kinds() -> tuple[str, ...]:
     return tuple(k for k, c in _KINDS.items() if getattr(c, "onboard_selectable", False))
 
 
+def onboard_cost(kind: str) -> str:
+    """A kind's words for why its detector graph misses the onboard budget (its ``onboard_cost``; a kind that
+    meets it, or an unknown kind, says so plainly).
+
+    >>> onboard_cost("classifier")
+    "a per-pixel MLP, ~40x the box graph's time per frame"
+    """
+    cls = _KINDS.get(kind)
+    return str(getattr(cls, "onboard_cost", "slower than the onboard budget")) if cls is not None else \
+        "not a registered kind"
+
+
 def box_kinds() -> tuple[str, ...]:
     """The kinds that decide by a box per configuration (``protocol.BoxDetectorModel``), in registration order."""
     return tuple(k for k, c in _KINDS.items() if hasattr(c, "boxes") and hasattr(c, "boundaries_graph"))
@@ -141,7 +154,7 @@ def pipeline_runs() -> tuple[PipelineRun, ...]:
     ``pipeline_runs``, in registration order (the order of ``evaluation.json``).
 
     >>> [r.name for r in pipeline_runs()]
-    ['boundaries', 'baseline_box', 'classifier']
+    ['boundaries', 'baseline_box', 'classifier', 'lut']
     """
     return tuple(r for c in _KINDS.values() for r in getattr(c, "pipeline_runs", ()))
 
@@ -258,8 +271,9 @@ def train(req: TrainRequest) -> tuple[DetectorModel, dict, str]:
 
 register(cast(type[DetectorModel], BoxModel))
 register(cast(type[DetectorModel], SkinClassifier))
+register(cast(type[DetectorModel], LookupKind))
 
 __all__ = ["COMMON_FLAGS", "LEGACY_KIND", "ONBOARD_HEADS", "box_kinds", "boxes_of", "card_scores", "get",
            "kind_for_method", "kind_of", "kinds", "load", "load_checkpoint", "method_help", "methods", "onboard_head",
-           "onboard_kinds", "option_kinds", "options", "pipeline_runs", "register", "required_bands", "save", "train",
+           "onboard_cost", "onboard_kinds", "option_kinds", "options", "pipeline_runs", "register", "required_bands", "save", "train",
            "unregister"]

@@ -8,7 +8,8 @@ from ..detectors import registry
 #: the model kinds whose detector graph meets the onboard budget (a 1 MP frame in a few times the time of reading
 #: it), as registered when this module loads (each kind's ``onboard_selectable``; ``registry.onboard_kinds``, which
 #: ``select_detector`` reads at each call, so that a kind registered later counts): the box models' five edge forms
-#: (~4 ms per 1024² frame on 2 cores); a per-pixel MLP takes ~40x more: evaluated and reported, not shipped
+#: (~2-4 ms per 1024² frame on 2 cores); the others (each kind's ``onboard_cost`` says why) are evaluated and
+#: reported, not shipped
 ONBOARD_KINDS = registry.onboard_kinds()
 
 
@@ -45,8 +46,8 @@ def select_detector(result: dict, pfa_budget: float = 1e-3, scene_budget: float 
            "smallest decision region" if ok(pick) else
            "no model met the false-alarm budgets on the held-out set; highest sunlit Pd")
     if costly:
-        why += ("; not eligible for their onboard cost (a per-pixel MLP, ~40x the box graph's time per frame): "
-                + ", ".join(m["name"] for m in costly))
+        why += "; not eligible for their onboard cost: " + ", ".join(
+            f"{m['name']} ({registry.onboard_cost(m['kind'])})" for m in costly)
     return pick["name"], f"{why}. Held-out ({result.get('data', '')}): {figures}."
 
 

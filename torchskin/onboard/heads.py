@@ -83,16 +83,21 @@ def _split_box_graph(path: str, options: Any, by_name: bool = False) -> tuple | 
         return None
 
 
-def detector_head(meta: dict[str, str], path: str, options: Any) -> tuple[str, tuple | None]:
+def detector_head(meta: dict[str, str], path: str, options: Any) -> tuple[str, Any]:
     """The head an ``OnboardDetector`` runs its graph on, chosen by the graph's metadata ``kind``: ``"boxes"`` (a
-    kind of ``BOX_HEAD_KINDS``: the box head, ``_split_box_graph``'s per-frame session and tile head) or
-    ``"generic"`` (any other kind: the graph as it is, per tile), and the box head's parts (None for the generic
-    head). A graph without ``kind`` (exported before graphs recorded it) is told by today's node names instead
+    kind of ``BOX_HEAD_KINDS``: the box head, ``_split_box_graph``'s per-frame session and tile head), ``"lut"``
+    (metadata ``onboard_head`` "lut": the table looked up with numpy, ``onboard.lut.LutHead``) or ``"generic"``
+    (any other kind: the graph as it is, per tile), and the head's parts (None for the generic head). A graph without ``kind`` (exported before graphs recorded it) is told by today's node names instead
     (``_edges_by_name``: the Split of ``det_w``); a box graph whose edges are not found runs on the generic head
     (the same results, slower). A kind's graph may name its head in the metadata ``onboard_head`` (written by
     ``export.metadata`` where the kind asks for another head than ``BOX_HEAD_KINDS`` gives it), which wins."""
     kind = meta.get("kind")
     head = meta.get("onboard_head") or ("boxes" if kind is None or kind in BOX_HEAD_KINDS else "generic")
+    if head == "lut":  # a lookup table (``onboard.lut``), found by its metadata and its bit table
+        from .lut import lut_head
+
+        table = lut_head(path, meta)
+        return ("generic", None) if table is None else ("lut", table)
     if head != "boxes":
         return "generic", None
     split = _split_box_graph(path, options, by_name=kind is None)

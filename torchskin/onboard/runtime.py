@@ -21,6 +21,8 @@ from .heads import FLOOR_BAND, detector_head
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor
 
+    from .lut import LutHead
+
 #: the shipped detector, packaged with torchskin (a copy of the repository's ``exports/detector.onnx``, made by
 #: ``make demo``'s export step): ``torchskin detect``'s and ``OnboardDetector``'s default model
 #: (``torchskin/data/detector.onnx``: this module lies in ``torchskin/onboard/``)
@@ -113,6 +115,8 @@ class _TileBinding:
         self.bits = self.t.view(np.uint32)  # the tile's values as unsigned integers (``_MAX_BITS``)
         self.nir_min = np.zeros((), dtype=np.float32)  # the head's minimum of the tile's FLOOR_BAND
         self.frame, self.ws = -1, []
+        self.lut = det._lut.scratch(n) if det._lut is not None else None  # the lookup-table head's buffers
+        self.table: np.ndarray | None = None  # the frame's table slice (lookup-table head)
         if self.head is not None:
             self.io, self.sums = self.head.session.io_binding(), self.head.sums.io_binding()
             self.head.bind(self.io, self.sums, self.t, self.edges, self.total, self.nir_min)
@@ -167,7 +171,11 @@ class OnboardDetector(_Model):
         self.tile = int(tile)
         self._bindings: dict[int, dict[int, _TileBinding]] = {}  # per worker, per tile size (``_TileBinding``)
         #: the head the graph runs on, by its metadata ``kind`` (``detector_head``): "boxes" or "generic"
-        self.head_name, self._split = detector_head(self.meta, self.path, self.session.get_session_options())
+        self.head_name, head = detector_head(self.meta, self.path, self.session.get_session_options())
+        #: the box head's (per-frame session, tile head), or None
+        self._split: tuple | None = head if self.head_name == "boxes" else None
+        #: the lookup-table head (``onboard.lut.LutHead``), or None
+        self._lut: LutHead | None = head if self.head_name == "lut" else None
 
     @staticmethod
     def _check_tile(t: np.ndarray, b: int, clipped: np.ndarray | None) -> tuple[float, float, int]:
@@ -231,6 +239,7 @@ class OnboardDetector(_Model):
         from onnxruntime import OrtValue
 
         head = self._split[1] if self._split is not None else None
+        lut = self._lut
         low, high, over = 0.0, 0.0, 0
         run = head.session.run_with_iobinding if head is not None else self.session.run_with_iobinding
         minimum, greater = np.minimum.reduce, np.greater
@@ -241,20 +250,27 @@ class OnboardDetector(_Model):
             n = hi - lo
             tb = bindings.get(n) or self._binding(bindings, n)
             t, edges = tb.t, tb.edges
-            t[...] = flat[b, :, lo:hi]
-            # the usual tile's one pass: every value within range (``_MAX_BITS``), else the full check
-            checked = None if int(tb.bits.max()) <= _MAX_BITS else self._check_tile(t, b, clipped)
+            if lut is not None and int(flat[b, :, lo:hi].view(np.uint32).max()) <= _MAX_BITS:
+                t, checked = flat[b, :, lo:hi], None  # the lookup-table head reads the frame's rows in place
+            else:
+                t[...] = flat[b, :, lo:hi]
+                # the usual tile's one pass: every value within range (``_MAX_BITS``), else the full check
+                checked = None if int(tb.bits.max()) <= _MAX_BITS else self._check_tile(t, b, clipped)
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
             if b != tb.frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if head is not None:  # copied into the bound weight buffers
+                if lut is not None:  # a lookup table: the frame's slice
+                    tb.table = lut.table(lut.slice_of(c[b]))
+                elif head is not None:  # copied into the bound weight buffers
                     for w, v in zip(tb.ws, frame_weights(b), strict=True):  # type: ignore[misc]
                         w[...] = v
                 else:
                     tb.io.bind_cpu_input("config", c[b:b + 1])
                 tb.frame = b
             m, sc = mask[b, lo:hi], score[b, lo:hi]
-            if head is not None:
+            if lut is not None:
+                lut.run(t, cast(np.ndarray, tb.table), m, sc, cast(dict, tb.lut))
+            elif head is not None:
                 run(tb.io)
                 minimum(edges, axis=0, out=sc)  # the graph's Min
                 greater(sc, 0, out=m)  # and its Greater

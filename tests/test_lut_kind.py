@@ -1,0 +1,252 @@
+"""The ``lut`` detector kind (issue 40): table geometry, the bake, the budgets, checkpoints, and the same decisions
+from torch, the exported graph (onnxruntime) and the onboard numpy head."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchskin.bands import band_tree
+from torchskin.cli import main
+from torchskin.detectors import registry
+from torchskin.detectors.lut import LookupModel
+from torchskin.detectors.lut.grid import cell_centres, cells, config_bins, coordinates, reflectance_of, valid
+from torchskin.detectors.lut.model import EVEN_ODDS_LEVEL, to_levels
+from torchskin.detectors.lut.train import bake, learn, learner_features, slice_centres, support, tune_threshold
+from torchskin.detectors.protocol import CalibrationData
+
+pytest.importorskip("lightgbm")
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5, 7])
+def test_coordinates_describe_a_spectrum_completely(n):
+    """The tree's normalized differences and the fourth root of the band sum invert exactly (float64), for any
+    band count; a tree over n bands has n - 1 nodes covering every band once at the root."""
+    R = torch.rand(500, n, dtype=torch.float64, generator=torch.Generator().manual_seed(n)) + 1e-3
+    tree = band_tree(n)
+    assert len(tree) == n - 1 and sorted(tree[-1][0] + tree[-1][1]) == list(range(n))
+    torch.testing.assert_close(reflectance_of(coordinates(R)), R, rtol=1e-12, atol=1e-14)
+    # scale changes the brightness coordinate alone, by the fourth root of the factor
+    U, U2 = coordinates(R), coordinates(R * 16)
+    torch.testing.assert_close(U2[:, :-1], U[:, :-1], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(U2[:, -1], 2 * U[:, -1], rtol=1e-12, atol=1e-12)
+
+
+def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn():
+    from torchskin.detect import ratio_indices
+
+    R = torch.rand(200, 4, generator=torch.Generator().manual_seed(1)) + 0.01
+    U = coordinates(R)
+    for a, b in zip(U.T[:3], ratio_indices(R)):
+        torch.testing.assert_close(a, b)
+    torch.testing.assert_close(U[:, 3], R.sum(1).sqrt().sqrt())
+
+
+def test_cells_cut_each_axis_at_exact_edges_and_clip_outside():
+    lo, inv, bins = torch.tensor([0.0, -1.0]), torch.tensor([4.0, 2.0]), 4  # cells of 0.25 and 0.5
+    U = torch.tensor([[0.0, -1.0], [0.2499, -0.51], [0.25, -0.5], [0.99, 0.99], [-5.0, 7.0], [float("nan"), 0.2]])
+    q0 = torch.tensor([0, 0, 1, 3, 0, 0])
+    q1 = torch.tensor([0, 0, 1, 3, 3, 2])
+    assert cells(U, lo, inv, bins).tolist() == (q0 * 4 + q1).tolist()
+    X = torch.tensor([[0.0, 10.0], [44.9, 10.0], [45.0, 100.0], [89.0, -1.0]])
+    assert config_bins(X, torch.tensor([0.0, 0.0]), torch.tensor([2 / 90, 3 / 90]), (2, 3)).tolist() == [0, 0, 5, 3]
+
+
+def test_centres_land_in_their_own_cells():
+    lo, inv, bins = torch.tensor([-0.8, -0.3, -1.0, 0.3]), torch.tensor([30.0, 25.0, 16.0, 11.0]), 6
+    C = cell_centres(lo, inv, bins)
+    assert torch.equal(cells(C.float(), lo, inv, bins), torch.arange(bins ** 4))
+
+
+def test_undefined_coordinates_are_never_valid():
+    R = torch.tensor([[0.0, 0.0, 0.3, 0.1], [0.2, 0.1, 0.0, 0.0], [0.0, 0.1, 0.0, 0.2], [0.2, 0.1, 0.3, 0.1]])
+    assert valid(R).tolist() == [False, False, True, True]
+
+
+def ndsi_table(bins: int = 8) -> LookupModel:
+    """A table baked from a known score: +4 log-odds where NDSI > 0.3, -4 elsewhere, the same in every slice."""
+    m = LookupModel(4, bins, config_counts=(2, 1, 1))
+    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, 0.0]))
+    m.inv.copy_(torch.tensor([bins / 2, bins / 2, bins / 2, bins / 2]))
+
+    def predict(f: np.ndarray) -> np.ndarray:
+        ndsi = f[:, 4 + 5]  # the learner's features: 4 reflectances, then the pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
+        return np.where(ndsi > 0.3, 4.0, -4.0)
+
+    bake(m, predict, torch.ones(bins ** 4, dtype=torch.bool))
+    m.threshold.fill_(EVEN_ODDS_LEVEL + 1)
+    return m
+
+
+def test_a_baked_table_holds_its_score_at_every_cell_centre():
+    m = ndsi_table()
+    C = cell_centres(m.lo, m.inv, m.bins)
+    want = to_levels(torch.where(C[:, 1] > 0.3, 4.0, -4.0))
+    want = torch.where(want >= EVEN_ODDS_LEVEL, want, torch.zeros_like(want))  # below even odds: stored as 0
+    for s in range(m.levels.shape[0]):
+        assert torch.equal(m.levels[s], want)
+    R = reflectance_of(C).float()
+    X = slice_centres(m).float()[torch.zeros(len(R), dtype=torch.long)]
+    assert torch.equal(m.decide(R, X), C[:, 1] > 0.3)  # the rule at cell centres, decided from reflectance
+
+
+def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_never_goes_below_it():
+    m = ndsi_table()
+    g = torch.Generator().manual_seed(0)
+    spectra = torch.rand(1000, 4, generator=g) * 0.5 + 0.01
+    thr = tune_threshold(m, spectra, 1e-3, None, None, None)
+    hit = m.decide(spectra, slice_centres(m).float()[0].expand(1000, 3))
+    # the NDSI > 0.3 cells hold level 160; with ~30 % of these spectra there, the threshold must pass above them
+    assert float(hit.float().mean()) <= 1e-3 and thr == int(m.floor_level) == 161
+    nonskin = torch.zeros(1000, dtype=torch.bool)
+    data = CalibrationData(R=spectra, X=slice_centres(m).float()[0].expand(1000, 3), ndgri=torch.zeros(1000),
+                           ndsi=torch.zeros(1000), ndvn=torch.zeros(1000), cfg_X=slice_centres(m).float(),
+                           nonskin=nonskin, bright=torch.ones(1000, dtype=torch.bool), test_R=spectra,
+                           test_bright=torch.ones(1000, dtype=torch.bool), test_pts=torch.zeros(1000, 3))
+    rec = m.calibrate_to_budget(data, 1e-4, 1e-3)  # no non-skin rows: the floor level, not lower
+    assert rec["after"] == 161
+
+
+def test_the_support_leaves_out_every_edge_cell():
+    m = LookupModel(4, 8, config_counts=(1, 1, 1))
+    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, 0.0]))
+    m.inv.copy_(torch.full((4,), 4.0))
+    R = torch.tensor([[0.3, 0.2, 0.5, 0.1], [1.0, 0.0, 0.5, 0.5]])  # the second: NDGRI 1, clipped into the last cell
+    where = support(m, R, 1).reshape(8, 8, 8, 8)
+    q = (torch.floor((coordinates(R) - m.lo) * m.inv).clamp(0, 7)).long()
+    assert bool(where[tuple(q[0])]) and not bool(where[tuple(q[1])])
+    for axis in range(4):
+        assert not where.select(axis, 0).any() and not where.select(axis, 7).any()
+    assert int(where.sum()) == 3 ** 4  # one cell dilated by one along every axis: a 3^4 cube
+
+
+@pytest.fixture(scope="module")
+def lut_model(tiny_dataset, tmp_path_factory):
+    """A small table trained on the tiny dataset through the command line, and its export."""
+    d = tmp_path_factory.mktemp("lut")
+    args = ["train", "--data", str(tiny_dataset), "--method", "lut", "--bins", "8", "--trees", "20", "--seed", "3"]
+    assert main([*args, "--out", str(d / "lut.pt")]) == 0
+    assert main(["export", "--model", str(d / "lut.pt"), "--out", str(d / "ex")]) == 0
+    return d
+
+
+def test_training_is_reproducible_to_the_byte(lut_model, tiny_dataset):
+    """The same rows and seed give the same checkpoint bytes, at another torch thread count too."""
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1 if threads > 1 else 2)
+        args = ["train", "--data", str(tiny_dataset), "--method", "lut", "--bins", "8", "--trees", "20", "--seed", "3"]
+        assert main([*args, "--out", str(lut_model / "again.pt")]) == 0
+    finally:
+        torch.set_num_threads(threads)
+    assert (lut_model / "again.pt").read_bytes() == (lut_model / "lut.pt").read_bytes()
+
+
+def test_a_checkpoint_round_trips(lut_model, tmp_path):
+    model, ck = registry.load(lut_model / "lut.pt")
+    assert ck["kind"] == "lut" and isinstance(model, LookupModel) and model.booster.startswith("tree")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    registry.save(model, tmp_path / "a" / "lut.pt", ck["meta"])  # (torch names the archive after the file)
+    again, ck2 = registry.load(tmp_path / "a" / "lut.pt")
+    assert torch.equal(again.levels, model.levels) and int(again.threshold) == int(model.threshold)
+    assert again.booster == model.booster and again.grid_json() == model.grid_json()
+    registry.save(again, tmp_path / "b" / "lut.pt", ck2["meta"])
+    assert (tmp_path / "b" / "lut.pt").read_bytes() == (tmp_path / "a" / "lut.pt").read_bytes()
+
+
+def test_torch_the_graph_and_the_onboard_head_decide_alike(lut_model):
+    """On a cube of every kind of pixel (skin-like, random, out of range, zero band pairs) under configurations
+    in several slices: the torch reference, the graph run whole by onnxruntime and the numpy head (large frames,
+    tiles on two workers) give the same mask and score, pixel for pixel."""
+    import onnxruntime as ort
+
+    from torchskin.onboard import OnboardDetector
+
+    model, _ = registry.load(lut_model / "lut.pt")
+    rng = np.random.default_rng(0)
+    cube = (rng.random((3, 4, 96, 128)) * 0.8).astype(np.float32)
+    cfg = np.array([[10.0, 5.0, 20.0], [50.0, 40.0, 150.0], [80.0, 85.0, 170.0]], dtype=np.float32)
+    centres = cell_centres(model.lo, model.inv, model.bins)
+    for b, s in enumerate(model.slices(torch.from_numpy(cfg)).tolist()):  # the top half: cells near the region
+        near = (model.levels[s] > 0).nonzero().squeeze(1)
+        near = near[reflectance_of(centres[near]).amax(1) < 1.0]  # calibrated reflectance, within detect's range
+        assert near.numel(), f"slice {s} of the tiny model holds no cell above even odds"
+        pick = near[torch.from_numpy(rng.integers(0, near.numel(), 48 * 128))]
+        jitter = torch.from_numpy(rng.uniform(-0.5, 0.5, (48 * 128, 4))) / model.inv.double()
+        cube[b, :, :48] = reflectance_of(centres[pick] + jitter).float().numpy().T.reshape(4, 48, 128)
+    cube[0, :2, 50, :20] = 0.0  # NDGRI undefined
+    cube[1, 2:, 51, :20] = 0.0  # NDSI undefined
+    cube = np.maximum(cube, 0)  # (a jittered edge cell can put a normalized difference past 1)
+    cube[2, :, 52, :10] = 3.0  # bright beyond the table's range
+    with torch.no_grad():
+        tm, ts = model.reference_detector()(torch.from_numpy(cube), torch.from_numpy(cfg))
+    assert 0.05 < float(tm.float().mean()) < 0.95, "the cube must hold skin and non-skin pixels"
+    graph = ort.InferenceSession(str(lut_model / "ex" / "detector.onnx"), providers=["CPUExecutionProvider"])
+    gm, gs = graph.run(None, {"cube": cube, "config": cfg})
+    det = OnboardDetector(lut_model / "ex" / "detector.onnx", threads=2, tile=4096)
+    assert det.head_name == "lut"
+    out = det(cube, cfg, min_reflectance=0)
+    for mask, score in ((gm, gs), (out["mask"], out["score"])):
+        assert np.array_equal(mask, tm.numpy()) and np.array_equal(score, ts.numpy())
+    assert not out["mask"][0, 50, :20].any() and not out["mask"][1, 51, :20].any()
+    # the decisions are the checkpoint's own
+    R = torch.from_numpy(cube).permute(0, 2, 3, 1).reshape(-1, 4)
+    X = torch.from_numpy(cfg).repeat_interleave(96 * 128, 0)
+    assert np.array_equal(model.decide(R, X).reshape(3, 96, 128).numpy(), tm.numpy())
+
+
+def test_graph_metadata_names_the_kind_its_head_and_its_bands(lut_model):
+    import json
+
+    import onnx
+
+    from torchskin.bands import INDEX_BANDS, BandSet
+
+    meta = {p.key: p.value for p in onnx.load(str(lut_model / "ex" / "detector.onnx")).metadata_props}
+    assert meta["kind"] == "lut" and meta["onboard_head"] == "lut"
+    assert BandSet.from_json(meta["bands"]) == INDEX_BANDS
+    grid = json.loads(meta["lut_grid"])
+    assert grid["bins"] == 8 and grid["n_bands"] == 4 and grid["config_counts"] == [6, 6, 2]
+
+
+def test_the_learner_sees_every_normalized_difference():
+    R = np.array([[0.3, 0.1, 0.0, 0.0]])
+    f = learner_features(R, np.array([[10.0, 20.0, 30.0]]))
+    assert f.shape == (1, 4 + 6 + 1 + 3)
+    np.testing.assert_allclose(f[0, 4:10], [0.5, 1.0, 1.0, 1.0, 1.0, 0.0])  # a + b = 0: 0
+    assert math.isclose(f[0, 10], math.log(0.4)) and f[0, 11:].tolist() == [10.0, 20.0, 30.0]
+
+
+def test_learning_needs_both_classes():
+    R = torch.rand(50, 4) + 0.1
+    with pytest.raises(ValueError, match="at least 10 skin and 10 non-skin"):
+        learn(torch.zeros(50, 3), R, torch.ones(50, dtype=torch.bool), trees=2, bins=4)
+
+
+def test_without_the_configuration_one_table_serves_every_sun_and_camera(tiny_dataset, tmp_path):
+    out = tmp_path / "flat.pt"
+    assert main(["train", "--data", str(tiny_dataset), "--method", "lut", "--bins", "8", "--trees", "20",
+                 "--no-configuration", "--out", str(out)]) == 0
+    model, ck = registry.load(out)
+    assert model.levels.shape[0] == 1 and not model.config_inputs
+    assert ck["meta"]["options"]["configuration"] is False  # the training summary says so
+    R = torch.rand(300, 4, generator=torch.Generator().manual_seed(0)) * 0.6
+    X1, X2 = torch.tensor([[5.0, 5.0, 10.0]]).expand(300, 3), torch.tensor([[85.0, 80.0, 170.0]]).expand(300, 3)
+    assert torch.equal(model.decide(R, X1), model.decide(R, X2))
+
+
+def test_the_region_figure_is_drawn(lut_model, tiny_dataset, tmp_path):
+    from torchskin.detectors.lut import LookupKind
+
+    LookupKind.region_figure(lut_model / "lut.pt", tiny_dataset, tmp_path / "region.png")
+    assert (tmp_path / "region.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="not a lut checkpoint"):
+        from torchskin.detectors.boxes import BoxModel
+
+        registry.save(BoxModel(), tmp_path / "box.pt")
+        LookupKind.region_figure(tmp_path / "box.pt", tiny_dataset, tmp_path / "box.png")
+    assert not (tmp_path / "box.png").exists()

@@ -1,0 +1,256 @@
+"""The ``lut`` kind's model: a learned skin score baked into a table over the bands' coordinates and the
+configuration (``LookupModel``), and the torch module its ``detector.onnx`` computes (``LookupDetector``)."""
+
+from __future__ import annotations
+
+import json
+import lzma
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+
+from ...bands import INDEX_BANDS_NM
+from ..features import FEATURES, config_buffers
+from ..graphs import torch_detector_graph
+from ..protocol import KindOption, PipelineRun
+from .grid import cells, config_bins, coordinates, valid
+
+if TYPE_CHECKING:
+    import onnx
+
+    from ..protocol import CalibrationData
+
+#: table levels per unit of the learner's raw score (log-odds): level = 128 + round(LEVELS_PER_LOGIT * score),
+#: clipped to [0, 255], so a level step is 1/8 of a log-odds unit and the table spans scores -16 to +15.9
+LEVELS_PER_LOGIT = 8.0
+#: the level of log-odds 0 (even odds): no calibrated threshold lies below it
+EVEN_ODDS_LEVEL = 128
+#: configuration bins per feature (sun zenith, camera zenith, relative azimuth) over the training domain: 15°, 15°
+#: and 90° wide on the demo's domain. Measured on the demo's fresh test set (the learner itself, its configuration
+#: snapped to bin centres, Pd sunlit mean over configurations at sun >= 60°): 30° camera bins lost 0.027, 15° ones
+#: nothing; finer sun or azimuth bins gained nothing
+CONFIG_BINS = (6, 6, 2)
+
+
+def to_levels(score: torch.Tensor) -> torch.Tensor:
+    """Table levels (uint8) of raw scores (log-odds): ``EVEN_ODDS_LEVEL + round(LEVELS_PER_LOGIT * score)``,
+    clipped to [0, 255].
+
+    >>> to_levels(torch.tensor([-100.0, 0.0, 0.5, 100.0]))
+    tensor([  0, 128, 132, 255], dtype=torch.uint8)
+    """
+    return (torch.round(score * LEVELS_PER_LOGIT) + EVEN_ODDS_LEVEL).clamp(0, 255).to(torch.uint8)
+
+
+def _pack(data: bytes) -> torch.Tensor:
+    """Bytes, LZMA-compressed, as a uint8 tensor (the checkpoint's form of the table: 75 M cells, most of them 0,
+    take ~5 MB)."""
+    return torch.frombuffer(bytearray(lzma.compress(data)), dtype=torch.uint8)
+
+
+def _unpack(blob: torch.Tensor, dtype: Any, shape: Sequence[int]) -> torch.Tensor:
+    return torch.from_numpy(np.frombuffer(lzma.decompress(blob.numpy().tobytes()), dtype=dtype).reshape(shape).copy())
+
+
+class LookupModel(nn.Module):
+    """Reflectance (N, n) and configuration (N, k) -> skin: a table of score levels (``levels``: one slice per
+    configuration bin, one level per cell of the bands' coordinates, ``grid``), skin where the level reaches
+    ``threshold``. The table is baked from a learner (``train.learn``) over all normalized differences,
+    reflectances, brightness and the configuration; cells outside the training skin's support hold level 0.
+
+    The ``lut`` detector kind (``protocol.DetectorModel``): ``decide`` looks pixels up, ``detector_graph`` is its
+    ONNX export (``LookupDetector``: the table as one bit per cell, at the calibrated threshold),
+    ``checkpoint`` / ``from_checkpoint`` its torch checkpoint (the table LZMA-compressed)."""
+
+    kind: ClassVar[str] = "lut"
+    methods: ClassVar[tuple[str, ...]] = ("lut",)
+    required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
+    options: ClassVar[tuple[KindOption, ...]] = (
+        KindOption("bins", 32, "lut: cells per coordinate axis of the table (default 32)", int),
+        KindOption("trees", 300, "lut: boosting rounds of the learner the table is baked from (default 300)", int),
+        KindOption("support_dilation", 1, "lut: cells by which the training skin's support is widened; cells "
+                                          "outside it are never skin (default 1)", int),
+        KindOption("max_rows", 1_500_000, "lut: at most this many training rows (a seeded draw; default "
+                                          "1500000)", int),
+        KindOption("configuration", True, "lut: learn without the configuration (one table for every sun and "
+                                          "camera: what the configuration is worth)", bool, "--no-configuration"))
+    method_help: ClassVar[str] = ("lut: gradient-boosted trees on every normalized difference, reflectance, "
+                                  "brightness and the configuration, baked into a table looked up per pixel")
+    #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. Not
+    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~2.3x the box detector and
+    #: ~7.6x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
+    onboard_head: ClassVar[str] = "lut"
+    onboard_selectable: ClassVar[bool] = False
+    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~2.3x the box detector's time per frame and ~7.6x "
+                                   "the frame-read floor, where the onboard budget is 2x and 5x")
+    card_score: ClassVar[str] = "the lookup table: 1 inside the calibrated region, 0 outside (a table holds decisions)"
+    pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("lut", ("--method", "lut")),)
+    card_use: ClassVar[str] = (
+        "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with a configuration-"
+        "dependent lookup table over the bands' normalized differences and brightness "
+        "(`torchskin.detectors.lut`), calibrated to the false-alarm budget.")
+
+    # buffers (declared for type checkers; ``register_buffer`` creates them)
+    levels: torch.Tensor
+    threshold: torch.Tensor
+    floor_level: torch.Tensor
+    lo: torch.Tensor
+    inv: torch.Tensor
+    cfg_lo: torch.Tensor
+    cfg_inv: torch.Tensor
+    domain: torch.Tensor
+    mean: torch.Tensor
+    std: torch.Tensor
+
+    def __init__(self, n_bands: int = 4, bins: int = 32, features: Sequence[str] = FEATURES,
+                 config_counts: Sequence[int] = CONFIG_BINS, domain: Any = None, lo: Any = None, inv: Any = None):
+        super().__init__()
+        self.features = tuple(features)
+        if len(config_counts) != len(self.features):
+            raise ValueError(f"config_counts needs one count per feature ({len(self.features)}), got {config_counts}")
+        if not 2 <= bins <= 255:
+            raise ValueError(f"bins must lie in [2, 255], got {bins}")
+        self.n_bands, self.bins, self.config_counts = int(n_bands), int(bins), tuple(int(c) for c in config_counts)
+        mean, std, dom = config_buffers(self.features, None, None, domain)
+        self.register_buffer("mean", mean)  # unused (the protocol's standardisation): the table takes raw angles
+        self.register_buffer("std", std)
+        self.register_buffer("domain", dom)
+        width = (dom[:, 1] - dom[:, 0]).clamp_min(1e-6)
+        self.register_buffer("cfg_lo", dom[:, 0].clone())
+        self.register_buffer("cfg_inv", torch.tensor(self.config_counts, dtype=torch.float32) / width)
+        self.register_buffer("lo", torch.zeros(n_bands) if lo is None else torch.as_tensor(lo, dtype=torch.float32))
+        self.register_buffer("inv", torch.ones(n_bands) if inv is None else torch.as_tensor(inv, dtype=torch.float32))
+        self.register_buffer("levels", torch.zeros(math.prod(self.config_counts), bins ** n_bands, dtype=torch.uint8))
+        self.register_buffer("threshold", torch.tensor(255, dtype=torch.int32))
+        #: the lowest threshold any calibration may set: even odds, and the earthlib train budget (``train``)
+        self.register_buffer("floor_level", torch.tensor(EVEN_ODDS_LEVEL, dtype=torch.int32))
+        self.booster = ""  # the learner's model (LightGBM text) the table was baked from, "" when unknown
+        self.config_inputs = True  # whether the learner took the configuration (``--no-configuration``: not)
+
+    def slices(self, config: torch.Tensor) -> torch.Tensor:
+        """The table slice (N,) of configurations (N, k)."""
+        return config_bins(config.float(), self.cfg_lo, self.cfg_inv, self.config_counts)
+
+    def cells_of(self, R: torch.Tensor) -> torch.Tensor:
+        """The cell (N,) of reflectance (N, n) (float32, as every backend computes it)."""
+        return cells(coordinates(R.float()), self.lo, self.inv, self.bins)
+
+    @torch.no_grad()
+    def level(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
+        """The table level (N,) int32 of each pixel (0 where its coordinates are undefined)."""
+        R, config = torch.as_tensor(R, dtype=torch.float32), torch.as_tensor(config, dtype=torch.float32)
+        lv = self.levels[self.slices(config), self.cells_of(R)].int()
+        return torch.where(valid(R), lv, torch.zeros_like(lv))
+
+    @torch.no_grad()
+    def decide(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
+        """Skin mask (N,) of reflectance (N, n) under configurations (N, k): the level reaches the threshold."""
+        return self.level(R, config) >= self.threshold
+
+    def mask_bits(self) -> torch.Tensor:
+        """The calibrated table, one bit per cell (little-endian within a byte), (slices * cells / 8,) uint8."""
+        on = (self.levels >= self.threshold.to(torch.uint8)).reshape(-1).numpy()
+        return torch.from_numpy(np.packbits(on, bitorder="little"))
+
+    # --------------------------------------------------------------------- the detector kind (protocol.DetectorModel)
+    def detector_graph(self, meta: dict[str, str]) -> onnx.ModelProto:
+        """``detector.onnx`` of the table (``LookupDetector``), with metadata ``meta`` and the grid (``lut_grid``)."""
+        return torch_detector_graph(LookupDetector(self), len(self.features), {**meta, "lut_grid": self.grid_json()})
+
+    def grid_json(self) -> str:
+        """The table's geometry as JSON (bins, lo, inv, config lo/inv/counts): the onboard head's parameters."""
+        f32 = lambda t: [float(v) for v in t.float().tolist()]  # noqa: E731  (float32 values, exact in JSON)
+        return json.dumps({"bins": self.bins, "n_bands": self.n_bands, "lo": f32(self.lo), "inv": f32(self.inv),
+                           "cfg_lo": f32(self.cfg_lo), "cfg_inv": f32(self.cfg_inv),
+                           "config_counts": list(self.config_counts)})
+
+    def reference_detector(self) -> nn.Module:
+        """The torch module ``detector.onnx`` computes (``LookupDetector``)."""
+        return LookupDetector(self)
+
+    def checkpoint(self, meta: dict) -> dict:
+        """Grid buffers, the table and the learner (LZMA-compressed), sizes and metadata."""
+        small = {k: v for k, v in self.state_dict().items() if k != "levels"}
+        return {"state_dict": small, "levels_xz": _pack(self.levels.contiguous().numpy().tobytes()), "features": list(self.features),
+                "n_bands": self.n_bands, "bins": self.bins, "config_counts": list(self.config_counts),
+                "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs,
+                "meta": meta}
+
+    @classmethod
+    def from_checkpoint(cls, ck: dict) -> LookupModel:
+        """The model of a checkpoint dict (eval mode); ``ValueError`` for a checkpoint of another kind."""
+        if ck.get("kind") != "lut":
+            raise ValueError("not a lut checkpoint")
+        m = cls(ck["n_bands"], ck["bins"], ck["features"], ck["config_counts"])
+        state = dict(ck["state_dict"])
+        state["levels"] = _unpack(ck["levels_xz"], np.uint8, m.levels.shape)
+        m.load_state_dict(state)
+        m.booster = lzma.decompress(ck["booster_xz"].numpy().tobytes()).decode()
+        m.config_inputs = bool(ck.get("config_inputs", True))
+        return m.eval()
+
+    def calibrate_to_budget(self, data: CalibrationData, scene_budget: float, pfa_budget: float,
+                            iters: int = 30) -> dict:
+        """``evaluation.calibrate_to_budget``: the lowest threshold level at which at most ``scene_budget`` of the
+        non-skin rows (the bright ones can pass) are called skin, never below ``floor_level`` (even odds and the
+        earthlib train budget, set by training). Unlike the box scale, it may fall below the training threshold:
+        training holds the scene budget on the training scene, the calibration on the held-out one."""
+        nonskin, bright = data.nonskin, data.bright
+        lv = self.level(data.R[nonskin & bright], data.X[nonskin & bright])
+        before = int(self.threshold)
+        allowed = int(math.floor(scene_budget * int(nonskin.sum())))
+        top = lv.sort(descending=True).values
+        need = int(top[allowed]) + 1 if allowed < top.numel() else 0
+        self.threshold.fill_(min(255, max(int(self.floor_level), need)))
+        rate = float((self.decide(data.R[nonskin], data.X[nonskin]) & bright[nonskin]).float().mean())
+        return {"knob": "threshold level", "before": float(before), "after": float(self.threshold),
+                "pfa_scene": rate}
+
+    @staticmethod
+    def card_false_alarms(train: dict, f: Any) -> str:
+        """The model card's account of the threshold (``train.tune_threshold``)."""
+        return (f"the table's threshold was raised to level {f(train.get('threshold'))} so that at most "
+                f"{f(train.get('pfa_budget'))} of the earthlib *train* spectra are called skin in every configuration "
+                f"slice, and at most {f(train.get('scene_budget'))} of the training scene's non-skin pixels")
+
+
+class LookupDetector(nn.Module):
+    """``detector.onnx`` for a ``LookupModel``: cube (B, n, H, W) + configuration (B, k) -> mask and score
+    (B, H, W), score 1 (skin) or 0. Per frame the configuration picks a table slice; per pixel the coordinates
+    pick a cell, whose bit (the calibrated table, ``LookupModel.mask_bits``) is the decision."""
+
+    bits: torch.Tensor
+    pow2: torch.Tensor
+    lo: torch.Tensor
+    inv: torch.Tensor
+    cfg_lo: torch.Tensor
+    cfg_inv: torch.Tensor
+
+    def __init__(self, model: LookupModel):
+        super().__init__()
+        self.n, self.bins, self.counts = model.n_bands, model.bins, model.config_counts
+        self.cells = model.bins ** model.n_bands
+        self.register_buffer("bits", model.mask_bits())
+        self.register_buffer("pow2", torch.tensor([1, 2, 4, 8, 16, 32, 64, 128], dtype=torch.int32))
+        for name in ("lo", "inv", "cfg_lo", "cfg_inv"):
+            self.register_buffer(name, getattr(model, name).clone())
+
+    def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mask and score (B, H, W) of a reflectance cube (B, n, H, W) under configurations (B, k)."""
+        B, n, H, W = cube.shape
+        x = cube.reshape(B, n, H * W).transpose(1, 2)  # (B, HW, n)
+        cell = cells(coordinates(x), self.lo, self.inv, self.bins)  # (B, HW)
+        slice_ = config_bins(config, self.cfg_lo, self.cfg_inv, self.counts)  # (B,)
+        flat = slice_[:, None] * self.cells + cell
+        byte = self.bits[torch.div(flat, 8, rounding_mode="floor")].to(torch.int32)
+        bit = torch.remainder(torch.div(byte, self.pow2[torch.remainder(flat, 8)], rounding_mode="floor"), 2)
+        mask = (bit > 0) & valid(x)
+        score = mask.float()
+        return mask.reshape(B, H, W), score.reshape(B, H, W)
+
+
+__all__ = ["CONFIG_BINS", "EVEN_ODDS_LEVEL", "LEVELS_PER_LOGIT", "LookupDetector", "LookupModel", "to_levels"]

@@ -1,0 +1,79 @@
+"""A figure of a ``lut`` model's decision region: slices of its table in the (NDGRI, NDSI) plane at a few
+configurations, with a dataset's sunlit skin over them, coloured by local incidence angle θi.
+
+>>> # region_plot(LookupKind.load("exports/lut.pt"), "out/pipeline/test", "exports/lut_region.png")
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from .model import LookupModel
+
+#: the configurations shown: (sun zenith, camera zenith, relative azimuth) in degrees, and their titles
+CONFIGS = (((20.0, 20.0, 30.0), "high sun, sun behind the camera"),
+           ((50.0, 40.0, 30.0), "sun 50°, camera 40°"),
+           ((70.0, 30.0, 30.0), "low sun (70°)"),
+           ((45.0, 30.0, 150.0), "back-lit (azimuth 150°)"))
+
+
+def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.PathLike,
+                configs: Sequence = CONFIGS) -> None:
+    """Write ``out`` (PNG): for each configuration, the share of the table's (NDVN, brightness) cells that are
+    skin at each (NDGRI, NDSI) cell (grey: the region seen from the plane), and the dataset's sunlit skin pixels
+    of that table slice (``elm_valid`` frames) coloured by θi; the thesis's static box for scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ...dataset.files import read_rows
+    from ...detect import DEFAULT_BOX
+    from ...io import atomic_path
+    from ..features import BAND_COLUMNS, FEATURES
+    from .grid import coordinates
+    rows = read_rows(data_dir, [*FEATURES, *BAND_COLUMNS, "label", "shadow", "theta_i_deg"], "physical")
+    R = torch.from_numpy(rows.bands(np.float32))
+    X = torch.from_numpy(rows.stack(FEATURES, np.float32))
+    lit = torch.from_numpy(rows["label"].astype(bool) & ~rows["shadow"].astype(bool))
+    slices = model.slices(X)
+    U = coordinates(R)
+    theta = rows["theta_i_deg"]
+    b = model.bins
+    edges = [(model.lo[k] + torch.arange(b + 1) / model.inv[k]).numpy() for k in range(2)]
+    fig, axes = plt.subplots(1, len(configs), figsize=(3.6 * len(configs) + 1, 4.4), sharey=True,
+                             layout="constrained")
+    sc = None
+    for ax, (cfg, title) in zip(np.atleast_1d(axes), configs):
+        s = int(model.slices(torch.tensor([cfg]))[0])
+        on = (model.levels[s] >= model.threshold.to(torch.uint8)).reshape(b, b, b * b).float().mean(-1)
+        ax.pcolormesh(edges[0], edges[1], on.T.numpy(), cmap="Greys", vmin=0, vmax=0.5, shading="flat")
+        m = (lit & (slices == s)).numpy()
+        hit = model.decide(R[m], X[m]).numpy() if m.any() else np.zeros(0, dtype=bool)
+        if m.any():
+            sc = ax.scatter(U[m, 0], U[m, 1], c=theta[m], s=2, cmap="viridis", vmin=0, vmax=90, alpha=0.5,
+                            rasterized=True)
+        box = DEFAULT_BOX
+        ax.add_patch(plt.Rectangle((box.b1, box.c1), box.b2 - box.b1, box.c2 - box.c1, fill=False, color="tab:red",
+                                   lw=1.2, label="static box (thesis)"))
+        kept = f"; kept {hit.mean():.3f} of {m.sum()}" if m.any() else "; no sunlit skin in this slice"
+        ax.set_title(f"{title}\nslice {s}{kept}", fontsize=9)
+        ax.set_xlabel("NDGRI (544, 633 nm)")
+        ax.set_xlim(edges[0][0], edges[0][-1])
+        ax.set_ylim(edges[1][0], edges[1][-1])
+    np.atleast_1d(axes)[0].set_ylabel("NDSI (1080, 1580 nm)")
+    np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=8)
+    if sc is not None:
+        fig.colorbar(sc, ax=axes, shrink=0.85, label="sunlit skin: local incidence θi (deg)")
+    fig.suptitle("The lookup table's region seen from the index plane (grey: share of its NDVN x brightness cells "
+                 "that are skin) and the test set's sunlit skin", fontsize=10)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+__all__ = ["CONFIGS", "region_plot"]

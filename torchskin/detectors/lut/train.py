@@ -1,0 +1,245 @@
+"""The ``lut`` kind's training: a gradient-boosted tree learner (LightGBM) on every normalized difference,
+reflectance and brightness of the bands and the configuration (``learner_features``), baked into a
+``LookupModel`` table (``bake``) and held to the false-alarm budgets (``tune_threshold``).
+
+Positives are the dataset's skin pixels, sunlit and shadowed. Negatives are its non-skin pixels (clothing,
+ground and confusers of the training partition) and the earthlib *train* spectra under random configurations
+over the training domain, at random brightness (a Lambertian surface tilted or shaded: times 0.2 to 1.5),
+weighing all together at most as much as the dataset's non-skin pixels.
+LightGBM runs on one thread with ``deterministic=True``: the same rows and seed give the same trees on any
+x86-64 CPU; the seed enters through row bagging.
+
+The table keeps the learner's score only where skin was seen: in cells of the training skin's coordinates,
+widened by ``support_dilation`` cells along every axis. Elsewhere it is 0, never skin, whatever the trees
+extrapolate to.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..features import FEATURES, MIN_REFLECTANCE, domain_from_manifest, earthlib_reflectance
+from .grid import cell_centres, coordinates, reflectance_of
+from .model import EVEN_ODDS_LEVEL, LookupModel, to_levels
+
+#: the learner's settings (LightGBM; ``trees`` rounds): one setting, not tuned per dataset. ``max_delta_step`` and
+#: ``lambda_l2`` bound each leaf's output: without them, leaves of rows classified with near certainty (hessian near
+#: 0) take Newton steps of thousands of log-odds units, and the table's levels saturate on non-skin cells
+LEARNER = {"objective": "binary", "learning_rate": 0.1, "num_leaves": 63, "min_data_in_leaf": 50,
+           "max_delta_step": 2.0, "lambda_l2": 1.0,
+           "bagging_fraction": 0.8, "bagging_freq": 1, "deterministic": True, "force_row_wise": True,
+           "num_threads": 1, "verbose": -1}
+#: the most draws of the earthlib train spectra (each spectrum under its own random configuration and brightness
+#: per draw); fewer for a small dataset: about as many rows as the dataset has
+EARTHLIB_DRAWS = 100
+#: brightness range of the earthlib negatives (a factor on the measured spectrum)
+EARTHLIB_SCALE = (0.2, 1.5)
+#: the share of the training skin's coordinates per axis left outside the table's range (each side)
+RANGE_QUANTILE = 1e-4
+#: rows per LightGBM predict call while baking
+BAKE_CHUNK = 1 << 20
+
+
+def learner_features(R: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """The learner's inputs (N, n + n(n-1)/2 + 1 + k) float64: the n reflectances, every normalized difference
+    (a - b) / (a + b) of two bands (0 where a + b is 0), the log of the band sum, the configuration."""
+    R = np.maximum(np.asarray(R, np.float64), 0.0)
+    n = R.shape[1]
+    nd = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = R[:, i] + R[:, j]
+            nd.append(np.divide(R[:, i] - R[:, j], s, out=np.zeros_like(s), where=s > 0))
+    log_b = np.log(np.maximum(R.sum(1), 1e-9))
+    return np.concatenate([R, np.stack(nd, 1), log_b[:, None], np.asarray(X, np.float64)], 1)
+
+
+def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The table's (lo, inv) per coordinate axis (float32): the training skin's coordinates between the
+    ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE`` quantiles, widened by two cells on each side."""
+    U = coordinates(R_skin.double())
+    U = U[torch.isfinite(U).all(1)]
+    q = torch.tensor([RANGE_QUANTILE, 1 - RANGE_QUANTILE], dtype=torch.float64)
+    pick = torch.randperm(len(U), generator=torch.Generator().manual_seed(0))[:1 << 22]  # torch.quantile's limit
+    lo, hi = torch.quantile(U[pick], q, dim=0)
+    step = (hi - lo).clamp_min(1e-6) / (bins - 4)
+    lo, hi = lo - 2 * step, hi + 2 * step
+    return lo.float(), (bins / (hi - lo)).float()
+
+
+def support(model: LookupModel, R_skin: torch.Tensor, dilation: int) -> torch.Tensor:
+    """The cells (bins ** n,) bool holding a training skin pixel, widened by ``dilation`` cells along every
+    axis (a cube neighbourhood), without the edge cells of any axis: those also hold every pixel beyond the
+    table's range (clipped into them), which is never skin."""
+    occ = torch.zeros(model.bins ** model.n_bands, dtype=torch.bool)
+    occ[model.cells_of(R_skin)] = True
+    grid = occ.reshape((model.bins,) * model.n_bands)
+    for axis in range(model.n_bands):
+        for _ in range(dilation):
+            out = grid.clone()
+            lo = [slice(None)] * grid.ndim
+            hi = [slice(None)] * grid.ndim
+            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+            out[tuple(lo)] |= grid[tuple(hi)]
+            out[tuple(hi)] |= grid[tuple(lo)]
+            grid = out
+    for axis in range(model.n_bands):
+        edge = [slice(None)] * grid.ndim
+        for i in (0, model.bins - 1):
+            edge[axis] = slice(i, i + 1)
+            grid[tuple(edge)] = False
+    return grid.reshape(-1)
+
+
+def slice_centres(model: LookupModel) -> torch.Tensor:
+    """The configuration (slices, k) at the centre of every table slice, in slice order."""
+    axes = [model.cfg_lo[j].double() + (torch.arange(c, dtype=torch.float64) + 0.5) / model.cfg_inv[j].double()
+            for j, c in enumerate(model.config_counts)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(axes))
+
+
+def bake(model: LookupModel, predict: Any, where: torch.Tensor) -> None:
+    """Fill ``model.levels``: in the cells ``where`` (bins ** n,) bool, the levels of ``predict`` (learner
+    features (N, f) -> raw score (N,)) at each cell's centre under each slice's central configuration; 0 elsewhere
+    and where the score is below even odds (no threshold goes there: ``LookupModel.floor_level``)."""
+    idx = torch.nonzero(where).squeeze(1)
+    R = reflectance_of(cell_centres(model.lo, model.inv, model.bins)[idx]).numpy()
+    model.levels.zero_()
+    for s, cfg in enumerate(slice_centres(model).numpy()):
+        X = np.broadcast_to(cfg, (len(R), len(cfg)))[:, :len(cfg) if model.config_inputs else 0]
+        score = np.concatenate([predict(learner_features(R[a:a + BAKE_CHUNK], X[a:a + BAKE_CHUNK]))
+                                for a in range(0, len(R), BAKE_CHUNK)] or [np.zeros(0)])
+        lv = to_levels(torch.from_numpy(score))
+        model.levels[s, idx] = torch.where(lv >= EVEN_ODDS_LEVEL, lv, torch.zeros_like(lv))
+
+
+def tune_threshold(model: LookupModel, spectra: torch.Tensor, pfa_budget: float, R_neg: torch.Tensor | None,
+                   X_neg: torch.Tensor | None, scene_budget: float | None) -> int:
+    """The smallest threshold level, at least ``EVEN_ODDS_LEVEL``, at which at most ``pfa_budget`` of the earthlib
+    ``spectra`` (m, n) (those above the brightness floor) are called skin in every table slice (``floor_level``,
+    which no calibration goes below) and, with ``scene_budget``, at most that share of the non-skin rows ``R_neg``
+    under ``X_neg``. Sets both and returns the threshold."""
+    bright = spectra.mean(1) > MIN_REFLECTANCE
+    cell = model.cells_of(spectra)
+    lv = model.levels[:, cell].int() * bright.int()  # (slices, m)
+    allowed = int(math.floor(pfa_budget * spectra.shape[0]))
+    need = EVEN_ODDS_LEVEL
+    if allowed < spectra.shape[0]:
+        need = max(need, int(lv.sort(dim=1, descending=True).values[:, allowed].max()) + 1)
+    model.floor_level.fill_(min(need, 255))
+    if scene_budget is not None and R_neg is not None and X_neg is not None and len(R_neg):
+        model.threshold.fill_(0)
+        top = model.level(R_neg, X_neg).sort(descending=True).values
+        k = int(math.floor(scene_budget * len(R_neg)))
+        if k < len(top):
+            need = max(need, int(top[k]) + 1)
+    model.threshold.fill_(min(need, 255))
+    return int(model.threshold)
+
+
+def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, features: Sequence[str] = FEATURES,
+          bins: int = 32, trees: int = 300, support_dilation: int = 1, max_rows: int = 1_500_000,
+          pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
+          configuration: bool = True) -> tuple[LookupModel, dict]:
+    """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n), skin
+    ``label`` (N,). Pixels not above the brightness floor and non-finite ones are left out; at most ``max_rows``
+    remain (a draw from ``seed``). ``physical`` (N,) bool marks the rows of frames whose ELM reflectance is
+    physical (``elm_valid``; default: all): the scene budget is held on their non-skin rows, those the evaluation
+    judges, while every row teaches the learner. ``configuration=False`` learns without the configuration: one
+    table slice for every sun and camera. Returns the model (eval mode) and a training summary."""
+    try:
+        import lightgbm as lgb
+    except ImportError:
+        raise ValueError("--method lut learns with LightGBM: pip install 'torchskin[dataset]' (or lightgbm)") from None
+    X, R = torch.as_tensor(X, dtype=torch.float32), torch.as_tensor(R, dtype=torch.float32)
+    label = torch.as_tensor(label, dtype=torch.bool)
+    physical = torch.ones_like(label) if physical is None else torch.as_tensor(physical, dtype=torch.bool)
+    keep = torch.isfinite(X).all(1) & torch.isfinite(R).all(1) & (R.mean(1) > MIN_REFLECTANCE)
+    X, R, label, physical = X[keep], R[keep], label[keep], physical[keep]
+    g = torch.Generator().manual_seed(seed)
+    if len(R) > max_rows:
+        pick = torch.randperm(len(R), generator=g)[:max_rows].sort().values
+        X, R, label, physical = X[pick], R[pick], label[pick], physical[pick]
+    if int(label.sum()) < 10 or int((~label).sum()) < 10:
+        raise ValueError(f"need at least 10 skin and 10 non-skin pixels above the brightness floor, got "
+                         f"{int(label.sum())} and {int((~label).sum())}")
+    model = LookupModel(R.shape[1], bins, features, domain=domain,
+                        **({} if configuration else {"config_counts": (1,) * X.shape[1]}))
+    model.config_inputs = bool(configuration)
+    k = X.shape[1] if configuration else 0  # the configuration columns the learner takes
+    lo, inv = table_range(R[label], bins)
+    model.lo.copy_(lo)
+    model.inv.copy_(inv)
+    C = earthlib_reflectance("train")
+    lo_c, hi_c = model.domain[:, 0], model.domain[:, 1]
+    draws = min(EARTHLIB_DRAWS, max(1, round(len(R) / len(C))))
+    m = len(C) * draws
+    XC = lo_c + (hi_c - lo_c) * torch.rand(m, len(lo_c), generator=g)
+    a, b = EARTHLIB_SCALE
+    RC = C.repeat(draws, 1) * (a * (b / a) ** torch.rand(m, 1, generator=g))
+    F = np.concatenate([learner_features(R.numpy(), X[:, :k].numpy()), learner_features(RC.numpy(), XC[:, :k].numpy())])
+    y = np.concatenate([label.numpy(), np.zeros(m, dtype=bool)]).astype(np.float64)
+    # the earthlib spectra weigh at most as much, all together, as the dataset's own non-skin pixels
+    w = np.concatenate([np.ones(len(R)), np.full(m, min(1.0, int((~label).sum()) / m))])
+    params = {**LEARNER, "seed": int(seed)}
+    booster = lgb.train(params, lgb.Dataset(F, y, weight=w, free_raw_data=True), num_boost_round=int(trees))
+    where = support(model, R[label], support_dilation)
+    bake(model, lambda f: booster.predict(f, raw_score=True, num_threads=1), where)
+    model.booster = booster.model_to_string()
+    judged = ~label & physical
+    thr = tune_threshold(model, C, pfa_budget, R[judged], X[judged], scene_budget)
+    model.eval()
+    with torch.no_grad():
+        hit = model.decide(R, X)
+    info = {"method": "lut", "rows": int(label.sum()), "nonskin_rows": int((~label).sum()), "threshold": thr,
+            "floor_level": int(model.floor_level),
+            "pfa_budget": pfa_budget, "scene_budget": scene_budget, "train_coverage": float(hit[label].float().mean()),
+            "pfa_scene_train": float(hit[judged].float().mean()), "support_cells": int(where.sum()),
+            "cells": int(where.numel()), "calibration_configs": int(model.levels.shape[0]),
+            "options": {"bins": bins, "trees": trees, "support_dilation": support_dilation, "max_rows": max_rows,
+                        "seed": seed, "configuration": bool(configuration), "learner": params}}
+    return model, info
+
+
+def load_rows(data_dir: Any, frames: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Training rows of a dataset (the frames ``frames`` names): configuration (N, k), reflectance (N, 4), skin
+    label and whether the row's frame has a physical ELM (``elm_valid``), numpy."""
+    from ...dataset.files import read_rows
+    from ..features import BAND_COLUMNS
+
+    rows = read_rows(data_dir, [*FEATURES, *BAND_COLUMNS, "label", "elm_valid"], frames)
+    return (rows.stack(FEATURES, np.float32), rows.bands(np.float32), rows["label"].astype(bool),
+            rows["elm_valid"].astype(bool))
+
+
+def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
+    """``torchskin train --method lut`` on a dataset folder: the rows (every skin pixel, sunlit and shadowed, and
+    the non-skin ones), the declared domain, ``learn`` with the request's options."""
+    X, R, label, physical = load_rows(req.data, req.frames)
+    o = req.options
+    model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=o["bins"],
+                        trees=o["trees"], support_dilation=o["support_dilation"], max_rows=o["max_rows"],
+                        pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
+                        physical=physical, configuration=o["configuration"])
+    info["frames"] = req.frames
+    info["light_classes"] = ["sunlit", "shadow"]
+    text = (f"trained (lut) on {info['rows']} skin and {info['nonskin_rows']} non-skin pixels; table "
+            f"{model.levels.shape[0]} slices x {bins_text(model)}, skin support {info['support_cells']} cells; "
+            f"threshold level {info['threshold']} for Pfa <= {req.pfa_budget:g} on the earthlib train partition; "
+            f"training skin kept {info['train_coverage']:.4f}, scene non-skin {info['pfa_scene_train']:.2e}")
+    return model, info, text
+
+
+def bins_text(model: LookupModel) -> str:
+    """The table's cells per slice as text, e.g. "32^4 cells"."""
+    return f"{model.bins}^{model.n_bands} cells"
+
+
+__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "bake", "learn", "learner_features", "load_rows",
+           "slice_centres",
+           "support", "table_range", "train_on_dataset", "tune_threshold"]
