@@ -250,3 +250,16 @@ def test_the_region_figure_is_drawn(lut_model, tiny_dataset, tmp_path):
         registry.save(BoxModel(), tmp_path / "box.pt")
         LookupKind.region_figure(tmp_path / "box.pt", tiny_dataset, tmp_path / "box.png")
     assert not (tmp_path / "box.png").exists()
+
+
+@pytest.mark.parametrize("flag, value, words", [("--bins", "1", "--bins must lie in [2, 45]"),
+                                                ("--bins", "46", "--bins must lie in [2, 45]"),
+                                                ("--trees", "0", "--trees must be at least 1"),
+                                                ("--support-dilation", "-1", "--support-dilation must be 0 or more"),
+                                                ("--max-rows", "10", "--max-rows must be at least 100")])
+def test_table_settings_out_of_range_are_refused_in_one_line(tiny_dataset, tmp_path, capsys, flag, value, words):
+    out = tmp_path / "lut.pt"
+    assert main(["train", "--data", str(tiny_dataset), "--method", "lut", flag, value, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and words in err, err
+    assert not out.exists()

@@ -152,6 +152,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     physical (``elm_valid``; default: all): the scene budget is held on their non-skin rows, those the evaluation
     judges, while every row teaches the learner. ``configuration=False`` learns without the configuration: one
     table slice for every sun and camera. Returns the model (eval mode) and a training summary."""
+    check_options(bins, trees, support_dilation, max_rows, torch.as_tensor(R).shape[-1])
     try:
         import lightgbm as lgb
     except ImportError:
@@ -206,6 +207,26 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     return model, info
 
 
+#: the most cells a table slice may hold: the cell index stays exact in float32 (below 2 ** 24) and 72 slices
+#: of uint8 levels stay near 300 MB in memory
+MAX_CELLS = 1 << 22
+
+
+def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n_bands: int = 4) -> None:
+    """``ValueError`` naming the ``torchskin train`` flag for a table or learner setting out of range, before any
+    row is read."""
+    if not 2 <= bins or bins ** n_bands > MAX_CELLS:
+        top = int(MAX_CELLS ** (1 / n_bands) + 1e-9)
+        raise ValueError(f"--bins must lie in [2, {top}] for {n_bands} bands ({MAX_CELLS} cells a slice at most), "
+                         f"got {bins}")
+    if trees < 1:
+        raise ValueError(f"--trees must be at least 1, got {trees}")
+    if support_dilation < 0:
+        raise ValueError(f"--support-dilation must be 0 or more cells, got {support_dilation}")
+    if max_rows < 100:
+        raise ValueError(f"--max-rows must be at least 100, got {max_rows}")
+
+
 def load_rows(data_dir: Any, frames: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Training rows of a dataset (the frames ``frames`` names): configuration (N, k), reflectance (N, 4), skin
     label and whether the row's frame has a physical ELM (``elm_valid``), numpy."""
@@ -220,8 +241,9 @@ def load_rows(data_dir: Any, frames: str) -> tuple[np.ndarray, np.ndarray, np.nd
 def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
     """``torchskin train --method lut`` on a dataset folder: the rows (every skin pixel, sunlit and shadowed, and
     the non-skin ones), the declared domain, ``learn`` with the request's options."""
-    X, R, label, physical = load_rows(req.data, req.frames)
     o = req.options
+    check_options(o["bins"], o["trees"], o["support_dilation"], o["max_rows"], len(LookupModel.required_bands))
+    X, R, label, physical = load_rows(req.data, req.frames)
     model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=o["bins"],
                         trees=o["trees"], support_dilation=o["support_dilation"], max_rows=o["max_rows"],
                         pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
@@ -240,6 +262,6 @@ def bins_text(model: LookupModel) -> str:
     return f"{model.bins}^{model.n_bands} cells"
 
 
-__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "bake", "learn", "learner_features", "load_rows",
+__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MAX_CELLS", "bake", "check_options", "learn", "learner_features", "load_rows",
            "slice_centres",
            "support", "table_range", "train_on_dataset", "tune_threshold"]
