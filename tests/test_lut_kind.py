@@ -263,3 +263,12 @@ def test_table_settings_out_of_range_are_refused_in_one_line(tiny_dataset, tmp_p
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and words in err, err
     assert not out.exists()
+
+
+def test_a_damaged_table_is_one_line_naming_the_file(lut_model, tiny_dataset, tmp_path, capsys):
+    ck = torch.load(lut_model / "lut.pt", weights_only=True)
+    ck["levels_xz"] = ck["levels_xz"][:100]  # truncated
+    torch.save(ck, tmp_path / "broken.pt")
+    assert main(["evaluate", "--data", str(tiny_dataset), "--model", str(tmp_path / "broken.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "broken.pt" in err and "damaged" in err, err

@@ -240,7 +240,7 @@ def load(path: str | os.PathLike, what: str = "model") -> tuple[DetectorModel, d
                          f"{', '.join(sorted(_KINDS))}")
     try:
         model = _KINDS[kind].from_checkpoint(ck)
-    except (KeyError, RuntimeError, TypeError) as e:
+    except (KeyError, RuntimeError, TypeError, ValueError) as e:
         raise ValueError(f"{what} {str(path)!r} is not a torchskin model checkpoint: {e}") from None
     return model, ck
 

@@ -187,9 +187,12 @@ class LookupModel(nn.Module):
             raise ValueError("not a lut checkpoint")
         m = cls(ck["n_bands"], ck["bins"], ck["features"], ck["config_counts"])
         state = dict(ck["state_dict"])
-        state["levels"] = _unpack(ck["levels_xz"], np.uint8, m.levels.shape)
+        try:
+            state["levels"] = _unpack(ck["levels_xz"], np.uint8, m.levels.shape)
+            m.booster = lzma.decompress(ck["booster_xz"].numpy().tobytes()).decode()
+        except (lzma.LZMAError, ValueError, UnicodeDecodeError) as e:
+            raise ValueError(f"its table or learner is damaged ({e})") from None
         m.load_state_dict(state)
-        m.booster = lzma.decompress(ck["booster_xz"].numpy().tobytes()).decode()
         m.config_inputs = bool(ck.get("config_inputs", True))
         return m.eval()
 
