@@ -90,3 +90,26 @@ def test_load_config_from_toml(tmp_path):
         C.load_config(bad)
     with pytest.raises(ValueError, match="does not exist"):
         C.load_config(tmp_path / "none.toml")
+
+
+def test_the_shift_table_configs_load_and_lie_outside_the_defaults(tmp_path):
+    """``scripts/shift_table.py``'s datasets: each config loads, and each changed range lies at or beyond the
+    embedded default's edge (a widened default moves the shift with it)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("shift_table", Path(__file__).parents[1] / "scripts" / "shift_table.py")
+    st = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(st)
+    base = C.load_config(None)
+    for name, (_, toml) in st.SHIFTS.items():
+        p = tmp_path / f"{name}.toml"
+        p.write_text(st.TEST_PARTITION + toml)
+        cfg = C.load_config(p)
+        assert cfg["confusers"]["partition"] == cfg["clothing"]["partition"] == "test"
+        changed = [(s, k) for s in cfg for k in cfg[s] if cfg[s][k] != base[s][k] and s not in ("confusers", "clothing")]
+        assert changed, name
+        for s, k in changed:
+            new, old = cfg[s][k], base[s][k]
+            if isinstance(new, list) and len(new) == 2 and all(isinstance(v, float) for v in new):
+                assert new[0] >= old[1] or new[1] >= 2 * old[1], (name, s, k, new, old)
