@@ -23,16 +23,18 @@ pytest.importorskip("lightgbm")
 
 @pytest.mark.parametrize("n", [2, 3, 4, 5, 7])
 def test_coordinates_describe_a_spectrum_completely(n):
-    """The tree's normalized differences and the fourth root of the band sum invert exactly (float64), for any
+    """The tree's normalized differences and the brightness (s - k) / (s + k) invert exactly (float64), for any
     band count; a tree over n bands has n - 1 nodes covering every band once at the root."""
     R = torch.rand(500, n, dtype=torch.float64, generator=torch.Generator().manual_seed(n)) + 1e-3
     tree = band_tree(n)
     assert len(tree) == n - 1 and sorted(tree[-1][0] + tree[-1][1]) == list(range(n))
     torch.testing.assert_close(reflectance_of(coordinates(R)), R, rtol=1e-12, atol=1e-14)
-    # scale changes the brightness coordinate alone, by the fourth root of the factor
+    # scale changes the brightness coordinate alone, as the band sum's normalized difference against n / 4
     U, U2 = coordinates(R), coordinates(R * 16)
     torch.testing.assert_close(U2[:, :-1], U[:, :-1], rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(U2[:, -1], 2 * U[:, -1], rtol=1e-12, atol=1e-12)
+    s16 = 16 * R.sum(1)
+    torch.testing.assert_close(U2[:, -1], (s16 - n / 4) / (s16 + n / 4), rtol=1e-12, atol=1e-12)
+    assert (U2[:, -1] > U[:, -1]).all() and (U.abs() < 1).all()
 
 
 def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn():
@@ -42,7 +44,7 @@ def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn():
     U = coordinates(R)
     for a, b in zip(U.T[:3], ratio_indices(R)):
         torch.testing.assert_close(a, b)
-    torch.testing.assert_close(U[:, 3], R.sum(1).sqrt().sqrt())
+    torch.testing.assert_close(U[:, 3], (R.sum(1) - 1) / (R.sum(1) + 1))  # k = 4 / 4: a mean reflectance of 0.25
 
 
 def test_cells_cut_each_axis_at_exact_edges_and_clip_outside():
@@ -69,7 +71,7 @@ def test_undefined_coordinates_are_never_valid():
 def ndsi_table(bins: int = 8) -> LookupModel:
     """A table baked from a known score: +4 log-odds where NDSI > 0.3, -4 elsewhere, the same in every slice."""
     m = LookupModel(4, bins, config_counts=(2, 1, 1))
-    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, 0.0]))
+    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))  # every coordinate spans (-1, 1)
     m.inv.copy_(torch.tensor([bins / 2, bins / 2, bins / 2, bins / 2]))
 
     def predict(f: np.ndarray) -> np.ndarray:
@@ -112,7 +114,7 @@ def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_
 
 def test_the_support_leaves_out_every_edge_cell():
     m = LookupModel(4, 8, config_counts=(1, 1, 1))
-    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, 0.0]))
+    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))  # every coordinate spans (-1, 1)
     m.inv.copy_(torch.full((4,), 4.0))
     R = torch.tensor([[0.3, 0.2, 0.5, 0.1], [1.0, 0.0, 0.5, 0.5]])  # the second: NDGRI 1, clipped into the last cell
     where = support(m, R, 1).reshape(8, 8, 8, 8)
@@ -256,6 +258,9 @@ def test_the_region_figure_is_drawn(lut_model, tiny_dataset, tmp_path):
                                                 ("--bins", "46", "--bins must lie in [2, 45]"),
                                                 ("--trees", "0", "--trees must be at least 1"),
                                                 ("--support-dilation", "-1", "--support-dilation must be 0 or more"),
+                                                ("--earthlib-margin", "-2", "--earthlib-margin must be -1 (none)"),
+                                                ("--earthlib-margin", "1000000000", "at most --bins (32)"),
+                                                ("--support-dilation", "33", "at most --bins (32)"),
                                                 ("--max-rows", "10", "--max-rows must be at least 100")])
 def test_table_settings_out_of_range_are_refused_in_one_line(tiny_dataset, tmp_path, capsys, flag, value, words):
     out = tmp_path / "lut.pt"
@@ -272,3 +277,69 @@ def test_a_damaged_table_is_one_line_naming_the_file(lut_model, tiny_dataset, tm
     assert main(["evaluate", "--data", str(tiny_dataset), "--model", str(tmp_path / "broken.pt")]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "broken.pt" in err and "damaged" in err, err
+
+
+@pytest.mark.parametrize("n,bins", [(2, 40), (3, 16), (4, 8), (5, 6), (7, 4)])
+def test_the_onboard_head_puts_every_pixel_in_the_torch_cell_for_any_band_count(n, bins):
+    """The numpy head's batched tree (``onboard.lut._tree_plan``: nodes whose children lie at one stride share a
+    call) and its clipping (skipped on axes whose cells cover [-1, 1]) give the cell torch gives, for band counts
+    whose trees are not regular, on pixels inside, outside and at the edge of the table."""
+    from torchskin.bands import TREE_COORDINATES
+    from torchskin.onboard.lut import LutHead
+
+    rng = np.random.default_rng(n)
+    lo = rng.uniform(-0.9, -0.2, n).astype(np.float32)
+    lo[-1] = -1.25  # this axis covers [-1, 1]: no clip
+    inv = (bins / rng.uniform(0.5, 1.2, n)).astype(np.float32)
+    inv[-1] = bins / 2.5
+    grid = {"coordinates": TREE_COORDINATES, "bins": bins, "n_bands": n, "lo": lo.tolist(), "inv": inv.tolist(),
+            "cfg_lo": [0.0], "cfg_inv": [1.0], "config_counts": [1]}
+    head = LutHead(grid, np.zeros(bins ** n // 8, dtype=np.uint8))
+    assert (head.clip_rows[-1][1] if head.clip_rows else 0) <= n - 1  # the last axis is not clipped
+    R = (rng.random((n, 5000)) * rng.choice([0.01, 0.5, 3.0], (1, 5000))).astype(np.float32)
+    R[:, :50] = 0.0  # every node's sum 0: undefined
+    R[: n // 2, 50:100] = 0.0  # the left half dark
+    sc = head.scratch(R.shape[1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        idx = head._cells(R, sc)
+    want = cells(coordinates(torch.from_numpy(R.T)), torch.from_numpy(lo), torch.from_numpy(inv), bins)
+    ok = valid(torch.from_numpy(R.T)).numpy()
+    assert np.isnan(idx[~ok]).all() and not np.isnan(idx[ok]).any()
+    assert np.array_equal(sc["cell"][ok], want.numpy()[ok])
+
+
+def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbours():
+    """``earthlib_cells``: margin 0 holds exactly the cells of the spectra at the margin's brightness factors;
+    each step adds the neighbours along one axis at a time (2n per cell), nothing else."""
+    from torchskin.detectors.lut.train import MARGIN_SCALES, earthlib_cells
+
+    m = LookupModel(4, 8, config_counts=(1, 1, 1))
+    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))
+    m.inv.copy_(torch.full((4,), 4.0))
+    spectra = torch.tensor([[0.3, 0.2, 0.5, 0.1], [0.05, 0.06, 0.3, 0.2]])
+    a, b, k = MARGIN_SCALES
+    scales = torch.logspace(math.log10(a), math.log10(b), k)
+    own = torch.zeros(8 ** 4, dtype=torch.bool)
+    own[m.cells_of((spectra[:, None, :] * scales[None, :, None]).reshape(-1, 4))] = True
+    assert torch.equal(earthlib_cells(m, spectra, 0), own)
+    grown = own.reshape(8, 8, 8, 8).clone()
+    for q in own.reshape(8, 8, 8, 8).nonzero().tolist():
+        for axis in range(4):
+            for step in (-1, 1):
+                p = list(q)
+                p[axis] += step
+                if 0 <= p[axis] < 8:
+                    grown[tuple(p)] = True
+    assert torch.equal(earthlib_cells(m, spectra, 1), grown.reshape(-1))
+
+
+def test_no_earthlib_train_spectrum_is_skin_at_any_brightness(lut_model):
+    """The trained table (default margin 1) holds level 0, in every slice, wherever an earthlib train spectrum
+    falls at any of the margin's brightness factors."""
+    from torchskin.detectors.features import earthlib_reflectance
+    from torchskin.detectors.lut.train import earthlib_cells
+
+    model, ck = registry.load(lut_model / "lut.pt")
+    near = earthlib_cells(model, earthlib_reflectance("train"), 0)
+    assert near.any() and not model.levels[:, near].any()
+    assert ck["meta"]["options"]["earthlib_margin"] == 1 and ck["meta"]["earthlib_margin_cells"] >= 0

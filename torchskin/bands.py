@@ -317,6 +317,14 @@ INDEX_BANDS = BandSet.of(INDEX_BANDS_NM)
 DEFAULT_BANDS: tuple[Band, ...] = INDEX_BANDS.bands
 
 
+#: the ``lut`` table's coordinates by name, kept in its checkpoints and graphs (``detectors.lut.grid``): the
+#: ``band_tree``'s normalized differences, then the band sum's normalized difference against
+#: ``BRIGHTNESS_REF_PER_BAND`` times the band count. A table built on other coordinates is refused
+TREE_COORDINATES = "tree-nd+brightness-nd/4"
+#: the mean reflectance at which the ``lut`` brightness coordinate is 0
+BRIGHTNESS_REF_PER_BAND = 0.25
+
+
 def band_tree(n: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
     """The internal nodes (left bands, right bands) of a balanced binary tree over bands 0..n-1, children before
     parents (``n - 1`` nodes; ``ValueError`` for fewer than 2 bands): the normalized differences (left sum - right

@@ -5,17 +5,19 @@ A pixel of n bands is placed by n coordinates that describe its spectrum complet
 - n - 1 normalized differences, one per internal node of a balanced binary tree over the bands (``band_tree``):
   (left sum - right sum) / (left sum + right sum). For the four index bands (g, r, n, s) they are NDGRI, NDSI and
   NDVN = ((g + r) - (n + s)) / (g + r + n + s);
-- the fourth root of the band sum, a brightness axis (the root of a root: correctly rounded on every backend,
-  where a logarithm is not).
+- the brightness: the normalized difference of the band sum s against a reference ``k = n / 4`` (a mean
+  reflectance of 0.25), (s - k) / (s + k). It spans (-1, 1) like the others, resolves dark pixels finely and
+  bright ones coarsely, and costs one add, one subtract and one divide (a root or a logarithm costs more per
+  pixel onboard, and a logarithm is not correctly rounded on every backend).
 
 Each coordinate is cut into ``bins`` equal cells over its range [lo, hi); values outside fall in the edge cells. A
 frame's configuration (sun zenith, camera zenith, relative azimuth) picks one table slice, by equal bins over
 each feature's training domain. Every step is an IEEE-exact operation in a fixed order (add, subtract, divide,
-square root, multiply, floor), so torch, numpy and onnxruntime put a pixel in the same cell.
+multiply, floor), so torch, numpy and onnxruntime put a pixel in the same cell.
 
 >>> R = torch.tensor([[0.3, 0.2, 0.5, 0.1]])
 >>> coordinates(R).round(decimals=4)
-tensor([[ 0.2000,  0.6667, -0.0909,  1.0241]])
+tensor([[ 0.2000,  0.6667, -0.0909,  0.0476]])
 """
 
 from __future__ import annotations
@@ -24,12 +26,14 @@ from collections.abc import Sequence
 
 import torch
 
-from ...bands import band_tree
+from ...bands import BRIGHTNESS_REF_PER_BAND, band_tree
+from ...bands import TREE_COORDINATES as COORDINATES  # the name of the coordinates below, kept in checkpoints
 
 
 def coordinates(R: torch.Tensor) -> torch.Tensor:
     """The n table coordinates (..., n) of reflectance ``R`` (..., n): the tree's normalized differences
-    (``band_tree``), then the fourth root of the band sum. NaN where a node's sum is 0 (``valid``)."""
+    (``band_tree``), then the brightness (s - k) / (s + k) of the band sum s (``brightness_ref``). NaN where a
+    node's sum is 0 (``valid``)."""
     n = R.shape[-1]
     sums: dict[tuple[int, ...], torch.Tensor] = {(i,): R[..., i] for i in range(n)}
     out = []
@@ -38,8 +42,15 @@ def coordinates(R: torch.Tensor) -> torch.Tensor:
         s = a + b
         sums[left + right] = s
         out.append((a - b) / s)
-    out.append(torch.sqrt(torch.sqrt(sums[tuple(range(n))])))
+    total, k = sums[tuple(range(n))], brightness_ref(n)
+    out.append((total - k) / (total + k))
     return torch.stack(out, -1)
+
+
+def brightness_ref(n: int) -> float:
+    """The band sum k at which the brightness coordinate is 0: n / 4, a mean reflectance of 0.25 (exact in
+    float32)."""
+    return BRIGHTNESS_REF_PER_BAND * n
 
 
 def valid(R: torch.Tensor) -> torch.Tensor:
@@ -84,7 +95,8 @@ def reflectance_of(U: torch.Tensor) -> torch.Tensor:
     """The reflectance (..., n) whose coordinates are ``U`` (..., n) (``coordinates`` inverted: the brightness
     splits down the tree by each node's normalized difference)."""
     n = U.shape[-1]
-    total = U[..., -1] ** 4
+    b = U[..., -1]
+    total = brightness_ref(n) * (1 + b) / (1 - b)
     sums: dict[tuple[int, ...], torch.Tensor] = {tuple(range(n)): total}
     for k, (left, right) in reversed(list(enumerate(band_tree(n)))):
         s = sums[left + right]
@@ -93,4 +105,4 @@ def reflectance_of(U: torch.Tensor) -> torch.Tensor:
     return torch.stack([sums[(i,)] for i in range(n)], -1)
 
 
-__all__ = ["cell_centres", "cells", "config_bins", "coordinates", "reflectance_of", "valid"]
+__all__ = ["COORDINATES", "brightness_ref", "cell_centres", "cells", "config_bins", "coordinates", "reflectance_of", "valid"]

@@ -17,7 +17,7 @@ from ...bands import INDEX_BANDS_NM
 from ..features import FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
-from .grid import cells, config_bins, coordinates, valid
+from .grid import COORDINATES, cells, config_bins, coordinates, valid
 
 if TYPE_CHECKING:
     import onnx
@@ -74,6 +74,8 @@ class LookupModel(nn.Module):
         KindOption("trees", 300, "lut: boosting rounds of the learner the table is baked from (default 300)", int),
         KindOption("support_dilation", 1, "lut: cells by which the training skin's support is widened; cells "
                                           "outside it are never skin (default 1)", int),
+        KindOption("earthlib_margin", 1, "lut: cells within this many steps of an earthlib train spectrum (at any "
+                                         "brightness) are never skin; -1: no margin (default 1)", int),
         KindOption("max_rows", 1_500_000, "lut: at most this many training rows (a seeded draw; default "
                                           "1500000)", int),
         KindOption("configuration", True, "lut: learn without the configuration (one table for every sun and "
@@ -81,11 +83,11 @@ class LookupModel(nn.Module):
     method_help: ClassVar[str] = ("lut: gradient-boosted trees on every normalized difference, reflectance, "
                                   "brightness and the configuration, baked into a table looked up per pixel")
     #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. Not
-    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~2.3x the box detector and
-    #: ~7.6x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
+    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~2.0x the box detector and
+    #: ~7.5x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
     onboard_head: ClassVar[str] = "lut"
     onboard_selectable: ClassVar[bool] = False
-    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~2.3x the box detector's time per frame and ~7.6x "
+    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~2.0x the box detector's time per frame and ~7.5x "
                                    "the frame-read floor, where the onboard budget is 2x and 5x")
     card_score: ClassVar[str] = "the lookup table: 1 inside the calibrated region, 0 outside (a table holds decisions)"
     pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("lut", ("--method", "lut")),)
@@ -164,7 +166,8 @@ class LookupModel(nn.Module):
     def grid_json(self) -> str:
         """The table's geometry as JSON (bins, lo, inv, config lo/inv/counts): the onboard head's parameters."""
         f32 = lambda t: [float(v) for v in t.float().tolist()]  # noqa: E731  (float32 values, exact in JSON)
-        return json.dumps({"bins": self.bins, "n_bands": self.n_bands, "lo": f32(self.lo), "inv": f32(self.inv),
+        return json.dumps({"coordinates": COORDINATES, "bins": self.bins, "n_bands": self.n_bands, "lo": f32(self.lo),
+                           "inv": f32(self.inv),
                            "cfg_lo": f32(self.cfg_lo), "cfg_inv": f32(self.cfg_inv),
                            "config_counts": list(self.config_counts)})
 
@@ -178,13 +181,16 @@ class LookupModel(nn.Module):
         return {"state_dict": small, "levels_xz": _pack(self.levels.contiguous().numpy().tobytes()), "features": list(self.features),
                 "n_bands": self.n_bands, "bins": self.bins, "config_counts": list(self.config_counts),
                 "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs,
-                "meta": meta}
+                "coordinates": COORDINATES, "meta": meta}
 
     @classmethod
     def from_checkpoint(cls, ck: dict) -> LookupModel:
         """The model of a checkpoint dict (eval mode); ``ValueError`` for a checkpoint of another kind."""
         if ck.get("kind") != "lut":
             raise ValueError("not a lut checkpoint")
+        if ck.get("coordinates") != COORDINATES:
+            raise ValueError(f"its table was built on other coordinates ({ck.get('coordinates', 'fourth-root brightness')}"
+                             f", not {COORDINATES}: an earlier torchskin); train it again with this one")
         m = cls(ck["n_bands"], ck["bins"], ck["features"], ck["config_counts"])
         state = dict(ck["state_dict"])
         try:

@@ -11,7 +11,9 @@ x86-64 CPU; the seed enters through row bagging.
 
 The table keeps the learner's score only where skin was seen: in cells of the training skin's coordinates,
 widened by ``support_dilation`` cells along every axis. Elsewhere it is 0, never skin, whatever the trees
-extrapolate to.
+extrapolate to. It also keeps a margin from the earthlib *train* spectra (``earthlib_cells``): the cells they
+fall in at any brightness, widened by ``earthlib_margin`` steps, are never skin, so that a material like one of
+them (the test partition's paints, say) is not taken for skin where the trees drew the border close to it.
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ LEARNER = {"objective": "binary", "learning_rate": 0.1, "num_leaves": 63, "min_d
 EARTHLIB_DRAWS = 100
 #: brightness range of the earthlib negatives (a factor on the measured spectrum)
 EARTHLIB_SCALE = (0.2, 1.5)
+#: brightness factors at which the earthlib train spectra are placed in the table for the margin
+#: (``earthlib_cells``): log-spaced from a deep shadow to a surface facing the sun at twice the panels' light
+MARGIN_SCALES = (0.05, 2.0, 40)
 #: the share of the training skin's coordinates per axis left outside the table's range (each side)
 RANGE_QUANTILE = 1e-4
 #: rows per LightGBM predict call while baking
@@ -72,6 +77,36 @@ def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Te
     return lo.float(), (bins / (hi - lo)).float()
 
 
+def earthlib_cells(model: LookupModel, spectra: torch.Tensor, margin: int) -> torch.Tensor:
+    """The cells (bins ** n,) bool within ``margin`` steps of an earthlib spectrum (m, n) at any brightness
+    (``MARGIN_SCALES``): each step adds the neighbours along one axis at a time (a cross, not a cube: 2n
+    neighbours a step). Measured on ``make demo``'s data, a margin of 1 kept a test-partition paint out (22 false
+    alarms on one fresh set, 1.3e-4 of its non-skin pixels after) for 0.003 of sunlit skin (docs/benchmarks.md)."""
+    a, b, k = MARGIN_SCALES
+    scales = torch.logspace(math.log10(a), math.log10(b), k)
+    R = (spectra.float()[:, None, :] * scales[None, :, None]).reshape(-1, spectra.shape[1])
+    grid = torch.zeros(model.bins ** model.n_bands, dtype=torch.bool)
+    grid[model.cells_of(R)] = True
+    grid = grid.reshape((model.bins,) * model.n_bands)
+    for _ in range(margin):
+        out = grid.clone()
+        for axis in range(model.n_bands):
+            out |= _grown(grid, axis)
+        grid = out
+    return grid.reshape(-1)
+
+
+def _grown(grid: torch.Tensor, axis: int) -> torch.Tensor:
+    """``grid`` (bool) with each set cell's two neighbours along ``axis`` set too."""
+    out = grid.clone()
+    lo = [slice(None)] * grid.ndim
+    hi = [slice(None)] * grid.ndim
+    lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+    out[tuple(lo)] |= grid[tuple(hi)]
+    out[tuple(hi)] |= grid[tuple(lo)]
+    return out
+
+
 def support(model: LookupModel, R_skin: torch.Tensor, dilation: int) -> torch.Tensor:
     """The cells (bins ** n,) bool holding a training skin pixel, widened by ``dilation`` cells along every
     axis (a cube neighbourhood), without the edge cells of any axis: those also hold every pixel beyond the
@@ -81,13 +116,7 @@ def support(model: LookupModel, R_skin: torch.Tensor, dilation: int) -> torch.Te
     grid = occ.reshape((model.bins,) * model.n_bands)
     for axis in range(model.n_bands):
         for _ in range(dilation):
-            out = grid.clone()
-            lo = [slice(None)] * grid.ndim
-            hi = [slice(None)] * grid.ndim
-            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
-            out[tuple(lo)] |= grid[tuple(hi)]
-            out[tuple(hi)] |= grid[tuple(lo)]
-            grid = out
+            grid = _grown(grid, axis)
     for axis in range(model.n_bands):
         edge = [slice(None)] * grid.ndim
         for i in (0, model.bins - 1):
@@ -143,7 +172,8 @@ def tune_threshold(model: LookupModel, spectra: torch.Tensor, pfa_budget: float,
 
 
 def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, features: Sequence[str] = FEATURES,
-          bins: int = 32, trees: int = 300, support_dilation: int = 1, max_rows: int = 1_500_000,
+          bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = 1,
+          max_rows: int = 1_500_000,
           pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
           configuration: bool = True) -> tuple[LookupModel, dict]:
     """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n), skin
@@ -152,7 +182,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     physical (``elm_valid``; default: all): the scene budget is held on their non-skin rows, those the evaluation
     judges, while every row teaches the learner. ``configuration=False`` learns without the configuration: one
     table slice for every sun and camera. Returns the model (eval mode) and a training summary."""
-    check_options(bins, trees, support_dilation, max_rows, torch.as_tensor(R).shape[-1])
+    check_options(bins, trees, support_dilation, max_rows, torch.as_tensor(R).shape[-1], earthlib_margin)
     try:
         import lightgbm as lgb
     except ImportError:
@@ -191,6 +221,8 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     booster = lgb.train(params, lgb.Dataset(F, y, weight=w, free_raw_data=True), num_boost_round=int(trees))
     where = support(model, R[label], support_dilation)
     bake(model, lambda f: booster.predict(f, raw_score=True, num_threads=1), where)
+    near = earthlib_cells(model, C, earthlib_margin) if earthlib_margin >= 0 else torch.zeros_like(where)
+    model.levels[:, near] = 0
     model.booster = booster.model_to_string()
     judged = ~label & physical
     thr = tune_threshold(model, C, pfa_budget, R[judged], X[judged], scene_budget)
@@ -202,7 +234,9 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
             "pfa_budget": pfa_budget, "scene_budget": scene_budget, "train_coverage": float(hit[label].float().mean()),
             "pfa_scene_train": float(hit[judged].float().mean()), "support_cells": int(where.sum()),
             "cells": int(where.numel()), "calibration_configs": int(model.levels.shape[0]),
-            "options": {"bins": bins, "trees": trees, "support_dilation": support_dilation, "max_rows": max_rows,
+            "earthlib_margin_cells": int((near & where).sum()),
+            "options": {"bins": bins, "trees": trees, "support_dilation": support_dilation,
+                        "earthlib_margin": earthlib_margin, "max_rows": max_rows,
                         "seed": seed, "configuration": bool(configuration), "learner": params}}
     return model, info
 
@@ -212,7 +246,8 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
 MAX_CELLS = 1 << 22
 
 
-def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n_bands: int = 4) -> None:
+def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n_bands: int = 4,
+                  earthlib_margin: int = 1) -> None:
     """``ValueError`` naming the ``torchskin train`` flag for a table or learner setting out of range, before any
     row is read."""
     if not 2 <= bins or bins ** n_bands > MAX_CELLS:
@@ -221,8 +256,11 @@ def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n
                          f"got {bins}")
     if trees < 1:
         raise ValueError(f"--trees must be at least 1, got {trees}")
-    if support_dilation < 0:
-        raise ValueError(f"--support-dilation must be 0 or more cells, got {support_dilation}")
+    if not 0 <= support_dilation <= bins:  # wider than the table covers every cell already
+        raise ValueError(f"--support-dilation must be 0 or more cells, at most --bins ({bins}), got {support_dilation}")
+    if not -1 <= earthlib_margin <= bins:
+        raise ValueError(f"--earthlib-margin must be -1 (none) or 0 or more steps, at most --bins ({bins}), got "
+                         f"{earthlib_margin}")
     if max_rows < 100:
         raise ValueError(f"--max-rows must be at least 100, got {max_rows}")
 
@@ -242,10 +280,12 @@ def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
     """``torchskin train --method lut`` on a dataset folder: the rows (every skin pixel, sunlit and shadowed, and
     the non-skin ones), the declared domain, ``learn`` with the request's options."""
     o = req.options
-    check_options(o["bins"], o["trees"], o["support_dilation"], o["max_rows"], len(LookupModel.required_bands))
+    check_options(o["bins"], o["trees"], o["support_dilation"], o["max_rows"], len(LookupModel.required_bands),
+                  o["earthlib_margin"])
     X, R, label, physical = load_rows(req.data, req.frames)
     model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=o["bins"],
-                        trees=o["trees"], support_dilation=o["support_dilation"], max_rows=o["max_rows"],
+                        trees=o["trees"], support_dilation=o["support_dilation"],
+                        earthlib_margin=o["earthlib_margin"], max_rows=o["max_rows"],
                         pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
                         physical=physical, configuration=o["configuration"])
     info["frames"] = req.frames
@@ -262,6 +302,6 @@ def bins_text(model: LookupModel) -> str:
     return f"{model.bins}^{model.n_bands} cells"
 
 
-__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MAX_CELLS", "bake", "check_options", "learn", "learner_features", "load_rows",
+__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "bake", "check_options", "learn", "learner_features", "load_rows",
            "slice_centres",
            "support", "table_range", "train_on_dataset", "tune_threshold"]
