@@ -91,7 +91,13 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     """A 4-band frame of an anny subject with panels, ground, sun and shadows, eager and with the compiled
     kernels (``render.kernels``; the first compiled frame's extra time is ``compile_seconds``), against open3d's
     own ``cast_rays`` + ``test_occlusions`` for the same rays; the sensor noise draw of one frame on its own; and
-    16 sun directions shaded from one G-buffer."""
+    16 sun directions shaded from one G-buffer.
+
+    The frames share one camera and one ray caster, as a renderer's frames of a fixed camera do: the sky view's
+    field is cast once (``visibility_field_seconds``, the first frame's extra) and the camera's pixels look it up
+    once (``sky_view_new_camera_seconds``: a frame from a camera not seen before pays this again)."""
+    import dataclasses
+
     import numpy as np
 
     from .render.kernels import KERNELS
@@ -145,6 +151,16 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
         out[f"multi_source_frames_per_s_{tag}"] = 16 / _median_seconds(frame(compiled, sc16), dev, max(2, repeat // 2))
     best = "compiled" if len(paths) == 2 else "eager"
     res = frame(best == "compiled")()
+    # the sky view's one-time cost: the field's sample points, cast on a fresh ray caster of the same meshes; and
+    # a new camera's lookup (its rays not the cached ones: every pixel interpolated again)
+    t0 = time.perf_counter()
+    fresh = Raycaster(rc.meshes, rc.material_names)
+    fresh.visibility_field().lookup(gb0, hit.nonzero().flatten(), torch.zeros(hit.numel()),
+                                    torch.zeros(hit.numel(), len(rc.material_names)))
+    out["visibility_field_seconds"] = time.perf_counter() - t0
+    new_camera = dataclasses.replace(gb0, rays=gb0.rays.clone())
+    out["sky_view_new_camera_seconds"] = _median_seconds(
+        lambda: fresh.with_sky_view(new_camera, method="field"), torch.device("cpu"), repeat, warmup=1)
     return {"render": {
         "seconds": out[f"seconds_{best}"], "ratio_to_raycast": out[f"ratio_to_raycast_{best}"],
         "multi_source_frames_per_s": out[f"multi_source_frames_per_s_{best}"], "path": best, **out,

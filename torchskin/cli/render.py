@@ -87,10 +87,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
         path = path_terms(sc.suns[0].atmosphere, scene_light(sc, torch.float64).sky[0].tolist(), sc.bands, args.range)
     sensor = Sensor(noise=not args.no_noise, seed=args.seed, **path)
-    res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile)
+    res = render(sc, device=device, sensor=sensor, elm=args.elm, compile=args.compile, sky_view=args.sky_view)
     for old in previous_outputs(args.out) if args.overwrite else []:  # the folder then holds this render only
         old.unlink()
-    info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor, fmt=args.format)
+    info = write_outputs(res, sc.to_dict(), args.out, sensor=sensor, fmt=args.format, sky_view=args.sky_view)
     warning = elm_warning(info)
     if warning:
         print(f"torchskin render: warning: {warning}", file=sys.stderr)
@@ -130,6 +130,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     rp.add_argument("--sky-background", action="store_true",
                     help="rays that hit nothing above the horizon see the isotropic sky (radiance E_sky / pi) "
                          "instead of a black void")
+    rp.add_argument("--sky-view", choices=["field", "rays"], default="field",
+                    help="each pixel's view of the sky and lit ground: field (default) interpolates sample points "
+                         "cast once per geometry (128 rays each), rays casts 32 rays per pixel (slower for large "
+                         "frames, noisier)")
     rp.add_argument("--camera-zenith", type=float, default=90.0, help="camera zenith, degrees (default 90)")
     rp.add_argument("--camera-azimuth", type=float, default=0.0, help="camera azimuth, degrees (default 0)")
     rp.add_argument("--range", type=float, default=9.449, help="camera range, m (default 9.449 = 31 ft)")

@@ -65,6 +65,10 @@ from .rows import strings as strings
 from .schema import SCHEMA_VERSION, columns_for
 
 SUBJECT_TARGET_Z = 0.9  # cameras aim here (mid-body)
+#: a dataset's sky view: rays per sampled pixel (``render.raycast.SKY_RAYS``), not the per-geometry field that
+#: ``render`` uses: a pose group renders a few hundred pixels of its meshes, whose rays cost a fraction of casting
+#: the field over every surface (``docs/guide/rendering.md``); its frames (``--images``) use the same rays
+SKY_VIEW = "rays"
 #: the ground's reflectance (white-sky albedo for "rtlsr") at 544, 633, 1080, 1580 nm: a bare soil
 GROUND_REFLECTANCE = [0.12, 0.16, 0.30, 0.28]
 #: the reference panels' interior pixels a group renders for its ELM medians (per panel, a regular sample:
@@ -210,7 +214,7 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     if m == 0:
         if images is not None:  # no rows to agree with: the frames' own exposure and noise
             full = render(scene, device=device, sensor=sensor, gbuffer=gb, raycaster=rc, skins=skins,
-                          panel_pixels=pix, compile=compile)
+                          panel_pixels=pix, compile=compile, sky_view=SKY_VIEW)
             cube = full.reflectance[:, 0].permute(0, 3, 1, 2).cpu().numpy().astype(np.float16)
             images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))
         return out
@@ -219,7 +223,7 @@ def group_rows(group: PoseGroup, pixels_per_class: int, device: torch.device | s
     picks = np.concatenate([rng.choice(labels.skin, m, replace=False), rng.choice(labels.other, m, replace=False)])
     res = render_pixels(scene, torch.from_numpy(picks), device=device, sensor=sensor, gbuffer=gb, skins=skins,
                         panel_pixels=pix, raycaster=rc, compile=compile,
-                        irradiance=list(share_bands(group.bands).values()) or None, light=light)
+                        irradiance=list(share_bands(group.bands).values()) or None, light=light, sky_view=SKY_VIEW)
     if images is not None:  # full frames of every skin x sun in one batch, with the rows' exposure, noise and ELM
         cube = frame_cubes(scene, gb, rc, sensor, skins, pix, picks, res, device, compile)
         images.append(cube.reshape(n_skins, n_suns, *cube.shape[1:]))

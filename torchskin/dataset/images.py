@@ -29,7 +29,7 @@ def frame_cubes(scene: Scene, gb: GBuffer, rc: Raycaster, sensor: Sensor, skins:
     and the rows are the bytes they are without ``--images``. The frames' radiance is ``render``'s (a pixel's
     shading and sky view do not depend on which other pixels are rendered)."""
     full = render(scene, device=device, sensor=None, gbuffer=gb, raycaster=rc, skins=skins, panel_pixels=pix,
-                  compile=compile)
+                  compile=compile, sky_view="rays")  # the rows' sky view (generate.SKY_VIEW)
     rad = full.radiance  # (S·K, 1, H, W, B)
     n_cfg, n_bands = rad.shape[0], rad.shape[-1]
     flat = rad.view(n_cfg, 1, -1, n_bands)

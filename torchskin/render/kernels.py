@@ -89,8 +89,8 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
                    ) -> tuple[torch.Tensor, ...]:
     """Per pixel from open3d's ray-cast answers (N rays): hit, smooth normal, geometric normal (both turned to
     the viewer), material id, mesh id, (S, N) whether each pixel is hit and faces
-    each sun (n·ω_sun > -``facing_margin``), and the shadow-ray origin (N, 3), ``shadow_offset`` off the surface
-    along the geometric normal.
+    each sun (n·ω_sun > -``facing_margin``), the shadow-ray origin (N, 3), ``shadow_offset`` off the surface
+    along the geometric normal, and the hit face (N,) (over all meshes; the sentinel face at misses).
 
     ``rays`` (N, 6); ``t`` (N,); ``geometry_ids``, ``primitive_ids`` (N,) int32 (-1: no hit); ``uvs`` (N, 2);
     ``primitive_normals`` (N, 3); tables indexed by geometry id + 1 (``face_offset``, ``geometry_mesh``) or by
@@ -115,7 +115,8 @@ def gbuffer_fields(rays: torch.Tensor, t: torch.Tensor, geometry_ids: torch.Tens
     pos = [point_along(rays[:, k], d[k], t) for k in range(3)]
     facing = (cos_to(n, sun_dirs) > -facing_margin) & hit  # (S, N)
     origin = torch.stack([point_along(pos[k], g[k], shadow_offset) for k in range(3)], -1)
-    return hit, torch.stack(n, -1), torch.stack(g, -1), face_material[face], geometry_mesh[gid1], facing, origin
+    return (hit, torch.stack(n, -1), torch.stack(g, -1), face_material[face], geometry_mesh[gid1], facing, origin,
+            face)
 
 
 def lambert_sky(normal: torch.Tensor, hit: torch.Tensor, material: torch.Tensor, shadow: torch.Tensor,

@@ -152,7 +152,7 @@ def previous_outputs(out_dir: str | Path) -> list[Path]:
 
 
 def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path, s: int = 0, c: int = 0,
-                  sensor: Sensor | None = None, fmt: str = "npy") -> dict:
+                  sensor: Sensor | None = None, fmt: str = "npy", sky_view: str | None = None) -> dict:
     """Band PNGs (false-colour reflectance), the reflectance cube (bands x H x W, ``reflectance.npy``), the
     sensor signal cube before ELM (``signal.npy``, digital numbers), each with its wavelengths in a sidecar
     (``reflectance.bands.json``, ``signal.bands.json``: ``io.bands_sidecar_text``), the rules detector's mask, ``mask.png``: an
@@ -162,7 +162,8 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     ``render.json`` (``scene``: the ``Scene`` or its ``to_dict()``, each sun's ``atmosphere`` null under a light
     model that reads none, ``light.uses_atmosphere``; timing, panels with their pixel regions, detections) in
     ``out_dir``, for sun ``s`` and camera ``c``; ``sensor``: the one rendered with (its noise
-    model judges the empirical line, ``summary``). ``fmt``: the cubes' format, "npy" (the default, above), "envi"
+    model judges the empirical line, ``summary``); ``sky_view``: the render's sky-view method, recorded as
+    ``sky_view`` when given. ``fmt``: the cubes' format, "npy" (the default, above), "envi"
     (``reflectance.hdr`` over ``reflectance.img``, ``signal.hdr`` over ``signal.img``) or "tiff"
     (``reflectance.tif``, ``signal.tif``), each with its wavelengths, FWHM and units in the header
     (``cubefiles.CubeWriter``); ``render.json``'s ``cubes`` lists the files and their format. Returns the
@@ -211,5 +212,7 @@ def write_outputs(result: RenderResult, scene: Scene | dict, out_dir: str | Path
     doc = {"summary": info, "timing_s": result.timing, "panels": panels, "detections": dets,
            "scene": scene, "bands_nm": [[b.center_nm, b.fwhm_nm] for b in result.bands],
            "illumination": result.light.summary(result.bands), "cubes": cubes}
+    if sky_view is not None:
+        doc["sky_view"] = sky_view
     write_text(out / "render.json", json.dumps(doc, indent=1))
     return info

@@ -67,6 +67,8 @@ class RenderResult:
 #: ``render_pixels`` renders a multiple of this many pixels (the requested ones, the panels', then copies of the
 #: first requested pixel), so that per-band kernels tile the pixels x bands in full vector lanes
 PIXEL_MULTIPLE = 16
+#: ``render``'s ways to find each pixel's view of the sky (``Raycaster.with_sky_view``'s methods)
+SKY_VIEW_METHODS = ("field", "rays")
 
 
 def sync(device: torch.device) -> None:
@@ -94,11 +96,18 @@ def geometry(scene: Scene, raycaster: Raycaster | None, gbuffer: GBuffer | None,
     return gb, raycaster
 
 
+def check_sky_view(sky_view: str) -> None:
+    """ValueError unless ``sky_view`` is one of ``SKY_VIEW_METHODS``."""
+    if sky_view not in SKY_VIEW_METHODS:
+        raise ValueError(f"sky_view must be one of {', '.join(SKY_VIEW_METHODS)}, got {sky_view!r}")
+
+
 def cast_shadows(scene: Scene, gb: GBuffer, raycaster: Raycaster | None, light: LightTables | None = None,
-                 shared: Sequence[torch.Tensor] = ()) -> GBuffer:
+                 shared: Sequence[torch.Tensor] = (), sky_view: str = "field") -> GBuffer:
     """``gb`` with shadow masks (itself if it has them, else cast with ``raycaster`` for the scene's suns) and,
-    when ``light`` has sky or ground light, its sky view (``Raycaster.with_sky_view``; ``shared``: pixel groups
-    that share one view, the reference panels' interiors)."""
+    when ``light`` has sky or ground light, its sky view (``Raycaster.with_sky_view`` by the method ``sky_view``;
+    ``shared``: pixel groups that share one view, the reference panels' interiors)."""
+    check_sky_view(sky_view)
     need_sky = light is not None and light.needs_sky_view and gb.sky is None
     if gb.shadow is not None and not need_sky:
         return gb
@@ -107,7 +116,7 @@ def cast_shadows(scene: Scene, gb: GBuffer, raycaster: Raycaster | None, light: 
         raise ValueError(f"the G-buffer has no {what}: pass the raycaster that made it to cast them")
     if gb.shadow is None:
         gb = raycaster.with_shadows(gb.to("cpu", torch.float32), np.stack([s.direction for s in scene.suns]))
-    return raycaster.with_sky_view(gb.to("cpu", torch.float32), shared=shared) if need_sky else gb
+    return raycaster.with_sky_view(gb.to("cpu", torch.float32), shared=shared, method=sky_view) if need_sky else gb
 
 
 def gather_pixels(gb: GBuffer, flat: torch.Tensor) -> GBuffer:
@@ -149,7 +158,7 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
            gbuffer: GBuffer | None = None, erode_px: int = 1, elm: str = "dhr",
            skins: tissue.SkinParams | Sequence[str | dict] | None = None,
            cache: MaterialCache | None = None, panel_pixels: list[list[torch.Tensor]] | None = None,
-           compile: bool = False) -> RenderResult:
+           compile: bool = False, sky_view: str = "field") -> RenderResult:
     """Render every sun x camera of ``scene`` and calibrate with ELM.
 
     Args:
@@ -170,6 +179,10 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
             finding them again when one G-buffer is rendered many times.
         compile: run the per-pixel stages (G-buffer assembly, shading, sensor, ELM) as fused compiled kernels
             (``render.kernels``; the first call compiles, for seconds); False: the same functions eagerly.
+        sky_view: how each pixel's view of the sky and lit ground is found (outdoor light only): "field"
+            (default) interpolates the geometry's ``visibility.VisibilityField``, cast once per ``raycaster`` and
+            reused by every later frame of the same meshes; "rays" casts ``raycast.SKY_RAYS`` rays per pixel
+            (cheaper for a single small frame or a few pixels; a noisier estimate).
 
     Returns:
         ``RenderResult``; images (S, C, H, W, B).
@@ -189,6 +202,7 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     """
     timing: dict = {}
     t0 = time.perf_counter()
+    check_sky_view(sky_view)
     check_materials(scene.materials, scene.band_list)  # before any mesh is built
     check_light(scene.illumination, scene.suns)
     light = scene_light(scene, dtype, device)
@@ -197,8 +211,11 @@ def render(scene: Scene, device: torch.device | str = "cpu", dtype: torch.dtype 
     pix = find_panel_pixels(gb, list(scene.panels), erode_px) if panel_pixels is None else panel_pixels
     hw = gb.hit[0].numel()  # the panels share one sky view each (flat indices over every camera's pixels)
     shared = [ix.cpu() + c * hw for per_cam in pix for c, ix in enumerate(per_cam)]
-    gb = cast_shadows(scene, gb, raycaster, light, shared).to(device=torch.device(device), dtype=dtype)
+    field = raycaster.field_seconds if raycaster is not None else 0.0
+    gb = cast_shadows(scene, gb, raycaster, light, shared, sky_view).to(device=torch.device(device), dtype=dtype)
     timing["sky_view_s"] = time.perf_counter() - t1
+    if raycaster is not None and raycaster.field_seconds > field:  # the field's samples cast in this call
+        timing["visibility_field_s"] = raycaster.field_seconds - field
     pix = [[ix.to(gb.hit.device) for ix in per_cam] for per_cam in pix]
     return render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
                           compile, light)
@@ -210,7 +227,8 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
                   elm: str = "dhr", skins: tissue.SkinParams | Sequence[str | dict] | None = None,
                   cache: MaterialCache | None = None,
                   panel_pixels: list[list[torch.Tensor]] | None = None, compile: bool = False,
-                  irradiance: Sequence[int] | None = None, light: LightTables | None = None) -> RenderResult:
+                  irradiance: Sequence[int] | None = None, light: LightTables | None = None,
+                  sky_view: str = "field") -> RenderResult:
     """``render`` of the pixels ``pixels`` (flat indices into the single camera's H*W) and the panels' interior
     only: images have shape (S, 1, 1, K[, B]) for the K requested pixels, and automatic exposure uses the
     brightest of them and the panels (the dataset generator's fast path). Shadow rays (and sky-view rays) are
@@ -220,6 +238,7 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
     arguments as ``render``."""
     timing: dict = {}
     t0 = time.perf_counter()
+    check_sky_view(sky_view)
     check_materials(scene.materials, scene.band_list)
     check_light(scene.illumination, scene.suns)
     light = scene_light(scene, dtype, device) if light is None else light.to(device, dtype)
@@ -233,7 +252,7 @@ def render_pixels(scene: Scene, pixels: torch.Tensor, device: torch.device | str
     gb = gather_pixels(gb, torch.cat([pixels, *panel_flat, pixels[:1].expand(pad if len(pixels) else 0)]))
     offs = np.cumsum(sizes)
     shared = [torch.arange(int(offs[k]), int(offs[k + 1])) for k in range(len(panel_flat))]
-    gb = cast_shadows(scene, gb, raycaster, light, shared).to(device=torch.device(device), dtype=dtype)
+    gb = cast_shadows(scene, gb, raycaster, light, shared, sky_view).to(device=torch.device(device), dtype=dtype)
     pix = [[torch.arange(int(offs[k]), int(offs[k + 1]), device=gb.hit.device)] for k in range(len(panel_flat))]
     res = render_gbuffer(scene, gb, pix, torch.device(device), dtype, sensor, box, elm, skins, cache, timing, t0,
                          compile, light, irradiance)

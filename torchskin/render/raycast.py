@@ -26,6 +26,7 @@ from ..optics import dot3
 from .kernels import KERNELS, cos_to, gbuffer_fields, point_along, table_rows
 from .meshes import TriMesh, build_meshes
 from .scene import Camera, Scene
+from .visibility import VisibilityField, pattern_angle, tangent_frame
 
 SHADOW_OFFSET_M = 1e-3  # shadow-ray origins are pushed this far off the surface along the geometric normal
 #: pixels with n·ω_sun above -FACING_MARGIN cast shadow rays (the margin keeps every pixel that shading may find
@@ -62,6 +63,8 @@ class GBuffer:
     mesh_names: list
     sky: torch.Tensor | None = None  # (C, H, W) cosine-weighted fraction of the hemisphere that sees the sky
     ground: torch.Tensor | None = None  # (C, H, W, M) the same, of up-facing surfaces, by their material id
+    face: torch.Tensor | None = None  # (C, H, W) int64 the hit face (over all meshes; a sentinel at misses)
+    uv: torch.Tensor | None = None  # (C, H, W, 2) the hit's barycentric weights of the face's corners 1 and 2
 
     @property
     def position(self) -> torch.Tensor:
@@ -144,6 +147,11 @@ class Raycaster:
         self._corner_normals = torch.from_numpy(np.concatenate(normals).astype(np.float32)[tri].reshape(-1, 9))
         self._fmat = torch.from_numpy(np.concatenate(fmat + [np.array([-1])]))
         self.rays: dict = {}  # camera rays by camera parameters: a fixed camera's rays are computed once
+        self.meshes = list(meshes)
+        self._field: VisibilityField | None = None
+        # the field's sky view at a cached camera's pixels (``with_sky_view``): id of its rays -> (rays, shared
+        # groups, sky, ground); a fixed camera sees the same surfaces in every frame
+        self._camera_views: dict[int, tuple] = {}
         self._shadow_rays = torch.empty((0, 6), dtype=torch.float32)  # reused between frames
 
     @classmethod
@@ -206,11 +214,11 @@ class Raycaster:
             ans["primitive_ids"].reshape(-1), ans["primitive_uvs"].reshape(-1, 2),
             ans["primitive_normals"].reshape(-1, 3), self._gid_face_off, self._corner_normals, self._fmat,
             self._gid_mesh, sun, FACING_MARGIN, SHADOW_OFFSET_M)
-        hit, n, ng, mat, mesh, facing, origin = fields
+        hit, n, ng, mat, mesh, facing, origin, face = fields
         gb = GBuffer(hit=hit.reshape(shp), t=ans["t_hit"], rays=rays, normal=n.reshape(*shp, 3),
                      geometric_normal=ng.reshape(*shp, 3), material=mat.reshape(shp),
                      mesh=mesh.reshape(shp), shadow=None, material_names=self.material_names,
-                     mesh_names=self.mesh_names)
+                     mesh_names=self.mesh_names, face=face.reshape(shp), uv=ans["primitive_uvs"].reshape(*shp, 2))
         return self._cast_shadows(gb, sun, facing, origin) if shadows else gb
 
     def with_shadows(self, gb: GBuffer, sun_directions: np.ndarray | torch.Tensor) -> GBuffer:
@@ -222,19 +230,39 @@ class Raycaster:
                              SHADOW_OFFSET_M).to("cpu", torch.float32)
         return self._cast_shadows(gb, sun, facing, origin)
 
-    def with_sky_view(self, gb: GBuffer, rays: int = SKY_RAYS, shared: Sequence[torch.Tensor] = ()) -> GBuffer:
-        """``gb`` with each hit pixel's view of the sky and of up-facing surfaces (a new G-buffer): ``rays``
-        hemisphere rays per pixel (``hemisphere_directions``, turned to the pixel's smooth normal and rotated by a
-        fixed per-pixel angle, a hash of its camera ray, so that neighbours do not share one pattern and a pixel
-        gets the same rays in a frame and in any subset of it), from points ``SHADOW_OFFSET_M`` off the
-        surface along the geometric normal. A ray that escapes upwards sees sky; one that hits a surface facing up
-        (``GROUND_UP_COS``) sees that surface's material, lit by the open sky and sun (one bounce); anything else
-        sees nothing. Being cosine-weighted, each fraction of rays is the view factor itself: for an open plane
-        tilted by β, sky (1 + cos β)/2 and ground (1 - cos β)/2. Counts, not sums: the same bits for any thread
-        count. Missed pixels get 0. ``shared``: groups of flat pixel indices (into all cameras' C·H·W pixels) whose
-        pixels share one view, the mean over a regular subset of at most ``SHARED_SKY_PIXELS`` of them (sorted
-        indices, every k-th): the reference panels' interiors, flat, open and read by ELM through their median,
-        which would otherwise cast 40 % of a dataset's sky rays."""
+    def visibility_field(self) -> VisibilityField:
+        """The sky and ground view of this ray caster's surfaces (``visibility.VisibilityField``), made on first
+        use and kept: its sample points are cast lazily, once per mesh and side."""
+        if self._field is None:
+            self._field = VisibilityField(self, self.meshes, offset=SHADOW_OFFSET_M)
+        return self._field
+
+    @property
+    def field_seconds(self) -> float:
+        """Seconds spent casting the ``visibility_field``'s sample points so far (0 before any)."""
+        return 0.0 if self._field is None else self._field.cast_seconds
+
+    def with_sky_view(self, gb: GBuffer, rays: int = SKY_RAYS, shared: Sequence[torch.Tensor] = (),
+                      method: str = "rays") -> GBuffer:
+        """``gb`` with each hit pixel's view of the sky and of up-facing surfaces (a new G-buffer).
+
+        ``method="field"``: interpolated from this geometry's ``visibility_field`` (cast once, reused by every
+        frame of these meshes: any camera, sun or band set). ``method="rays"``: ``rays`` hemisphere rays per pixel
+        (``hemisphere_directions``, turned to the pixel's smooth normal and rotated by a fixed per-pixel angle, a
+        hash of its camera ray, so that neighbours do not share one pattern and a pixel gets the same rays in a
+        frame and in any subset of it), from points ``SHADOW_OFFSET_M`` off the surface along the geometric
+        normal: the cheaper choice for a few pixels (a dataset's sampled rows).
+
+        A ray that escapes upwards sees sky; one that hits a surface facing up (``GROUND_UP_COS``) sees that
+        surface's material, lit by the open sky and sun (one bounce); anything else sees nothing. Being
+        cosine-weighted, each fraction of rays is the view factor itself: for an open plane tilted by β, sky
+        (1 + cos β)/2 and ground (1 - cos β)/2. Counts, not sums: the same bits for any thread count. Missed
+        pixels get 0. ``shared``: groups of flat pixel indices (into all cameras' C·H·W pixels) whose pixels share
+        one view, the mean of ``rays`` rays from each of a regular subset of at most ``SHARED_SKY_PIXELS`` of them
+        (sorted indices, every k-th), with either method: the reference panels' interiors, flat, open and read by
+        ELM through their median, which would otherwise cast 40 % of a dataset's sky rays."""
+        if method not in ("rays", "field"):
+            raise ValueError(f"method must be 'rays' or 'field', got {method!r}")
         hit = gb.hit.reshape(-1).cpu()
         n_px, n_mat = hit.numel(), len(self.material_names)
         groups = [torch.as_tensor(g, dtype=torch.long).cpu().sort().values for g in shared]
@@ -243,19 +271,35 @@ class Raycaster:
         subsets = []
         for g in groups:
             cast_px[g] = False
-            sub = g[::max(1, -(-g.numel() // SHARED_SKY_PIXELS))]
-            subsets.append(sub)
-            cast_px[sub] = True
-        idx = cast_px.nonzero().flatten()
+            subsets.append(g[::max(1, -(-g.numel() // SHARED_SKY_PIXELS))])
+        shp, dev, dtype = gb.hit.shape, gb.hit.device, gb.normal.dtype
+        base = gb.rays if gb.rays._base is None else gb.rays._base
+        kept = self._camera_views.get(id(base)) if method == "field" else None
+        if (kept is not None and kept[0] is base and kept[1] == rays and len(kept[2]) == len(groups)
+                and all(torch.equal(a, b) for a, b in zip(kept[2], groups))):  # this camera's views, found before
+            return dataclasses.replace(gb, sky=kept[3].reshape(shp).to(device=dev, dtype=dtype, copy=True),
+                                       ground=kept[4].reshape(*shp, n_mat).to(device=dev, dtype=dtype, copy=True))
         sky = torch.zeros(n_px, dtype=torch.float32)
         ground = torch.zeros(n_px, n_mat, dtype=torch.float32)
+        if method == "field":
+            own = cast_px.nonzero().flatten()
+            if own.numel():
+                self.visibility_field().lookup(gb, own, sky, ground)
+            idx = torch.cat(subsets) if subsets else torch.zeros(0, dtype=torch.long)
+        else:
+            for sub in subsets:
+                cast_px[sub] = True
+            idx = cast_px.nonzero().flatten()
         if idx.numel():
-            normal = gb.normal.reshape(-1, 3).cpu().double().index_select(0, idx)
-            origin = point_along(gb.position.reshape(-1, 3).cpu().double().index_select(0, idx),
-                                 gb.geometric_normal.reshape(-1, 3).cpu().double().index_select(0, idx),
+            def rows(x: torch.Tensor, k: int) -> torch.Tensor:  # the cast pixels' rows, float64
+                return x.reshape(-1, k).cpu().index_select(0, idx).double()
+
+            ray = rows(gb.rays, 6)
+            normal = rows(gb.normal, 3)
+            origin = point_along(point_along(ray[:, :3], ray[:, 3:], rows(gb.t, 1)), rows(gb.geometric_normal, 3),
                                  SHADOW_OFFSET_M)
-            view_dir = gb.rays.reshape(-1, 6)[:, 3:].cpu().double().index_select(0, idx)
-            counts_sky, counts_ground = self._hemisphere_counts(origin, normal, pattern_angle(view_dir), rays, n_mat)
+            view_dir = ray[:, 3:]
+            counts_sky, counts_ground = self.hemisphere_counts(origin, normal, pattern_angle(view_dir), rays, n_mat)
             cs = torch.zeros(n_px, dtype=torch.int64)
             cg = torch.zeros(n_px, n_mat, dtype=torch.int64)
             cs[idx], cg[idx] = counts_sky, counts_ground
@@ -264,13 +308,14 @@ class Raycaster:
             for g, sub in zip(groups, subsets):  # integer sums: the same bits whatever the order
                 sky[g] = float(cs[sub].sum()) / (rays * sub.numel())
                 ground[g] = (cg[sub].sum(0).double() / (rays * sub.numel())).float()
-        shp = gb.hit.shape
-        dev = gb.hit.device
-        dtype = gb.normal.dtype
+        if method == "field" and any(base is r for r in self.rays.values()):  # a cached camera's rays: kept
+            if len(self._camera_views) > 4:
+                self._camera_views.clear()
+            self._camera_views[id(base)] = (base, rays, groups, sky.clone(), ground.clone())
         return dataclasses.replace(gb, sky=sky.reshape(shp).to(device=dev, dtype=dtype),
                                    ground=ground.reshape(*shp, n_mat).to(device=dev, dtype=dtype))
 
-    def _hemisphere_counts(self, origin: torch.Tensor, normal: torch.Tensor, psi: torch.Tensor, rays: int,
+    def hemisphere_counts(self, origin: torch.Tensor, normal: torch.Tensor, psi: torch.Tensor, rays: int,
                            n_mat: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Per pixel (P,): how many of its ``rays`` hemisphere rays (the pattern turned by ``psi`` about the
         normal) see sky, and (P, M) how many see an up-facing surface of each material (float64 geometry, float32
@@ -344,28 +389,6 @@ def hemisphere_directions(k: int) -> torch.Tensor:
     r = torch.sqrt((i + 0.5) / k)
     phi = i * (np.pi * (3.0 - np.sqrt(5.0)))  # the golden angle
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), torch.sqrt((1 - r * r).clamp_min(0.0))], -1)
-
-
-def pattern_angle(direction: torch.Tensor) -> torch.Tensor:
-    """A fixed angle in [0, 2π) per camera ray direction (P, 3), float64: a hash of the direction's components
-    (the same ray gives the same angle in a frame and in any subset of its pixels)."""
-    h = direction[:, 0] * 12.9898e3 + direction[:, 1] * 78.233e3 + direction[:, 2] * 37.719e3
-    return torch.frac(torch.frac(h) * 43758.5453) * (2 * np.pi)
-
-
-def tangent_frame(normal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Two unit vectors (P, 3) orthogonal to the unit normals ``normal`` (P, 3) and to each other (t, b, n
-    right-handed), written out component by component."""
-    nx, ny, nz = normal.unbind(-1)
-    use_x = nz.abs() > 0.9  # helper axis: +z, or +x for normals near the z axis
-    ax = torch.where(use_x, torch.ones_like(nx), torch.zeros_like(nx))
-    az = 1 - ax
-    # t = normalize(helper x n), b = n x t
-    tx, ty, tz = -az * ny, az * nx - ax * nz, ax * ny
-    inv = 1 / torch.sqrt(tx * tx + ty * ty + tz * tz)
-    tx, ty, tz = tx * inv, ty * inv, tz * inv
-    bx, by, bz = ny * tz - nz * ty, nz * tx - nx * tz, nx * ty - ny * tx
-    return torch.stack([tx, ty, tz], -1), torch.stack([bx, by, bz], -1)
 
 
 def kornia_camera(camera: Camera, dtype: torch.dtype = torch.float64) -> Any:
