@@ -291,14 +291,14 @@ class Raycaster:
                 cast_px[sub] = True
             idx = cast_px.nonzero().flatten()
         if idx.numel():
-            def rows(x: torch.Tensor, k: int) -> torch.Tensor:  # the cast pixels' rows, float64
-                return x.reshape(-1, k).cpu().index_select(0, idx).double()
+            def rows(x: torch.Tensor, k: int) -> torch.Tensor:  # the cast pixels' rows, in the G-buffer's dtype
+                return x.reshape(-1, k).cpu().index_select(0, idx)
 
             ray = rows(gb.rays, 6)
-            normal = rows(gb.normal, 3)
-            origin = point_along(point_along(ray[:, :3], ray[:, 3:], rows(gb.t, 1)), rows(gb.geometric_normal, 3),
-                                 SHADOW_OFFSET_M)
-            view_dir = ray[:, 3:]
+            normal = rows(gb.normal, 3).double()
+            position = point_along(ray[:, :3], ray[:, 3:], rows(gb.t, 1))  # as ``GBuffer.position``, then float64
+            origin = point_along(position.double(), rows(gb.geometric_normal, 3).double(), SHADOW_OFFSET_M)
+            view_dir = ray[:, 3:].double()
             counts_sky, counts_ground = self.hemisphere_counts(origin, normal, pattern_angle(view_dir), rays, n_mat)
             cs = torch.zeros(n_px, dtype=torch.int64)
             cg = torch.zeros(n_px, n_mat, dtype=torch.int64)
