@@ -208,3 +208,41 @@ def test_an_unknown_sky_view_method_is_refused_before_any_work():
     gb = rc.gbuffer(sc.cameras, np.array([[0.0, 0.0, 1.0]]))
     with pytest.raises(ValueError, match="method must be 'rays' or 'field'"):
         rc.with_sky_view(gb, method="grid")
+
+
+def test_hits_on_a_long_triangles_hypotenuse_stay_inside_its_grid():
+    """u + v = 1 (and a float32 ulp over, as open3d can return) on every face, the last one included: the three
+    samples found are the face's own, and a linear field comes back exactly."""
+    cyl = build_mesh(MeshSpec("c", "cylinder", "skin", {"radius": 0.2, "height": 1.6, "segments": 48}))
+    curved = V._curved(cyl)
+    n = len(cyl.faces)
+    g = torch.Generator().manual_seed(4)
+    face = torch.arange(n).repeat(4)
+    m = curved.m[face].float()
+    u = torch.rand(4 * n, generator=g)
+    u[n:3 * n] = (m[n:3 * n] - 1 + u[n:3 * n]) / m[n:3 * n]  # the grid's last row (p = m - 1)
+    v = (1 - u).nextafter(torch.full_like(u, 2.0))  # one ulp over the hypotenuse
+    v[::2] = 1 - u[::2]
+    idx, w = curved.weights(face, u, v)
+    c = torch.as_tensor(cyl.vertices, dtype=torch.float64)[torch.as_tensor(cyl.faces, dtype=torch.int64)][face]
+    p = c[:, 0] + u[:, None].double() * (c[:, 1] - c[:, 0]) + v[:, None].double() * (c[:, 2] - c[:, 0])
+    # every sample used is a corner of the grid cell that holds the hit: within one step of it
+    step = torch.stack([(c[:, 1] - c[:, 0]).norm(dim=1), (c[:, 2] - c[:, 0]).norm(dim=1),
+                        (c[:, 2] - c[:, 1]).norm(dim=1)], 1).amax(1) / m.double()
+    for j in range(3):
+        assert bool(((curved.positions[idx[j]] - p).norm(dim=1) <= 1.01 * step).all())
+    f = (0.1 + curved.positions @ torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64)).float()
+    want = 0.1 + p @ torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64)
+    torch.testing.assert_close(interpolate(f, idx, w).double(), want, rtol=0, atol=5e-6)
+
+
+def test_a_crop_of_a_cameras_rays_is_not_served_the_whole_frames_views(cast):
+    """The views kept for a camera serve that camera's whole G-buffer only: a G-buffer of part of its rays gets
+    its own lookup."""
+    sc, rc, gb = cast
+    rc.with_sky_view(gb, method="field")  # the whole frame's views, kept
+    for part in (slice(0, 48), slice(48, 96)):
+        crop = rc.gbuffer_from_rays(rc.camera_rays(sc.cameras[0])[None, part], np.array([[0.0, 0.0, 1.0]]))
+        got = rc.with_sky_view(crop, method="field").sky
+        want = Raycaster(rc.meshes, rc.material_names).with_sky_view(crop, method="field").sky
+        assert torch.equal(got, want)

@@ -274,8 +274,12 @@ class Raycaster:
             subsets.append(g[::max(1, -(-g.numel() // SHARED_SKY_PIXELS))])
         shp, dev, dtype = gb.hit.shape, gb.hit.device, gb.normal.dtype
         base = gb.rays if gb.rays._base is None else gb.rays._base
-        kept = self._camera_views.get(id(base)) if method == "field" else None
-        if (kept is not None and kept[0] is base and kept[1] == rays and len(kept[2]) == len(groups)
+        # a camera's own G-buffer: its cached rays whole (``gbuffer`` of one camera), not a crop or view of them
+        whole = (gb.rays.shape[1:] == base.shape and gb.rays.data_ptr() == base.data_ptr()
+                 and gb.rays.stride()[1:] == base.stride())
+        key = (rays, int(hit.sum()))
+        kept = self._camera_views.get(id(base)) if method == "field" and whole else None
+        if (kept is not None and kept[0] is base and kept[1] == key and len(kept[2]) == len(groups)
                 and all(torch.equal(a, b) for a, b in zip(kept[2], groups))):  # this camera's views, found before
             return dataclasses.replace(gb, sky=kept[3].reshape(shp).to(device=dev, dtype=dtype, copy=True),
                                        ground=kept[4].reshape(*shp, n_mat).to(device=dev, dtype=dtype, copy=True))
@@ -308,10 +312,10 @@ class Raycaster:
             for g, sub in zip(groups, subsets):  # integer sums: the same bits whatever the order
                 sky[g] = float(cs[sub].sum()) / (rays * sub.numel())
                 ground[g] = (cg[sub].sum(0).double() / (rays * sub.numel())).float()
-        if method == "field" and any(base is r for r in self.rays.values()):  # a cached camera's rays: kept
+        if method == "field" and whole and any(base is r for r in self.rays.values()):  # a cached camera's: kept
             if len(self._camera_views) > 4:
                 self._camera_views.clear()
-            self._camera_views[id(base)] = (base, rays, groups, sky.clone(), ground.clone())
+            self._camera_views[id(base)] = (base, key, groups, sky.clone(), ground.clone())
         return dataclasses.replace(gb, sky=sky.reshape(shp).to(device=dev, dtype=dtype),
                                    ground=ground.reshape(*shp, n_mat).to(device=dev, dtype=dtype))
 

@@ -142,7 +142,7 @@ class _Curved:
         p = torch.minimum(a.floor().long(), m - 1).clamp_min(0)
         q = torch.minimum(b.floor().long(), m - 1 - p).clamp_min(0)
         fa, fb = a - p, b - q
-        upper = fa + fb > 1
+        upper = (fa + fb > 1) & (p + q + 2 <= m)  # on the hypotenuse (u + v = 1 to rounding) the lower triangle
 
         def point(pp: torch.Tensor, qq: torch.Tensor) -> torch.Tensor:  # grid point (pp, qq): row pp holds m+1-pp
             return self.block[self.start[face] + pp * (m + 1) - pp * (pp - 1) // 2 + qq]
