@@ -246,3 +246,19 @@ def test_a_crop_of_a_cameras_rays_is_not_served_the_whole_frames_views(cast):
         got = rc.with_sky_view(crop, method="field").sky
         want = Raycaster(rc.meshes, rc.material_names).with_sky_view(crop, method="field").sky
         assert torch.equal(got, want)
+
+
+def test_a_mesh_too_large_for_the_field_gets_per_pixel_rays(monkeypatch):
+    """A curved mesh above MAX_MESH_SAMPLES is not sampled: its pixels get the per-pixel rays' values exactly, and
+    every other mesh still the field's."""
+    sc = small_scene(64)
+    monkeypatch.setattr(V, "MAX_MESH_SAMPLES", 1500)  # the sphere (642 vertices) fits, the cylinder does not
+    rc = Raycaster.from_scene(sc)
+    gb = rc.gbuffer(sc.cameras, np.array([[0.0, 0.0, 1.0]]))
+    field, rays = rc.with_sky_view(gb, method="field"), rc.with_sky_view(gb, method="rays")
+    names = gb.mesh_names
+    big, ball = gb.mesh == names.index("subject"), gb.mesh == names.index("ball")
+    assert rc.visibility_field().shapes[names.index("subject")] is None
+    assert int(big.sum()) > 50 and int(ball.sum()) > 50
+    assert torch.equal(field.sky[big], rays.sky[big]) and torch.equal(field.ground[big], rays.ground[big])
+    assert not torch.equal(field.sky[ball], rays.sky[ball])

@@ -287,9 +287,8 @@ class Raycaster:
         ground = torch.zeros(n_px, n_mat, dtype=torch.float32)
         if method == "field":
             own = cast_px.nonzero().flatten()
-            if own.numel():
-                self.visibility_field().lookup(gb, own, sky, ground)
-            idx = torch.cat(subsets) if subsets else torch.zeros(0, dtype=torch.long)
+            left = self.visibility_field().lookup(gb, own, sky, ground) if own.numel() else own
+            idx = torch.cat([*subsets, left]).sort().values  # the panels' samples, and meshes too large for the field
         else:
             for sub in subsets:
                 cast_px[sub] = True

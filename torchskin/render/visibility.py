@@ -36,6 +36,9 @@ if TYPE_CHECKING:
 FIELD_RAYS = 128
 #: a curved mesh's triangles are sampled inside on a barycentric grid whose steps are at most this long
 EDGE_MAX_M = 0.1
+#: a curved mesh that would take more sample points than this (a large scan or terrain) is left to per-pixel rays:
+#: casting it would cost more than most frames of it (128 rays a sample: ~30 M rays, seconds, at the cap)
+MAX_MESH_SAMPLES = 250_000
 #: at most this many steps along a triangle edge (a triangle longer than EDGE_MAX_M times this is sampled coarser)
 MAX_SUBDIVISION = 16
 #: a planar mesh's grid spacing where other objects stand (their bounding box, widened by ``PLANE_MARGIN_M``)
@@ -227,9 +230,10 @@ def _plane(mesh: TriMesh, normal: np.ndarray, dense: tuple[np.ndarray, np.ndarra
     return _Plane(o, e1, e2, n, ticks[0], ticks[1], c, fn)
 
 
-def _curved(mesh: TriMesh) -> _Curved:
+def _curved(mesh: TriMesh) -> _Curved | None:
     """The sample points of a curved ``mesh``: its vertices, and each long triangle's barycentric grid of ``m``
-    steps a side (``EDGE_MAX_M``, at most ``MAX_SUBDIVISION``) with normals interpolated as the G-buffer's."""
+    steps a side (``EDGE_MAX_M``, at most ``MAX_SUBDIVISION``) with normals interpolated as the G-buffer's; None
+    for a mesh that would take more than ``MAX_MESH_SAMPLES``."""
     v = torch.as_tensor(mesh.vertices, dtype=torch.float64)
     vn = torch.as_tensor(mesh.vertex_normals, dtype=torch.float64)
     f = torch.as_tensor(mesh.faces, dtype=torch.int64)
@@ -240,6 +244,8 @@ def _curved(mesh: TriMesh) -> _Curved:
                         (c[:, 0] - c[:, 2]).norm(dim=1)], 1).amax(1)
     m = torch.ceil(edge / EDGE_MAX_M).clamp(1, MAX_SUBDIVISION).long()
     size = (m + 1) * (m + 2) // 2
+    if len(v) + int((size - 3).sum()) > MAX_MESH_SAMPLES:  # too large to sample: per-pixel rays
+        return None
     start = torch.cumsum(size, 0) - size
     block = torch.empty(int(size.sum()), dtype=torch.int64)
     positions, normals = [v], [vn / vn.norm(dim=1, keepdim=True).clamp_min(1e-300)]
@@ -309,7 +315,7 @@ class VisibilityField:
     meshes: list[TriMesh]
     rays: int = FIELD_RAYS
     offset: float = 1e-3  # sample rays start this far off the surface (the ray caster's ``SHADOW_OFFSET_M``)
-    shapes: list[_Plane | _Curved] = field(default_factory=list)
+    shapes: list[_Plane | _Curved | None] = field(default_factory=list)  # None: a mesh left to per-pixel rays
     face_offset: list[int] = field(default_factory=list)
     values: dict[tuple[int, int], torch.Tensor] = field(default_factory=dict)  # (mesh, side) -> (Q, 1 + M)
     cast_seconds: float = 0.0
@@ -332,7 +338,8 @@ class VisibilityField:
     @property
     def samples(self) -> int:
         """Sample points of one side of every mesh."""
-        return sum(len(s.xs) * len(s.ys) if isinstance(s, _Plane) else len(s.positions) for s in self.shapes)
+        return sum(len(s.xs) * len(s.ys) if isinstance(s, _Plane) else len(s.positions) for s in self.shapes
+                   if s is not None)
 
     def _values(self, k: int, side: int) -> torch.Tensor:
         """Mesh ``k``'s sample points seen from ``side`` (+1: the side its normals point to), cast on first use:
@@ -344,6 +351,8 @@ class VisibilityField:
 
         t0 = time.perf_counter()
         s = self.shapes[k]
+        if s is None:
+            raise ValueError(f"mesh {k} is left to per-pixel rays (more than {MAX_MESH_SAMPLES} sample points)")
         if isinstance(s, _Plane):
             pos, nrm = s.points()
         else:
@@ -392,16 +401,21 @@ class VisibilityField:
             valid = valid | fill
         return grid.reshape(len(vals), -1)
 
-    def lookup(self, gb: GBuffer, pixels: torch.Tensor, sky: torch.Tensor, ground: torch.Tensor) -> None:
+    def lookup(self, gb: GBuffer, pixels: torch.Tensor, sky: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
         """The sky view and ground view by material at the hit pixels ``pixels`` (flat indices into all cameras'
         pixels of ``gb``, a G-buffer with ``face`` and ``uv``), written into ``sky`` (N,) and ``ground`` (N, M),
-        float32 over all N pixels (the others are left as they are)."""
+        float32 over all N pixels (the others are left as they are). Returns the pixels of ``pixels`` it left
+        out: those on a mesh too large for the field (``MAX_MESH_SAMPLES``), for per-pixel rays."""
         if gb.face is None or gb.uv is None:
             raise ValueError("the G-buffer has no face ids and barycentrics (Raycaster.gbuffer records them)")
         mesh = gb.mesh.reshape(-1).cpu().index_select(0, pixels)
+        left = []
         for k, s in enumerate(self.shapes):
             rows = (mesh == k).nonzero().flatten()
             if not rows.numel():
+                continue
+            if s is None:
+                left.append(pixels.index_select(0, rows))
                 continue
             px = pixels.index_select(0, rows)
             g = gb.geometric_normal.reshape(-1, 3).cpu().float().index_select(0, px).t()  # (3, P)
@@ -434,6 +448,7 @@ class VisibilityField:
                     acc += (vals.index_select(0, idx[j]) - v0) * w[j, :, None]
                 sky.index_copy_(0, at, acc[:, 0])
                 ground.index_copy_(0, at, acc[:, 1:])
+        return torch.cat(left) if left else pixels[:0]
 
 
 def pattern_angle(direction: torch.Tensor) -> torch.Tensor:
