@@ -343,3 +343,54 @@ def test_no_earthlib_train_spectrum_is_skin_at_any_brightness(lut_model):
     near = earthlib_cells(model, earthlib_reflectance("train"), 0)
     assert near.any() and not model.levels[:, near].any()
     assert ck["meta"]["options"]["earthlib_margin"] == 1 and ck["meta"]["earthlib_margin_cells"] >= 0
+
+
+def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tmp_path, capsys):
+    """A silicon five-band camera (MicaSense RedEdge-MX's centres and widths): the table is learned over its
+    bands, the checkpoint and the graph's metadata name them, the card says five, and the torch reference, the
+    graph run whole and the numpy head tiled on two workers agree pixel for pixel (5^5 cells a slice: the table's
+    slices do not start on a byte). `evaluate` refuses it in one line (it reads the index bands only so far)."""
+    import onnx
+    import onnxruntime as ort
+
+    from torchskin.bands import BandSet
+    from torchskin.dataset.config import resolve_config
+    from torchskin.dataset.generate import generate
+    from torchskin.onboard import OnboardDetector
+    from torchskin.render.meshes import sphere_mesh, write_obj
+
+    bands = BandSet.parse("475/32,560/27,668/14,717/12,842/57")
+    v, f = sphere_mesh(0.35, 3)
+    write_obj(tmp_path / "head.obj", v + [0.0, 0.0, 0.9], f)
+    cfg = resolve_config({"camera": {"width": 64, "height": 64, "range_m": [5.0, 10.0]}, "sun": {"per_pose": 3},
+                          "skin": {"per_pose": 2}, "subject": {"meshes": [str(tmp_path / "head.obj")]},
+                          "sampling": {"groups_per_shard": 2, "pixels_per_class": 24},
+                          "confusers": {"partition": "test"}, "clothing": {"partition": "test"},
+                          "bands": {"spec": "475/32,560/27,668/14,717/12,842/57"}})
+    generate(cfg, 12, 7, tmp_path / "ds", quiet=True)
+    args = ["train", "--data", str(tmp_path / "ds"), "--method", "lut", "--bins", "5", "--trees", "20", "--seed", "3"]
+    assert main([*args, "--out", str(tmp_path / "lut5.pt")]) == 0
+    assert main(["export", "--model", str(tmp_path / "lut5.pt"), "--out", str(tmp_path / "ex")]) == 0
+    model, ck = registry.load(tmp_path / "lut5.pt")
+    assert model.n_bands == 5 and model.bands == bands and BandSet.from_json(ck["bands"]) == bands
+    meta = {p.key: p.value for p in onnx.load(str(tmp_path / "ex" / "detector.onnx")).metadata_props}
+    assert BandSet.from_json(meta["bands"]) == bands
+    card = (tmp_path / "ex" / "detector.md").read_text()
+    assert "(B, 5, H, W): ELM-calibrated reflectance at 475, 560, 668, 717, 842 nm" in card and "five band" in card
+    rng = np.random.default_rng(1)
+    cube = (rng.random((2, 5, 48, 64)) * 0.7).astype(np.float32)
+    cfg_rows = np.array([[20.0, 10.0, 30.0], [60.0, 70.0, 160.0]], dtype=np.float32)
+    with torch.no_grad():
+        tm, ts = model.reference_detector()(torch.from_numpy(cube), torch.from_numpy(cfg_rows))
+    gm, gs = ort.InferenceSession(str(tmp_path / "ex" / "detector.onnx"),
+                                  providers=["CPUExecutionProvider"]).run(None, {"cube": cube, "config": cfg_rows})
+    det = OnboardDetector(tmp_path / "ex" / "detector.onnx", threads=2, tile=1024)
+    assert det.head_name == "lut" and det.n_bands == 5
+    out = det(cube, cfg_rows, min_reflectance=0)
+    assert 0 < int(tm.sum()) < tm.numel(), "the cube must hold pixels on both sides"
+    for mask, score in ((gm, gs), (out["mask"], out["score"])):
+        assert np.array_equal(mask, tm.numpy()) and np.array_equal(score, ts.numpy())
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(tmp_path / "ds"), "--model", str(tmp_path / "lut5.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "475, 560, 668, 717, 842 nm" in err, err

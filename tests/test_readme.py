@@ -25,7 +25,10 @@ PAGES = [README] + sorted(p for p in (ROOT / "docs").rglob("*.md") if "_build" n
 #: command prefixes run here (every example starting with one of them, page by page, in page order)
 RUN = ("torchskin spectra", "torchskin light", "torchskin render --out out/frame --json",
        "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin render --out hs --width 256", "torchskin detect",
-       "torchskin calibrate")
+       "torchskin calibrate",
+       # the detectors page's five-band camera, generate to detect
+       "torchskin generate --bands 475/32", "torchskin train --data cam5", "torchskin export --model cam5.pt",
+       "torchskin render --bands 475/32")
 #: a printed number: not part of a word or file name (r544, shard-00001), with decimals and exponent as shown
 NUMBER = r"(?<![\w.\-])[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?(?!\w)"
 #: what legitimately differs from run to run, matched as any value: wall-clock durations in text ("2.41 s",

@@ -123,6 +123,18 @@ def _false_alarm_line(train: dict) -> str:
             "in training.")
 
 
+_COUNT = {2: "two", 3: "three", 4: "four", 5: "five", 6: "six", 7: "seven", 8: "eight"}
+
+
+def _card_bands(meta: dict[str, str]) -> list[float]:
+    """The band centres (nm) of a graph's metadata (``bands``, else ``bands_nm``, else the index bands)."""
+    from .bands import INDEX_BANDS_NM, BandSet
+
+    if "bands" in meta:
+        return list(BandSet.from_json(meta["bands"]).centers)
+    return [float(c) for c in json.loads(meta.get("bands_nm", "null") or "null") or INDEX_BANDS_NM]
+
+
 def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | None = None) -> str:
     """Markdown card for ``kind`` in ("boundaries", "baseline_box", "detector"). ``meta``: the ONNX metadata;
     ``train``: the checkpoint's training summary; ``evaluation``: the ``torchskin evaluate`` result."""
@@ -132,8 +144,12 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
     units = json.loads(meta.get("feature_units", "[]"))
     domain = json.loads(meta.get("feature_domain", "[]"))
     inp, outp = _INPUTS[kind]
+    centres = _card_bands(meta)
     if kind == "detector":
         outp += _score_words()
+        inp = inp.replace("(B, 4, H, W): ELM-calibrated reflectance at 544, 633, 1080, 1580 nm",
+                          f"(B, {len(centres)}, H, W): ELM-calibrated reflectance at "
+                          f"{', '.join(f'{c:g}' for c in centres)} nm")
     opts = train.get("options", {})
     lines = [
         f"# torchskin {kind}.onnx: {_TITLES[kind]}", "",
@@ -183,7 +199,8 @@ def model_card(kind: str, meta: dict[str, str], train: dict, evaluation: dict | 
               "and NDSI towards 0; the part of it below the box's NDSI floor is missed (it would meet soils).",
               "- The visible/NIR rule (NDVN >= d1) was set from the rendered skin population (Fitzpatrick I-VI of the "
               "calibrated model); skin darker in the visible than that (or heavily made-up) would be rejected.",
-              "- The four band centres and widths must match the training sensor (Gaussian bands, see metadata).",
+              f"- The {_COUNT.get(len(centres), str(len(centres)))} band centres and widths must match the training "
+              "sensor (Gaussian bands, see metadata).",
               "- Configurations outside the feature domain above are flagged, never silently extrapolated.",
               "- Reflectance must be finite and non-negative: the onboard runtime refuses NaN always and negative "
               "values unless asked to clip them to 0 (`negative=\"clip\"`, `torchskin detect --clip-negative`), as "

@@ -92,11 +92,12 @@ def domain_from_manifest(data_dir: str | os.PathLike,
     return out
 
 
-def earthlib_reflectance(part: str = "train") -> torch.Tensor:
-    """The earthlib spectra of one partition in the four index bands (``INDEX_BANDS_NM``), (m, 4) float32."""
+def earthlib_reflectance(part: str = "train", bands_nm: Sequence[float] = INDEX_BANDS_NM) -> torch.Tensor:
+    """The earthlib spectra of one partition at the band centres ``bands_nm`` (default the four index bands,
+    ``INDEX_BANDS_NM``; as ``generate`` samples its confusers), (m, n) float32."""
     from ..confusers import band_reflectance
 
-    _, R = band_reflectance(INDEX_BANDS_NM, part)
+    _, R = band_reflectance(list(bands_nm), part)
     return R.float()
 
 

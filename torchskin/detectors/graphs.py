@@ -48,14 +48,14 @@ DETECTOR_AXES = {"cube": {0: "B", 2: "H", 3: "W"}, "config": {0: "B"}, "mask": {
                  "score": {0: "B", 1: "H", 2: "W"}}
 
 
-def torch_detector_graph(module: nn.Module, k: int, meta: dict[str, str]) -> onnx.ModelProto:
-    """The detector graph of a torch module ``module(cube (B, 4, H, W), config (B, k)) -> (mask, score)``: inputs
+def torch_detector_graph(module: nn.Module, k: int, meta: dict[str, str], n_bands: int = 4) -> onnx.ModelProto:
+    """The detector graph of a torch module ``module(cube (B, n_bands, H, W), config (B, k)) -> (mask, score)``: inputs
     ``cube`` and ``config``, outputs ``mask`` and ``score``, batch and image axes dynamic. A module that ignores the
     configuration still gets the ``config`` input (unused: the exporter drops it, the onboard runtime feeds it)."""
     import onnx
     from onnx import TensorProto, helper
 
-    cube, cfg = torch.rand(2, 4, 3, 5), torch.zeros(2, k)
+    cube, cfg = torch.rand(2, n_bands, 3, 5), torch.zeros(2, k)
     m = torch_graph(module, (cube, cfg), ["cube", "config"], ["mask", "score"], DETECTOR_AXES, meta)
     if "config" not in {i.name for i in m.graph.input}:
         m.graph.input.append(helper.make_tensor_value_info("config", TensorProto.FLOAT, ["B", k]))

@@ -87,8 +87,10 @@ def load_candidate(spec: str | os.PathLike) -> Candidate:
 def model_candidate(model: DetectorModel, name: str, path: str = "", meta: dict | None = None) -> Candidate:
     """A candidate of a detector model of any registered kind (``detectors.registry``): its ``decide`` and, for a
     box kind, its ``boxes``."""
+    from ..export import model_bands
+
     return Candidate(name, registry.kind_of(model), list(model.features), model.decide, registry.boxes_of(model),
-                     path, meta or {}, registry.required_bands(type(model)))
+                     path, meta or {}, model_bands(model).centers)
 
 
 def graph_bands(meta: dict) -> tuple[float, ...]:

@@ -8,6 +8,7 @@ import os
 from collections.abc import Sequence
 
 from ..angles import BACKLIT_MIN_DEG
+from ..bands import BAND_MATCH_NM, INDEX_BANDS_NM
 from ..dataset.files import require_bands
 from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
 from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
@@ -56,6 +57,11 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     cands.append(static_candidate())
     for c in cands:  # each model's bands (its kind's required_bands), before any row is read
         require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
+        if len(c.bands) != len(INDEX_BANDS_NM) or any(abs(a - b) > BAND_MATCH_NM for a, b in zip(c.bands,
+                                                                                              INDEX_BANDS_NM)):
+            # the held-out rows and the earthlib test spectra are read in the index bands
+            raise ValueError(f"--model {c.name} reads the bands {', '.join(f'{b:g}' for b in c.bands)} nm; evaluate "
+                             f"reads the index bands ({', '.join(f'{b:g}' for b in INDEX_BANDS_NM)} nm) only so far")
     rows = held_out(data_dir, features)
     test_R, test_pts = earthlib_test()
     judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]

@@ -37,9 +37,9 @@ class LutHead:
         self.counts = [int(c) for c in grid["config_counts"]]
         self.cells = self.bins ** self.n
         self.slices = int(np.prod(self.counts))
-        if bits.size * 8 != self.slices * self.cells:
+        if bits.size != -(-self.slices * self.cells // 8):
             raise ValueError(f"the lut table holds {bits.size * 8} bits for {self.slices} x {self.cells} cells")
-        self.bits = bits.reshape(self.slices, self.cells // 8)
+        self.bits = bits.reshape(-1)  # one bit stream: a slice starts at bit s * cells (a byte's edge or not)
         self.ref = np.float32(BRIGHTNESS_REF_PER_BAND * self.n)
         self.top = np.float32(self.bins - 1)
         self.strides = (self.bins ** np.arange(self.n - 1, -1, -1)).astype(np.float32)
@@ -68,7 +68,10 @@ class LutHead:
         """Slice ``s`` unpacked, one uint8 (0 or 1) per cell; made once and kept."""
         t = self._slices.get(s)
         if t is None:
-            t = self._slices[s] = np.unpackbits(self.bits[s], bitorder="little")
+            first = s * self.cells
+            b0, b1 = first // 8, -(-(first + self.cells) // 8)
+            bits = np.unpackbits(self.bits[b0:b1], bitorder="little")
+            t = self._slices[s] = np.ascontiguousarray(bits[first - 8 * b0:first - 8 * b0 + self.cells])
         return t
 
     def scratch(self, n: int) -> dict[str, np.ndarray]:

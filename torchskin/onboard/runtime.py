@@ -69,6 +69,8 @@ class _Model:
                     from None
         self.bands_nm = list(self.band_set.centers) if self.band_set is not None \
             else json.loads(meta.get("bands_nm", "[]"))
+        #: how many bands a cube holds for this model (its ``bands_nm``; four for exports that name none)
+        self.n_bands = len(self.bands_nm) or 4
         self._pool: ThreadPoolExecutor | None = None
 
     def _config(self, config: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -110,7 +112,7 @@ class _TileBinding:
     def __init__(self, det: OnboardDetector, n: int):
         self.head = det._split[1] if det._split is not None else None
         rows = self.head.e if self.head is not None else 0
-        self.t, self.edges = np.empty((4, n), dtype=np.float32), np.empty((rows, n), dtype=np.float32)
+        self.t, self.edges = np.empty((det.n_bands, n), dtype=np.float32), np.empty((rows, n), dtype=np.float32)
         self.total, self.dark = np.empty(n, dtype=np.float32), np.empty(n, dtype=bool)
         self.bits = self.t.view(np.uint32)  # the tile's values as unsigned integers (``_MAX_BITS``)
         self.nir_min = np.zeros((), dtype=np.float32)  # the head's minimum of the tile's FLOOR_BAND
@@ -121,9 +123,9 @@ class _TileBinding:
             self.io, self.sums = self.head.session.io_binding(), self.head.sums.io_binding()
             self.head.bind(self.io, self.sums, self.t, self.edges, self.total, self.nir_min)
             self.ws = self.head.bind_weights(self.io)
-        else:  # a plain (4, n) array, bound as (1, 4, 1, n): numpy fills it faster than a 4-d view
+        else:  # a plain (bands, n) array, bound as (1, bands, 1, n): numpy fills it faster than a 4-d view
             self.io, self.sums = det.session.io_binding(), None
-            self.io.bind_cpu_input("cube", self.t.reshape(1, 4, 1, n))
+            self.io.bind_cpu_input("cube", self.t.reshape(1, det.n_bands, 1, n))
 
     def band_sum(self) -> None:
         """The band sum of the tile into ``total`` (the head's ``sums`` session)."""
@@ -205,7 +207,7 @@ class OnboardDetector(_Model):
         if not m.any():  # a tile without skin (most of a frame's)
             return
         dark = np.empty(len(m), dtype=bool) if dark is None else dark
-        np.less_equal(t[FLOOR_BAND], floor, out=dark)
+        np.less_equal(t[min(FLOOR_BAND, len(t) - 1)], floor, out=dark)
         np.logical_and(dark, m, out=dark)
         count = np.count_nonzero(dark)
         if not count:
@@ -294,12 +296,12 @@ class OnboardDetector(_Model):
         return tb
 
     def pixels(self, reflectance: ArrayLike, config: ArrayLike, chunk: int = 65536) -> dict:
-        """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, 4) and
-        ``config`` (n, k) run as a (n, 4, 1, 1) cube in chunks of ``chunk`` pixels (negative values clipped to 0,
+        """The detector graph on separate pixels, each with its own configuration: ``reflectance`` (n, bands) and
+        ``config`` (n, k) run as a (n, bands, 1, 1) cube in chunks of ``chunk`` pixels (negative values clipped to 0,
         as ``negative="clip"``; no brightness floor). Returns ``mask`` (n,) bool and ``score`` (n,) float32."""
         r = np.asarray(reflectance, dtype=np.float32)
-        if r.ndim != 2 or r.shape[1] != 4:
-            raise ValueError(f"reflectance must be (n, 4), got shape {r.shape}")
+        if r.ndim != 2 or r.shape[1] != self.n_bands:
+            raise ValueError(f"reflectance must be (n, {self.n_bands}), got shape {r.shape}")
         if not np.isfinite(r).all():
             raise ValueError("reflectance holds NaN or infinite values")
         c, _ = self._config(config)
@@ -308,7 +310,7 @@ class OnboardDetector(_Model):
         mask, score = np.empty(len(r), dtype=bool), np.empty(len(r), dtype=np.float32)
         for lo in range(0, len(r), chunk):
             hi = min(lo + chunk, len(r))
-            cube = np.maximum(r[lo:hi], 0).reshape(hi - lo, 4, 1, 1)
+            cube = np.maximum(r[lo:hi], 0).reshape(hi - lo, self.n_bands, 1, 1)
             m, sc = self.session.run(None, {"cube": cube, "config": c[lo:hi]})
             mask[lo:hi], score[lo:hi] = m.reshape(-1), sc.reshape(-1)
         return {"mask": mask, "score": score}
@@ -425,7 +427,7 @@ class OnboardDetector(_Model):
                 out[0][...], out[1][...] = mask, score
                 mask, score = out
             return {"mask": mask.astype(bool, copy=False), "score": score, "out_of_domain": ood, **extra}
-        flat = x.reshape(B, 4, n)
+        flat = x.reshape(B, self.n_bands, n)
         if out is not None:
             mask, score = out[0].reshape(B, n), out[1].reshape(B, n)
         else:

@@ -188,7 +188,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
                 clipped += int(res["clipped_values"][0])
             if writer is not None:
                 writer.write_rows(mask_rows(m))
-        check_reflectance_range(low, high, over / (4 * H * W), where)
+        check_reflectance_range(low, high, over / (det.n_bands * H * W), where)
     except BaseException as e:
         if writer is not None:
             writer.abort(e)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ...bands import INDEX_BANDS_NM
+from ...bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
 from ..features import FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
@@ -68,9 +68,11 @@ class LookupModel(nn.Module):
 
     kind: ClassVar[str] = "lut"
     methods: ClassVar[tuple[str, ...]] = ("lut",)
-    required_bands: ClassVar[tuple[float, ...]] = INDEX_BANDS_NM
+    #: any bands, at least two (``train.check_options``): the model keeps the dataset's (``bands``)
+    required_bands: ClassVar[tuple[float, ...]] = ()
     options: ClassVar[tuple[KindOption, ...]] = (
-        KindOption("bins", 32, "lut: cells per coordinate axis of the table (default 32)", int),
+        KindOption("bins", 0, "lut: cells per coordinate axis of the table (default 0: 32 for up to four bands, "
+                              "fewer for more, the most that keeps 2^22 cells a slice: 21 for five, 12 for six)", int),
         KindOption("trees", 300, "lut: boosting rounds of the learner the table is baked from (default 300)", int),
         KindOption("support_dilation", 1, "lut: cells by which the training skin's support is widened; cells "
                                           "outside it are never skin (default 1)", int),
@@ -92,7 +94,7 @@ class LookupModel(nn.Module):
     card_score: ClassVar[str] = "the lookup table: 1 inside the calibrated region, 0 outside (a table holds decisions)"
     pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("lut", ("--method", "lut")),)
     card_use: ClassVar[str] = (
-        "Onboard skin detection in 4-band (544, 633, 1080, 1580 nm) reflectance imagery with a configuration-"
+        "Onboard skin detection in reflectance imagery of the model's bands (metadata `bands`) with a configuration-"
         "dependent lookup table over the bands' normalized differences and brightness "
         "(`torchskin.detectors.lut`), calibrated to the false-alarm budget.")
 
@@ -109,8 +111,15 @@ class LookupModel(nn.Module):
     std: torch.Tensor
 
     def __init__(self, n_bands: int = 4, bins: int = 32, features: Sequence[str] = FEATURES,
-                 config_counts: Sequence[int] = CONFIG_BINS, domain: Any = None, lo: Any = None, inv: Any = None):
+                 config_counts: Sequence[int] = CONFIG_BINS, domain: Any = None, lo: Any = None, inv: Any = None,
+                 bands: BandSet | None = None):
         super().__init__()
+        if bands is None and n_bands != len(INDEX_BANDS_NM):
+            raise ValueError(f"a {n_bands}-band table needs its bands (the index bands are four)")
+        #: the bands the table reads, in the cube's order (the export's metadata ``bands``)
+        self.bands = INDEX_BANDS if bands is None else bands
+        if len(self.bands) != n_bands:
+            raise ValueError(f"bands holds {len(self.bands)} bands for a {n_bands}-band table")
         self.features = tuple(features)
         if len(config_counts) != len(self.features):
             raise ValueError(f"config_counts needs one count per feature ({len(self.features)}), got {config_counts}")
@@ -161,7 +170,8 @@ class LookupModel(nn.Module):
     # --------------------------------------------------------------------- the detector kind (protocol.DetectorModel)
     def detector_graph(self, meta: dict[str, str]) -> onnx.ModelProto:
         """``detector.onnx`` of the table (``LookupDetector``), with metadata ``meta`` and the grid (``lut_grid``)."""
-        return torch_detector_graph(LookupDetector(self), len(self.features), {**meta, "lut_grid": self.grid_json()})
+        return torch_detector_graph(LookupDetector(self), len(self.features), {**meta, "lut_grid": self.grid_json()},
+                                    self.n_bands)
 
     def grid_json(self) -> str:
         """The table's geometry as JSON (bins, lo, inv, config lo/inv/counts): the onboard head's parameters."""
@@ -181,7 +191,7 @@ class LookupModel(nn.Module):
         return {"state_dict": small, "levels_xz": _pack(self.levels.contiguous().numpy().tobytes()), "features": list(self.features),
                 "n_bands": self.n_bands, "bins": self.bins, "config_counts": list(self.config_counts),
                 "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs,
-                "coordinates": COORDINATES, "meta": meta}
+                "coordinates": COORDINATES, "bands": self.bands.to_json(), "meta": meta}
 
     @classmethod
     def from_checkpoint(cls, ck: dict) -> LookupModel:
@@ -191,7 +201,11 @@ class LookupModel(nn.Module):
         if ck.get("coordinates") != COORDINATES:
             raise ValueError(f"its table was built on other coordinates ({ck.get('coordinates', 'fourth-root brightness')}"
                              f", not {COORDINATES}: an earlier torchskin); train it again with this one")
-        m = cls(ck["n_bands"], ck["bins"], ck["features"], ck["config_counts"])
+        try:  # checkpoints before the bands were kept: the index bands
+            bands = BandSet.from_json(ck["bands"]) if "bands" in ck else None
+        except ValueError as e:
+            raise ValueError(f"its bands are damaged ({e})") from None
+        m = cls(ck["n_bands"], ck["bins"], ck["features"], ck["config_counts"], bands=bands)
         state = dict(ck["state_dict"])
         try:
             state["levels"] = _unpack(ck["levels_xz"], np.uint8, m.levels.shape)

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ...bands import BandSet
 from ..features import FEATURES, MIN_REFLECTANCE, domain_from_manifest, earthlib_reflectance
 from .grid import cell_centres, coordinates, reflectance_of
 from .model import EVEN_ODDS_LEVEL, LookupModel, to_levels
@@ -175,9 +176,9 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
           bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = 1,
           max_rows: int = 1_500_000,
           pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
-          configuration: bool = True) -> tuple[LookupModel, dict]:
-    """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n), skin
-    ``label`` (N,). Pixels not above the brightness floor and non-finite ones are left out; at most ``max_rows``
+          configuration: bool = True, bands: BandSet | None = None) -> tuple[LookupModel, dict]:
+    """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n) in the
+    bands ``bands`` (default the four index bands), skin ``label`` (N,). Pixels not above the brightness floor and non-finite ones are left out; at most ``max_rows``
     remain (a draw from ``seed``). ``physical`` (N,) bool marks the rows of frames whose ELM reflectance is
     physical (``elm_valid``; default: all): the scene budget is held on their non-skin rows, those the evaluation
     judges, while every row teaches the learner. ``configuration=False`` learns without the configuration: one
@@ -199,14 +200,14 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     if int(label.sum()) < 10 or int((~label).sum()) < 10:
         raise ValueError(f"need at least 10 skin and 10 non-skin pixels above the brightness floor, got "
                          f"{int(label.sum())} and {int((~label).sum())}")
-    model = LookupModel(R.shape[1], bins, features, domain=domain,
+    model = LookupModel(R.shape[1], bins, features, domain=domain, bands=bands,
                         **({} if configuration else {"config_counts": (1,) * X.shape[1]}))
     model.config_inputs = bool(configuration)
     k = X.shape[1] if configuration else 0  # the configuration columns the learner takes
     lo, inv = table_range(R[label], bins)
     model.lo.copy_(lo)
     model.inv.copy_(inv)
-    C = earthlib_reflectance("train")
+    C = earthlib_reflectance("train", model.bands.centers)
     lo_c, hi_c = model.domain[:, 0], model.domain[:, 1]
     draws = min(EARTHLIB_DRAWS, max(1, round(len(R) / len(C))))
     m = len(C) * draws
@@ -246,10 +247,25 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
 MAX_CELLS = 1 << 22
 
 
+def default_bins(n_bands: int) -> int:
+    """The table's cells per axis when ``--bins`` is not given: 32, or the most that keeps ``bins ** n_bands`` within
+    ``MAX_CELLS`` (21 for five bands, 12 for six, 8 for seven).
+
+    >>> [default_bins(n) for n in (2, 4, 5, 6, 7)]
+    [32, 32, 21, 12, 8]
+    """
+    b = 32
+    while b > 2 and b ** n_bands > MAX_CELLS:
+        b -= 1
+    return b
+
+
 def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n_bands: int = 4,
                   earthlib_margin: int = 1) -> None:
     """``ValueError`` naming the ``torchskin train`` flag for a table or learner setting out of range, before any
     row is read."""
+    if n_bands < 2:
+        raise ValueError(f"--method lut needs at least 2 bands (their normalized differences), got {n_bands}")
     if not 2 <= bins or bins ** n_bands > MAX_CELLS:
         top = int(MAX_CELLS ** (1 / n_bands) + 1e-9)
         raise ValueError(f"--bins must lie in [2, {top}] for {n_bands} bands ({MAX_CELLS} cells a slice at most), "
@@ -266,24 +282,28 @@ def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n
 
 
 def load_rows(data_dir: Any, frames: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Training rows of a dataset (the frames ``frames`` names): configuration (N, k), reflectance (N, 4), skin
-    label and whether the row's frame has a physical ELM (``elm_valid``), numpy."""
-    from ...dataset.files import read_rows
-    from ..features import BAND_COLUMNS
+    """Training rows of a dataset (the frames ``frames`` names): configuration (N, k), reflectance (N, n) in the
+    dataset's bands (``dataset_bands``, in its order), skin label and whether the row's frame has a physical ELM
+    (``elm_valid``), numpy."""
+    from ...dataset.files import dataset_bands, read_rows
 
-    rows = read_rows(data_dir, [*FEATURES, *BAND_COLUMNS, "label", "elm_valid"], frames)
-    return (rows.stack(FEATURES, np.float32), rows.bands(np.float32), rows["label"].astype(bool),
+    cols = list(dataset_bands(data_dir).columns)
+    rows = read_rows(data_dir, [*FEATURES, *cols, "label", "elm_valid"], frames)
+    return (rows.stack(FEATURES, np.float32), rows.stack(cols, np.float32), rows["label"].astype(bool),
             rows["elm_valid"].astype(bool))
 
 
 def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
     """``torchskin train --method lut`` on a dataset folder: the rows (every skin pixel, sunlit and shadowed, and
     the non-skin ones), the declared domain, ``learn`` with the request's options."""
+    from ...dataset.files import dataset_bands
+
     o = req.options
-    check_options(o["bins"], o["trees"], o["support_dilation"], o["max_rows"], len(LookupModel.required_bands),
-                  o["earthlib_margin"])
+    bands = dataset_bands(req.data)
+    bins = o["bins"] or default_bins(len(bands))
+    check_options(bins, o["trees"], o["support_dilation"], o["max_rows"], len(bands), o["earthlib_margin"])
     X, R, label, physical = load_rows(req.data, req.frames)
-    model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=o["bins"],
+    model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=bins, bands=bands,
                         trees=o["trees"], support_dilation=o["support_dilation"],
                         earthlib_margin=o["earthlib_margin"], max_rows=o["max_rows"],
                         pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
