@@ -58,17 +58,24 @@ def subject_obj(tmp_path_factory):
 def tiny_dataset(tmp_path_factory):
     """A tiny generated dataset (12 configurations of a sphere head, a few pixels per class; test-partition
     confusers and clothing) for the detector-kind tests."""
+
+    return tiny_generate(tmp_path_factory.mktemp("registry"))
+
+
+def tiny_generate(d, bands: str | None = None):
+    """The tiny dataset (``tiny_dataset``) generated into ``d / "ds"``, in the bands ``bands`` (a ``--bands`` list;
+    default the index bands); returns its folder."""
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
     from torchskin.render.meshes import sphere_mesh, write_obj
 
-    d = tmp_path_factory.mktemp("registry")
     v, f = sphere_mesh(0.35, 3)
     write_obj(d / "head.obj", v + [0.0, 0.0, 0.9], f)
     cfg = resolve_config({"camera": {"width": 64, "height": 64, "range_m": [5.0, 10.0]}, "sun": {"per_pose": 3},
                           "skin": {"per_pose": 2}, "subject": {"meshes": [str(d / "head.obj")]},
                           "sampling": {"groups_per_shard": 2, "pixels_per_class": 24},
-                          "confusers": {"partition": "test"}, "clothing": {"partition": "test"}})
+                          "confusers": {"partition": "test"}, "clothing": {"partition": "test"},
+                          **({"bands": {"spec": bands}} if bands else {})})
     generate(cfg, 12, 7, d / "ds", quiet=True)
     return d / "ds"
 

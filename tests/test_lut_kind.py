@@ -352,22 +352,13 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
     slices do not start on a byte). `evaluate` refuses it in one line (it reads the index bands only so far)."""
     import onnx
     import onnxruntime as ort
+    from conftest import tiny_generate
 
     from torchskin.bands import BandSet
-    from torchskin.dataset.config import resolve_config
-    from torchskin.dataset.generate import generate
     from torchskin.onboard import OnboardDetector
-    from torchskin.render.meshes import sphere_mesh, write_obj
 
     bands = BandSet.parse("475/32,560/27,668/14,717/12,842/57")
-    v, f = sphere_mesh(0.35, 3)
-    write_obj(tmp_path / "head.obj", v + [0.0, 0.0, 0.9], f)
-    cfg = resolve_config({"camera": {"width": 64, "height": 64, "range_m": [5.0, 10.0]}, "sun": {"per_pose": 3},
-                          "skin": {"per_pose": 2}, "subject": {"meshes": [str(tmp_path / "head.obj")]},
-                          "sampling": {"groups_per_shard": 2, "pixels_per_class": 24},
-                          "confusers": {"partition": "test"}, "clothing": {"partition": "test"},
-                          "bands": {"spec": "475/32,560/27,668/14,717/12,842/57"}})
-    generate(cfg, 12, 7, tmp_path / "ds", quiet=True)
+    tiny_generate(tmp_path, "475/32,560/27,668/14,717/12,842/57")
     args = ["train", "--data", str(tmp_path / "ds"), "--method", "lut", "--bins", "5", "--trees", "20", "--seed", "3"]
     assert main([*args, "--out", str(tmp_path / "lut5.pt")]) == 0
     assert main(["export", "--model", str(tmp_path / "lut5.pt"), "--out", str(tmp_path / "ex")]) == 0
