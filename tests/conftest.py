@@ -58,7 +58,6 @@ def subject_obj(tmp_path_factory):
 def tiny_dataset(tmp_path_factory):
     """A tiny generated dataset (12 configurations of a sphere head, a few pixels per class; test-partition
     confusers and clothing) for the detector-kind tests."""
-
     return tiny_generate(tmp_path_factory.mktemp("registry"))
 
 
