@@ -262,3 +262,22 @@ def test_a_mesh_too_large_for_the_field_gets_per_pixel_rays(monkeypatch):
     assert int(big.sum()) > 50 and int(ball.sum()) > 50
     assert torch.equal(field.sky[big], rays.sky[big]) and torch.equal(field.ground[big], rays.ground[big])
     assert not torch.equal(field.sky[ball], rays.sky[ball])
+
+
+def test_a_gbuffer_alive_at_exit_leaves_the_exit_status_zero(tmp_path):
+    """A G-buffer holds no open3d memory (its barycentrics are copied out): one still referenced when the
+    interpreter exits would otherwise outlive open3d's memory manager, which reports a leak and exits with status
+    1 after a command that succeeded (``torchskin experiment`` did)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "keep.py"
+    script.write_text(
+        "import numpy as np\n"
+        "from torchskin.render.raycast import Raycaster\n"
+        "from torchskin.render.scene import Camera, MeshSpec, default_scene\n"
+        "sc = default_scene(subject=MeshSpec('subject', 'sphere', 'skin', {'radius': 0.3}, position=[0, 0, 1.0]),\n"
+        "                   camera=Camera(width=64, height=64))\n"
+        "GB = Raycaster.from_scene(sc).gbuffer(sc.cameras, np.array([[0.0, 0.0, 1.0]]))\n")
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]

@@ -218,7 +218,10 @@ class Raycaster:
         gb = GBuffer(hit=hit.reshape(shp), t=ans["t_hit"], rays=rays, normal=n.reshape(*shp, 3),
                      geometric_normal=ng.reshape(*shp, 3), material=mat.reshape(shp),
                      mesh=mesh.reshape(shp), shadow=None, material_names=self.material_names,
-                     mesh_names=self.mesh_names, face=face.reshape(shp), uv=ans["primitive_uvs"].reshape(*shp, 2))
+                     mesh_names=self.mesh_names, face=face.reshape(shp),
+                     # copied out of open3d's memory: a G-buffer alive at exit would hold open3d's block past its
+                     # memory manager, which then reports a leak and makes the process exit with status 1
+                     uv=ans["primitive_uvs"].reshape(*shp, 2).clone())
         return self._cast_shadows(gb, sun, facing, origin) if shadows else gb
 
     def with_shadows(self, gb: GBuffer, sun_directions: np.ndarray | torch.Tensor) -> GBuffer:
