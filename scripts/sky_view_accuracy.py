@@ -126,6 +126,9 @@ def main() -> int:
         ap.error(f"--width must lie in [16, 2048], got {a.width}")
     if a.out.suffix.lower() != ".png":
         ap.error(f"--out must name a .png file, got {a.out}")
+    for opt, path in (("--out", a.out), ("--json", a.json)):  # checked before a minute of casting
+        if path is not None and (path.is_dir() or not path.parent.is_dir()):
+            ap.error(f"{opt} must name a file in an existing folder, got {path}")
     results, maps = {}, {}
     for name, scene in frames(a.width).items():
         r = measure(scene)
@@ -140,7 +143,9 @@ def main() -> int:
             maps["render's default frame" if name == "default frame" else "dataset frame"] = r["maps"]
     figure(maps, a.out)
     if a.json:
-        a.json.write_text(json.dumps(results, indent=1))
+        tmp = a.json.with_name(a.json.name + ".tmp")
+        tmp.write_text(json.dumps(results, indent=1))
+        tmp.replace(a.json)
     print(f"wrote {a.out}")
     return 0
 

@@ -333,7 +333,7 @@ class OnboardDetector(_Model):
         x = np.asarray(cube)
         if x.ndim != 4:
             raise ValueError(f"cube must have rank 4 (B, bands, H, W), got shape {x.shape}")
-        if x.shape[1] != len(self.bands_nm or [0] * 4):
+        if x.shape[1] != self.n_bands:
             raise ValueError(f"cube must have {len(self.bands_nm)} bands ({self.bands_nm} nm) on axis 1, "
                              f"got {x.shape[1]}")
         if x.size == 0:

@@ -158,7 +158,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
     if cube_bands is not None and len(cube_bands) != nb:
         raise ValueError(f"--bands gives {len(cube_bands)} bands, but {where} holds {nb}")
     if cube_bands is None or not det.bands_nm:
-        if nb != len(det.bands_nm or [0] * 4):
+        if nb != det.n_bands:
             raise ValueError(f"{where} holds {nb} bands and gives no wavelengths; the model needs its "
                              f"{len(det.bands_nm)} bands ({det.bands_nm} nm) in that order, or wavelengths to "
                              "pick or synthesise them from")
