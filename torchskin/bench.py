@@ -156,7 +156,7 @@ def bench_render(compile: bool = False, width: int = 512, height: int = 512, rep
     t0 = time.perf_counter()
     fresh = Raycaster(rc.meshes, rc.material_names)
     fresh.visibility_field().lookup(gb0, hit.nonzero().flatten(), torch.zeros(hit.numel()),
-                                    torch.zeros(hit.numel(), len(rc.material_names)))
+                                    torch.zeros(hit.numel(), len(rc.material_names)))  # every sample cast
     out["visibility_field_seconds"] = time.perf_counter() - t0
     new_camera = dataclasses.replace(gb0, rays=gb0.rays.clone())
     out["sky_view_new_camera_seconds"] = _median_seconds(

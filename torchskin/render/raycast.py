@@ -290,36 +290,49 @@ class Raycaster:
         ground = torch.zeros(n_px, n_mat, dtype=torch.float32)
         if method == "field":
             own = cast_px.nonzero().flatten()
-            left = self.visibility_field().lookup(gb, own, sky, ground) if own.numel() else own
+            field = self.visibility_field()
+            left, rim = field.lookup(gb, own, sky, ground) if own.numel() else (own, own)
             idx = torch.cat([*subsets, left]).sort().values  # the panels' samples, and meshes too large for the field
+            self._cast_views(gb, rim, field.rays, sky, ground)  # a plane's pixels beside what lies on it
         else:
             for sub in subsets:
                 cast_px[sub] = True
             idx = cast_px.nonzero().flatten()
-        if idx.numel():
-            def rows(x: torch.Tensor, k: int) -> torch.Tensor:  # the cast pixels' rows, in the G-buffer's dtype
-                return x.reshape(-1, k).cpu().index_select(0, idx)
-
-            ray = rows(gb.rays, 6)
-            normal = rows(gb.normal, 3).double()
-            position = point_along(ray[:, :3], ray[:, 3:], rows(gb.t, 1))  # as ``GBuffer.position``, then float64
-            origin = point_along(position.double(), rows(gb.geometric_normal, 3).double(), SHADOW_OFFSET_M)
-            view_dir = ray[:, 3:].double()
-            counts_sky, counts_ground = self.hemisphere_counts(origin, normal, pattern_angle(view_dir), rays, n_mat)
-            cs = torch.zeros(n_px, dtype=torch.int64)
-            cg = torch.zeros(n_px, n_mat, dtype=torch.int64)
-            cs[idx], cg[idx] = counts_sky, counts_ground
-            sky[idx] = (counts_sky.double() / rays).float()
-            ground[idx] = (counts_ground.double() / rays).float()
-            for g, sub in zip(groups, subsets):  # integer sums: the same bits whatever the order
-                sky[g] = float(cs[sub].sum()) / (rays * sub.numel())
-                ground[g] = (cg[sub].sum(0).double() / (rays * sub.numel())).float()
+        cs, cg = self._cast_views(gb, idx, rays, sky, ground)
+        for g, sub in zip(groups, subsets):  # integer sums: the same bits whatever the order
+            sky[g] = float(cs[sub].sum()) / (rays * sub.numel())
+            ground[g] = (cg[sub].sum(0).double() / (rays * sub.numel())).float()
         if method == "field" and whole and any(base is r for r in self.rays.values()):  # a cached camera's: kept
             if len(self._camera_views) > 4:
                 self._camera_views.clear()
             self._camera_views[id(base)] = (base, key, groups, sky.clone(), ground.clone())
         return dataclasses.replace(gb, sky=sky.reshape(shp).to(device=dev, dtype=dtype),
                                    ground=ground.reshape(*shp, n_mat).to(device=dev, dtype=dtype))
+
+    def _cast_views(self, gb: GBuffer, idx: torch.Tensor, rays: int, sky: torch.Tensor,
+                    ground: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``rays`` hemisphere rays from each pixel of ``idx`` (flat indices into ``gb``'s pixels): their view
+        fractions written into ``sky`` (N,) and ``ground`` (N, M), and the ray counts returned over all N pixels
+        ((N,) and (N, M) int64, 0 outside ``idx``), for ``with_sky_view``'s shared groups."""
+        n_px, n_mat = sky.shape[0], ground.shape[1]
+        cs = torch.zeros(n_px, dtype=torch.int64)
+        cg = torch.zeros(n_px, n_mat, dtype=torch.int64)
+        if not idx.numel():
+            return cs, cg
+
+        def rows(x: torch.Tensor, k: int) -> torch.Tensor:  # the cast pixels' rows, in the G-buffer's dtype
+            return x.reshape(-1, k).cpu().index_select(0, idx)
+
+        ray = rows(gb.rays, 6)
+        normal = rows(gb.normal, 3).double()
+        position = point_along(ray[:, :3], ray[:, 3:], rows(gb.t, 1))  # as ``GBuffer.position``, then float64
+        origin = point_along(position.double(), rows(gb.geometric_normal, 3).double(), SHADOW_OFFSET_M)
+        counts_sky, counts_ground = self.hemisphere_counts(origin, normal, pattern_angle(ray[:, 3:].double()), rays,
+                                                           n_mat)
+        cs[idx], cg[idx] = counts_sky, counts_ground
+        sky[idx] = (counts_sky.double() / rays).float()
+        ground[idx] = (counts_ground.double() / rays).float()
+        return cs, cg
 
     def hemisphere_counts(self, origin: torch.Tensor, normal: torch.Tensor, psi: torch.Tensor, rays: int,
                            n_mat: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -10,7 +10,10 @@ every frame of that geometry (any camera, sun or band set) interpolates it:
   with its hit's barycentric coordinates, as it does the vertex normals;
 - **planar meshes** (the ground, reference panels, flat confusers): on a grid in the plane, spaced
   ``PLANE_SPACING_M`` where the other objects stand and wider by ``PLANE_GROWTH`` per step away from them, out
-  to the plane's edge (the ground's open sky far away is smooth); a pixel interpolates bilinearly.
+  to the plane's edge (the ground's open sky far away is smooth); a pixel interpolates bilinearly. Where
+  something lies or stands on the plane (a patch on the ground, a foot), the view changes within millimetres of
+  its rim, finer than the grid: a pixel whose grid cell has a corner under it, or next to one under it, casts
+  its own rays instead.
 
 Each sample point casts ``FIELD_RAYS`` cosine-weighted hemisphere rays (``Raycaster.hemisphere_counts``), so its
 view is a count out of that many: the same bits at any thread count. A surface seen from its back (a panel from
@@ -234,9 +237,9 @@ def _curved(mesh: TriMesh) -> _Curved | None:
     """The sample points of a curved ``mesh``: its vertices, and each long triangle's barycentric grid of ``m``
     steps a side (``EDGE_MAX_M``, at most ``MAX_SUBDIVISION``) with normals interpolated as the G-buffer's; None
     for a mesh that would take more than ``MAX_MESH_SAMPLES``."""
-    v = torch.as_tensor(mesh.vertices, dtype=torch.float64)
-    vn = torch.as_tensor(mesh.vertex_normals, dtype=torch.float64)
-    f = torch.as_tensor(mesh.faces, dtype=torch.int64)
+    v = torch.from_numpy(np.array(mesh.vertices, dtype=np.float64))  # copies: a mesh's arrays may be read-only
+    vn = torch.from_numpy(np.array(mesh.vertex_normals, dtype=np.float64))
+    f = torch.from_numpy(np.array(mesh.faces, dtype=np.int64))
     c = v[f]  # (F, 3 corners, 3)
     fn = torch.linalg.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
     fn = fn / fn.norm(dim=1, keepdim=True).clamp_min(1e-300)
@@ -318,6 +321,8 @@ class VisibilityField:
     shapes: list[_Plane | _Curved | None] = field(default_factory=list)  # None: a mesh left to per-pixel rays
     face_offset: list[int] = field(default_factory=list)
     values: dict[tuple[int, int], torch.Tensor] = field(default_factory=dict)  # (mesh, side) -> (Q, 1 + M)
+    # a plane's (mesh, side) -> (Q,) bool: its samples covered or next to a covered one (``lookup``: per-pixel rays)
+    covered: dict[tuple[int, int], torch.Tensor] = field(default_factory=dict)
     cast_seconds: float = 0.0
 
     def __post_init__(self) -> None:
@@ -367,20 +372,26 @@ class VisibilityField:
         sky, ground = torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
         vals = (torch.cat([sky[:, None], ground], 1).double() / self.rays).float()
         if isinstance(s, _Plane):
-            vals = self._fill_covered(s, origin, nrm, vals)
+            vals, covered = self._fill_covered(s, origin, nrm, vals)
+            # covered samples and their eight neighbours: a sample just beside a patch's edge sees the patch's
+            # underside over half its hemisphere, a darkness ~1 cm wide that its grid cells must not spread
+            near = torch.nn.functional.max_pool2d(covered.reshape(1, 1, len(s.xs), len(s.ys)).float(), 3, 1, 1)
+            self.covered[(k, side)] = near.reshape(-1) > 0
         self.values[(k, side)] = vals
         self.cast_seconds += time.perf_counter() - t0
         return vals
 
-    def _fill_covered(self, s: _Plane, origin: torch.Tensor, nrm: torch.Tensor, vals: torch.Tensor) -> torch.Tensor:
+    def _fill_covered(self, s: _Plane, origin: torch.Tensor, nrm: torch.Tensor,
+                      vals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A plane's grid values with its covered samples (another surface within ``COVER_M`` above them: the
-        ground under a patch lying on it, or under a body's sole; never seen by a camera) replaced, ring by ring
-        from their uncovered neighbours, by the mean of those: so that a pixel beside the patch interpolates the
-        open ground around it, not the dark beneath it."""
+        ground under a patch lying on it, or under a body's sole) replaced, ring by ring from their uncovered
+        neighbours, by the mean of those, and which samples were covered ((Q,) bool). The fill keeps the dark
+        beneath a patch out of the bilinear weights of the open ground beside it; ``lookup`` sends the pixels of
+        cells with a covered corner to per-pixel rays."""
         ans = self.raycaster.cast(torch.cat([origin, nrm], 1).float())
         covered = (ans["t_hit"] < COVER_M).reshape(len(s.xs), len(s.ys))
         if not bool(covered.any()) or bool(covered.all()):
-            return vals
+            return vals, covered.reshape(-1)
         grid = vals.reshape(len(s.xs), len(s.ys), -1).clone()
         valid = ~covered
         while True:
@@ -399,17 +410,20 @@ class VisibilityField:
                 break
             grid[fill] = total[fill] / count[fill][:, None]
             valid = valid | fill
-        return grid.reshape(len(vals), -1)
+        return grid.reshape(len(vals), -1), covered.reshape(-1)
 
-    def lookup(self, gb: GBuffer, pixels: torch.Tensor, sky: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
+    def lookup(self, gb: GBuffer, pixels: torch.Tensor, sky: torch.Tensor,
+               ground: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The sky view and ground view by material at the hit pixels ``pixels`` (flat indices into all cameras'
         pixels of ``gb``, a G-buffer with ``face`` and ``uv``), written into ``sky`` (N,) and ``ground`` (N, M),
         float32 over all N pixels (the others are left as they are). Returns the pixels of ``pixels`` it left
-        out: those on a mesh too large for the field (``MAX_MESH_SAMPLES``), for per-pixel rays."""
+        out, for per-pixel rays: those on a mesh too large for the field (``MAX_MESH_SAMPLES``), and those on a
+        plane in a grid cell with a corner covered or next to a covered sample (the rim of a patch lying on it,
+        the ground round a foot: cast with the field's ``rays``)."""
         if gb.face is None or gb.uv is None:
             raise ValueError("the G-buffer has no face ids and barycentrics (Raycaster.gbuffer records them)")
         mesh = gb.mesh.reshape(-1).cpu().index_select(0, pixels)
-        left = []
+        left, rim = [], []
         for k, s in enumerate(self.shapes):
             rows = (mesh == k).nonzero().flatten()
             if not rows.numel():
@@ -440,6 +454,12 @@ class VisibilityField:
 
                 at = pick(px)
                 idx, w = s.weights(pick(face), pick(uv[0]).contiguous(), pick(uv[1]).contiguous())
+                cov = self.covered.get((k, sd))
+                if cov is not None and bool(cov.any()):  # cells at a cover's rim: per-pixel rays
+                    near = cov.index_select(0, idx.reshape(-1)).reshape(idx.shape).any(0)
+                    rim.append(at[near])
+                    keep = (~near).nonzero().flatten()
+                    at, idx, w = at.index_select(0, keep), idx.index_select(1, keep), w.index_select(1, keep)
                 # v0 + sum of w_j (v_j - v0), term by term: a view shared by all corners (the open sky's 1) comes
                 # back exactly, and the same bits at any thread count
                 v0 = vals.index_select(0, idx[0])
@@ -448,7 +468,7 @@ class VisibilityField:
                     acc += (vals.index_select(0, idx[j]) - v0) * w[j, :, None]
                 sky.index_copy_(0, at, acc[:, 0])
                 ground.index_copy_(0, at, acc[:, 1:])
-        return torch.cat(left) if left else pixels[:0]
+        return (torch.cat(left) if left else pixels[:0]), (torch.cat(rim).sort().values if rim else pixels[:0])
 
 
 def pattern_angle(direction: torch.Tensor) -> torch.Tensor:
