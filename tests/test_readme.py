@@ -27,8 +27,8 @@ RUN = ("torchskin spectra", "torchskin light", "torchskin render --out out/frame
        "torchskin generate --configs 96 ", "torchskin dataset verify", "torchskin render --out frame --width 256", "torchskin render --out hs --width 256", "torchskin detect",
        "torchskin calibrate",
        # the detectors page's five-band camera, generate to detect
-       "torchskin generate --bands 475/32", "torchskin train --data cam5", "torchskin export --model cam5.pt",
-       "torchskin render --bands 475/32")
+       "torchskin generate --bands rededge-mx", "torchskin train --data cam5", "torchskin export --model cam5.pt",
+       "torchskin render --bands rededge-mx")
 #: a printed number: not part of a word or file name (r544, shard-00001), with decimals and exponent as shown
 NUMBER = r"(?<![\w.\-])[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?(?!\w)"
 #: what legitimately differs from run to run, matched as any value: wall-clock durations in text ("2.41 s",

@@ -1,4 +1,5 @@
-"""Spectral bands: ``Band(center_nm, fwhm_nm)`` with Gaussian response; fwhm 0 means monochromatic.
+"""Spectral bands: ``Band(center_nm, fwhm_nm)`` with Gaussian response; fwhm 0 means monochromatic; or a measured
+response curve (``Band.from_response``, a camera's response table: ``BandSet.from_csv``).
 
 A camera's bands as data: ``BandSet``, read from the ``--bands`` text (``BandSet.parse``, the one parser of band
 lists), named as dataset columns (``BandSet.columns``) and written as JSON (``BandSet.to_json``).
@@ -11,9 +12,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 if TYPE_CHECKING:  # torch loads with the functions that compute: the band definitions are plain data
     import numpy as np
@@ -35,19 +37,59 @@ MODEL_RANGE_NM = (400.0, 1700.0)
 
 @dataclass(frozen=True)
 class Band:
-    """A spectral band: centre and full width at half maximum of a Gaussian response, both in nm."""
+    """A spectral band: centre and full width at half maximum of a Gaussian response, both in nm; or a measured
+    response curve (``response``: wavelengths in nm, increasing, and the relative response there, peak 1), whose
+    centroid and FWHM are ``center_nm`` and ``fwhm_nm`` (``Band.from_response``).
+
+    >>> b = Band.from_response([540, 550, 560, 570, 580], [0, 0.5, 1, 0.5, 0])
+    >>> b.center_nm, b.fwhm_nm, b.support
+    (560.0, 20.0, (540.0, 580.0))
+    """
 
     center_nm: float
     fwhm_nm: float = 0.0
+    response: tuple[tuple[float, ...], tuple[float, ...]] | None = None
 
     def __post_init__(self) -> None:
         if not (self.center_nm > 0 and math.isfinite(self.center_nm)):
             raise ValueError(f"center_nm must be a positive finite wavelength in nm, got {self.center_nm}")
         if not (self.fwhm_nm >= 0 and math.isfinite(self.fwhm_nm)):
             raise ValueError(f"fwhm_nm must be >= 0 nm, got {self.fwhm_nm}")
+        if self.response is not None:
+            wl, r = _checked_response(*self.response)
+            object.__setattr__(self, "response", (tuple(wl), tuple(r)))
+            if not self.fwhm_nm > 0:
+                raise ValueError("a band with a response curve needs its FWHM (> 0 nm): use Band.from_response")
+
+    @classmethod
+    def from_response(cls, wavelengths_nm: Sequence[float], values: Sequence[float]) -> Band:
+        """The band of a measured response curve: ``values`` at the increasing ``wavelengths_nm`` (any scale,
+        >= 0, linear between samples, 0 outside), kept scaled to a peak of 1. Its centre is the curve's centroid
+        (to 0.01 nm) and its FWHM the width between the outermost half-maximum crossings. ``ValueError`` for a
+        curve that is not finite, negative, all zero or not on increasing wavelengths."""
+        import numpy as np
+
+        wl, r = (np.asarray(x, dtype=np.float64) for x in _checked_response(wavelengths_nm, values))
+        area = float(np.sum(0.5 * (r[1:] + r[:-1]) * np.diff(wl)))
+        if not area > 0:
+            raise ValueError("response: a single non-zero sample at the table's end encloses no area")
+        x0, x1, r0, r1 = wl[:-1], wl[1:], r[:-1], r[1:]  # the curve linear between samples: exact moments
+        centre = float(np.sum((x1 - x0) / 6 * (r0 * (2 * x0 + x1) + r1 * (x0 + 2 * x1)))) / area
+        above = np.nonzero(r >= 0.5)[0]
+        i, j = int(above[0]), int(above[-1])
+        left = wl[i] if i == 0 else wl[i - 1] + (0.5 - r[i - 1]) / (r[i] - r[i - 1]) * (wl[i] - wl[i - 1])
+        right = wl[j] if j == len(wl) - 1 else wl[j] + (r[j] - 0.5) / (r[j] - r[j + 1]) * (wl[j + 1] - wl[j])
+        return cls(round(centre, 2), round(float(right - left), 2) if right > left else float(np.min(np.diff(wl))),
+                   (tuple(wl.tolist()), tuple(r.tolist())))
 
     @property
     def support(self) -> tuple[float, float]:
+        """The wavelengths (nm) where the response is not zero: centre +- ``SUPPORT_FWHM`` FWHM for a Gaussian
+        band, a response curve's non-zero samples and their outer neighbours."""
+        if self.response is not None:
+            wl, r = self.response
+            nz = [k for k, v in enumerate(r) if v > 0]
+            return wl[max(nz[0] - 1, 0)], wl[min(nz[-1] + 1, len(wl) - 1)]
         h = SUPPORT_FWHM * self.fwhm_nm
         return self.center_nm - h, self.center_nm + h
 
@@ -56,6 +98,45 @@ class Band:
         """The centre as written in file names, titles and dataset columns (``band_<label>nm.png``, ``r<label>``):
         six significant digits, trailing zeros dropped (``f"{center_nm:g}"``): 544.0 is ``544``, 544.5 ``544.5``."""
         return f"{self.center_nm:g}"
+
+    def describe(self) -> str:
+        """The band in words for messages: ``1080/20`` (centre/FWHM nm), with ``(response curve)`` for a curve."""
+        return f"{self.center_nm:g}/{self.fwhm_nm:g}" + (" (response curve)" if self.response is not None else "")
+
+    def to_dict(self) -> dict:
+        """``{"center_nm", "fwhm_nm"}``, and ``"response": {"wavelengths_nm", "values"}`` for a curve: an item of
+        ``BandSet.to_json`` and of a scene's ``bands``."""
+        d: dict = {"center_nm": self.center_nm, "fwhm_nm": self.fwhm_nm}
+        if self.response is not None:
+            d["response"] = {"wavelengths_nm": list(self.response[0]), "values": list(self.response[1])}
+        return d
+
+
+def _checked_response(wavelengths_nm: Sequence[float], values: Sequence[float]) -> tuple[list[float], list[float]]:
+    """A response curve's wavelengths and values as floats, the values scaled to a peak of 1; ``ValueError`` in
+    one line unless the wavelengths are finite, positive and strictly increasing (at least two) and the values
+    finite, >= 0 and not all zero."""
+    try:
+        wl = [float(x) for x in wavelengths_nm]
+        r = [float(x) for x in values]
+    except (TypeError, ValueError):
+        raise ValueError("response: wavelengths and values must be numbers") from None
+    if len(wl) != len(r) or len(wl) < 2:
+        raise ValueError(f"response: needs at least two wavelengths, each with a value; got {len(wl)} wavelengths "
+                         f"and {len(r)} values")
+    bad = next((x for x in wl if not (math.isfinite(x) and x > 0)), None)
+    if bad is not None:
+        raise ValueError(f"response: wavelengths must be positive finite nm, got {bad}")
+    k = next((k for k in range(1, len(wl)) if wl[k] <= wl[k - 1]), None)
+    if k is not None:
+        raise ValueError(f"response: wavelengths must strictly increase, got {wl[k - 1]:g} then {wl[k]:g} nm")
+    k = next((k for k, v in enumerate(r) if not (math.isfinite(v) and v >= 0)), None)
+    if k is not None:
+        raise ValueError(f"response: values must be finite and >= 0, got {r[k]} at {wl[k]:g} nm")
+    peak = max(r)
+    if not peak > 0:
+        raise ValueError("response: every value is zero")
+    return wl, [v / peak for v in r]
 
 
 #: Centres (nm) of the thesis's four detection bands, green, red, NIR and SWIR, in this order: the bands of the
@@ -68,8 +149,8 @@ INDEX_BANDS_NM: tuple[float, ...] = (544.0, 633.0, 1080.0, 1580.0)
 PerBand = float | Sequence[float] | Mapping[str, Sequence[float]]
 
 
-def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tuple[Band, ...]:
-    """Normalise a band specification (Band objects, centres, or (centre, fwhm) pairs)."""
+def as_bands(bands: Iterable[Band | float | Sequence[float] | Mapping] | None) -> tuple[Band, ...]:
+    """Normalise a band specification (Band objects, centres, (centre, fwhm) pairs, or ``Band.to_dict`` items)."""
     if bands is None:
         return DEFAULT_BANDS
     out = []
@@ -77,13 +158,16 @@ def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tupl
         if isinstance(b, Band):
             out.append(b)
             continue
+        if isinstance(b, Mapping):
+            out.append(band_from_dict(b, f"band {str(b)[:80]}"))
+            continue
         try:
             if isinstance(b, (tuple, list)):
                 if len(b) not in (1, 2):
                     raise ValueError
-                out.append(Band(*(float(x) for x in b)))
+                out.append(Band(float(b[0]), float(b[1]) if len(b) == 2 else 0.0))
             else:
-                out.append(Band(float(b)))
+                out.append(Band(float(cast(float, b))))
         except (TypeError, ValueError) as e:
             msg = f": {e}" if str(e) else ""
             raise ValueError(f"band {b!r} must be a centre or (centre, fwhm) in nm{msg}") from None
@@ -92,18 +176,55 @@ def as_bands(bands: Iterable[Band | float | tuple[float, float]] | None) -> tupl
     return tuple(out)
 
 
+def band_from_dict(d: Mapping, what: str) -> Band:
+    """The band of a ``Band.to_dict`` item; ``ValueError`` starting with ``what`` for anything else."""
+    c, f, resp = d.get("center_nm"), d.get("fwhm_nm", 0.0), d.get("response")
+    if not (set(d) <= {"center_nm", "fwhm_nm", "response"}
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (c, f))):
+        raise ValueError(f"{what} must be {{\"center_nm\": nm, \"fwhm_nm\": nm}} (numbers), with an optional "
+                         f"\"response\": {{\"wavelengths_nm\": [...], \"values\": [...]}}; got {str(dict(d))[:100]}")
+    try:
+        if resp is None:
+            return Band(float(c), float(f))  # type: ignore[arg-type]  # numbers, checked above
+        if not (isinstance(resp, Mapping) and set(resp) == {"wavelengths_nm", "values"}):
+            raise ValueError("response must be {\"wavelengths_nm\": [...], \"values\": [...]}")
+        return Band(float(c), float(f), (resp["wavelengths_nm"], resp["values"]))  # type: ignore[arg-type]
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what}: {e}") from None
+
+
+def scene_bands(bands: Iterable[Band]) -> list:
+    """Bands as a scene holds them (``render.scene.Scene.bands``, plain JSON data): ``[centre, fwhm]`` pairs, and
+    ``Band.to_dict`` for a measured response curve."""
+    return [[b.center_nm, b.fwhm_nm] if b.response is None else b.to_dict() for b in bands]
+
+
 def check_band_within(band: Band, lo: float, hi: float) -> None:
-    """``ValueError`` unless the band's response (centre +- ``SUPPORT_FWHM`` FWHM) lies within ``lo..hi`` nm."""
+    """``ValueError`` unless the band's response (centre +- ``SUPPORT_FWHM`` FWHM, or its curve's non-zero part)
+    lies within ``lo..hi`` nm."""
     s_lo, s_hi = band.support
     if s_lo >= lo - 1e-9 and s_hi <= hi + 1e-9:
         return
     c, f = band.center_nm, band.fwhm_nm
+    if band.response is not None:
+        raise ValueError(f"band {band.describe()} nm: its response spans {s_lo:g}..{s_hi:g} nm, outside the "
+                         f"model's {lo:g}-{hi:g} nm")
     if not (lo <= c <= hi):
         raise ValueError(f"band {c:g}/{f:g} nm: the centre lies outside the model's {lo:g}-{hi:g} nm")
     fmax = min(c - lo, hi - c) / SUPPORT_FWHM
     raise ValueError(f"band {c:g}/{f:g} nm: its response (centre +- {SUPPORT_FWHM:g} FWHM) spans {s_lo:g}..{s_hi:g}"
                      f" nm, outside the model's {lo:g}-{hi:g} nm; the FWHM may be at most {fmax:.4g} nm at this centre")
 
+
+#: named band sets for ``--bands NAME``: the list each stands for, and its source
+BAND_PRESETS: dict[str, tuple[str, str]] = {
+    "thesis": ("544,633,1080,1580", "the thesis's four detection bands (INDEX_BANDS_NM), monochromatic"),
+    "rededge-mx": ("475/32,560/27,668/14,717/12,842/57",
+                   "MicaSense RedEdge-MX, centre/FWHM nm: blue, green, red, red edge, NIR, as MicaSense's knowledge "
+                   "base lists them ('What is the center wavelength and bandwidth of each filter for MicaSense "
+                   "sensors?', support.micasense.com; the RedEdge 3 and RedEdge-M user guides give narrower "
+                   "widths, 475/20, 560/20, 668/10, 717/10, 840/40)"),
+}
 
 #: most bands one ``START:STOP:STEP`` range of ``--bands`` may expand to
 MAX_RANGE_BANDS = 10_000
@@ -134,11 +255,14 @@ def range_numbers(text: str, option: str) -> tuple[float, float, float]:
 def expand_band_items(text: str, option: str = "--bands") -> list[str]:
     """The items ``centre[/fwhm]`` of a band list (comma-separated), each range ``START:STOP:STEP[/FWHM]``
     expanded to START, START + STEP, ... up to STOP inclusive (STOP is in it when it lies on the step, within
-    1e-6 of a step), each with the range's FWHM. ``ValueError`` naming ``option`` for an empty item or a bad
-    range (STEP > 0, STOP >= START, at most ``MAX_RANGE_BANDS`` bands).
+    1e-6 of a step), each with the range's FWHM, and each preset name (``BAND_PRESETS``) to its bands.
+    ``ValueError`` naming ``option`` for an empty item or a bad range (STEP > 0, STOP >= START, at most
+    ``MAX_RANGE_BANDS`` bands).
 
     >>> expand_band_items("450:480:10/5,1580")
     ['450/5', '460/5', '470/5', '480/5', '1580']
+    >>> expand_band_items("rededge-mx")
+    ['475/32', '560/27', '668/14', '717/12', '842/57']
     >>> len(expand_band_items("450:1650:10"))
     121
     """
@@ -147,6 +271,9 @@ def expand_band_items(text: str, option: str = "--bands") -> list[str]:
         item = item.strip()
         if not item:
             raise ValueError(f"{option} has an empty item in {text!r} (use centre[/fwhm],... in nm)")
+        if item.lower() in BAND_PRESETS:
+            out += BAND_PRESETS[item.lower()][0].split(",")
+            continue
         if ":" not in item:
             out.append(item)
             continue
@@ -208,8 +335,9 @@ class BandSet:
 
         Args:
             text: comma-separated bands ``centre[/fwhm]`` in nm, e.g. ``"544,633,1080/20,1580/40"`` (no fwhm:
-                monochromatic), or ranges ``START:STOP:STEP[/FWHM]`` (``expand_band_items``: ``450:1650:10`` is
-                the 121 bands 450, 460, ..., 1650 nm).
+                monochromatic), ranges ``START:STOP:STEP[/FWHM]`` (``expand_band_items``: ``450:1650:10`` is
+                the 121 bands 450, 460, ..., 1650 nm) and preset names (``BAND_PRESETS``: ``rededge-mx``); or
+                the path of a response table (``*.csv``: ``from_csv``); or a ``to_json`` list.
             within: ``(lo, hi)`` nm that every band's response (centre ± ``SUPPORT_FWHM`` FWHM) must lie in;
                 default the skin model's 400-1700 nm (``tissue.MODEL_RANGE_NM``).
             ordered: the centres must strictly ascend, with distinct labels (``check_ascending``); a cube's
@@ -227,25 +355,79 @@ class BandSet:
         ValueError: bad band 'abc' in --bands (use centre[/fwhm] in nm): could not convert string to float: 'abc'
         """
         lo, hi = MODEL_RANGE_NM if within is None else within
-        out = []
-        for item in expand_band_items(text, option):
-            c, _, f = item.partition("/")
+        text = str(text).strip()
+        if text.startswith("[") or text.lower().endswith(".csv"):  # a BandSet's JSON, a response table
             try:
-                band = Band(float(c), float(f) if f else 0.0)
-                check_band_within(band, lo, hi)
+                got = cls.from_json(text) if text.startswith("[") else cls.from_csv(text)
+                for band in got:
+                    check_band_within(band, lo, hi)
             except ValueError as e:
-                raise ValueError(f"bad band {item!r} in {option} (use centre[/fwhm] in nm): {e}") from None
-            out.append(band)
+                raise ValueError(f"{option}: {e}") from None
+            out = list(got.bands)
+        else:
+            out = []
+            for item in expand_band_items(text, option):
+                c, _, f = item.partition("/")
+                try:
+                    band = Band(float(c), float(f) if f else 0.0)
+                    check_band_within(band, lo, hi)
+                except ValueError as e:
+                    raise ValueError(f"bad band {item!r} in {option} (use centre[/fwhm] in nm): {e}") from None
+                out.append(band)
         if ordered:
             check_ascending(out, option)
+        return cls(tuple(out))
+
+    @classmethod
+    def from_csv(cls, path: str | os.PathLike) -> BandSet:
+        """The bands of a response table: a CSV file whose header names a wavelength column (nm) and then one
+        column per band, each row a wavelength (increasing) and each band's response there (any scale, >= 0).
+        Each column becomes ``Band.from_response``, in the file's order. ``ValueError`` naming the file and the
+        problem (a missing file, a non-number, a NaN or negative response, wavelengths that do not increase).
+
+        A measured camera's filter curves, for example::
+
+            wavelength_nm,blue,green
+            440,0.00,0.00
+            460,0.52,0.00
+            ...
+        """
+        import csv
+
+        name = os.fspath(path)
+        try:
+            with open(name, newline="", encoding="utf-8") as fh:
+                rows = [r for r in csv.reader(fh) if r and any(x.strip() for x in r)]
+        except OSError as e:
+            raise ValueError(f"response table {name}: cannot read it ({e.strerror or e})") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"response table {name}: not a UTF-8 text CSV") from None
+        if len(rows) < 3 or len(rows[0]) < 2:
+            raise ValueError(f"response table {name}: needs a header (wavelength_nm, then one column per band) and "
+                             "at least two rows of numbers")
+        width = len(rows[0])
+        data = []
+        for k, row in enumerate(rows[1:], start=2):
+            if len(row) != width:
+                raise ValueError(f"response table {name}: line {k} has {len(row)} values, the header {width}")
+            try:
+                data.append([float(x) for x in row])
+            except ValueError:
+                raise ValueError(f"response table {name}: line {k} holds a non-number: {','.join(row)[:80]}") from None
+        wl = [r[0] for r in data]
+        out = []
+        for j, head in enumerate(rows[0][1:], start=1):
+            try:
+                out.append(Band.from_response(wl, [r[j] for r in data]))
+            except ValueError as e:
+                raise ValueError(f"response table {name}: column {head.strip()!r}: {e}") from None
         return cls(tuple(out))
 
     @classmethod
     def from_json(cls, data: str | Sequence[Mapping[str, object]]) -> BandSet:
         """The bands of ``to_json``'s text, or of its list already decoded (a manifest's entry).
 
-        ``ValueError`` naming the problem for anything else, or for a band with a ``response`` curve (not
-        modelled yet: a band's response is the Gaussian of its FWHM).
+        ``ValueError`` naming the problem for anything else.
         """
         try:
             items = json.loads(data) if isinstance(data, str) else data
@@ -256,24 +438,16 @@ class BandSet:
                              f"got {'an empty list' if isinstance(items, (list, tuple)) else type(items).__name__}")
         out = []
         for k, d in enumerate(items):
-            if isinstance(d, Mapping) and "response" in d:
-                raise ValueError(f"band set JSON: band {k} has a response curve; only Gaussian bands (center_nm, "
-                                 "fwhm_nm) are modelled")
-            c, f = (d.get("center_nm"), d.get("fwhm_nm", 0.0)) if isinstance(d, Mapping) else (None, None)
-            if not (isinstance(d, Mapping) and set(d) <= {"center_nm", "fwhm_nm"}
-                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (c, f))):
+            if not isinstance(d, Mapping):
                 raise ValueError(f"band set JSON: band {k} must be {{\"center_nm\": nm, \"fwhm_nm\": nm}} (numbers), "
                                  f"got {str(d)[:100]}")
-            try:
-                out.append(Band(float(c), float(f)))  # type: ignore[arg-type]  # numbers, checked above
-            except ValueError as e:
-                raise ValueError(f"band set JSON: band {k}: {e}") from None
+            out.append(band_from_dict(d, f"band set JSON: band {k}"))
         return cls(tuple(out))
 
     def to_json(self) -> str:
-        """The bands as JSON, a list of ``{"center_nm", "fwhm_nm"}`` in band order: for manifests and ONNX
-        metadata; ``from_json`` reads it back."""
-        return json.dumps([{"center_nm": b.center_nm, "fwhm_nm": b.fwhm_nm} for b in self.bands])
+        """The bands as JSON, a list of ``{"center_nm", "fwhm_nm"}`` (and ``"response"`` for a measured curve:
+        ``Band.to_dict``) in band order: for manifests and ONNX metadata; ``from_json`` reads it back."""
+        return json.dumps([b.to_dict() for b in self.bands])
 
     def __len__(self) -> int:
         return len(self.bands)
@@ -374,12 +548,14 @@ def check_ascending(bands: Sequence[Band], what: str = "bands") -> None:
                          f"(six significant digits: their images and columns would collide): use distinct centres")
 
 
-def response_weights(grid: Sequence[float] | np.ndarray, center_nm: float, fwhm_nm: float) -> np.ndarray:
+def response_weights(grid: Sequence[float] | np.ndarray, center_nm: float, fwhm_nm: float,
+                     response: tuple[Sequence[float], Sequence[float]] | None = None) -> np.ndarray:
     """The band response model, numpy only (float64), the one place its formula is written: the weights
     ``(n_grid,)``, summing to 1, that average a spectrum sampled on the increasing wavelengths ``grid`` (nm) over the
     band (``center_nm``, ``fwhm_nm``). A Gaussian band (``FWHM_TO_SIGMA``) truncated at its support (centre +-
     ``SUPPORT_FWHM`` FWHM) with trapezoid quadrature on the grid; a monochromatic band (fwhm 0) the
-    linear-interpolation weights at its centre. ``response_matrix`` (torch, the renderer) and
+    linear-interpolation weights at its centre; a measured curve (``response``: ``Band.response``) interpolated
+    linearly onto the grid (0 outside its table), with trapezoid quadrature. ``response_matrix`` (torch, the renderer) and
     ``onboard.band_plan`` (numpy, a camera's cube) both use it. ``ValueError`` when the grid is too coarse for the
     band; the caller checks that the grid covers the band's support.
 
@@ -391,6 +567,13 @@ def response_weights(grid: Sequence[float] | np.ndarray, center_nm: float, fwhm_
     g = np.asarray(grid, dtype=np.float64)
     if g.size == 1:
         return np.ones(1)
+    if response is not None:
+        shape = np.interp(g, np.asarray(response[0], dtype=np.float64), np.asarray(response[1], dtype=np.float64),
+                          left=0.0, right=0.0)
+        w = shape * _trapezoid(g)
+        if not w.sum() > 0:
+            raise ValueError(f"grid too coarse for the response curve of band {center_nm:g} nm")
+        return w / w.sum()
     if fwhm_nm == 0:
         i = int(np.clip(np.searchsorted(g, center_nm, side="right"), 1, g.size - 1))
         t = (center_nm - g[i - 1]) / (g[i] - g[i - 1])
@@ -401,14 +584,20 @@ def response_weights(grid: Sequence[float] | np.ndarray, center_nm: float, fwhm_
     sigma = fwhm_nm * FWHM_TO_SIGMA
     s_lo, s_hi = center_nm - SUPPORT_FWHM * fwhm_nm, center_nm + SUPPORT_FWHM * fwhm_nm
     gauss = np.where((g >= s_lo) & (g <= s_hi), np.exp(-0.5 * ((g - center_nm) / sigma) ** 2), 0.0)
-    dx = np.diff(g)
-    trap = np.zeros_like(g)
-    trap[:-1] += 0.5 * dx
-    trap[1:] += 0.5 * dx
-    w = gauss * trap
+    w = gauss * _trapezoid(g)
     if not w.sum() > 0:
         raise ValueError(f"grid too coarse for band {center_nm:g}/{fwhm_nm:g} nm")
     return w / w.sum()
+
+
+def _trapezoid(g: np.ndarray) -> np.ndarray:
+    """Trapezoid quadrature weights on the increasing grid ``g``."""
+    import numpy as np
+
+    trap = np.zeros_like(g)
+    trap[:-1] += 0.5 * np.diff(g)
+    trap[1:] += 0.5 * np.diff(g)
+    return trap
 
 
 def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
@@ -433,10 +622,10 @@ def response_matrix(grid: TensorLike, bands: Sequence[Band]) -> torch.Tensor:
         s_lo, s_hi = b.support
         if s_lo < lo - 1e-9 or s_hi > hi + 1e-9:
             raise ValueError(
-                f"band {b.center_nm:g}/{b.fwhm_nm:g} nm needs wavelengths {s_lo:g}..{s_hi:g} nm;"
+                f"band {b.describe()} nm needs wavelengths {s_lo:g}..{s_hi:g} nm;"
                 f" the grid covers only {lo:g}..{hi:g} nm"
             )
-        cols.append(response_weights(g, b.center_nm, b.fwhm_nm))
+        cols.append(response_weights(g, b.center_nm, b.fwhm_nm, b.response))
     return torch.as_tensor(np.stack(cols, axis=-1), dtype=grid.dtype, device=grid.device)
 
 

@@ -31,7 +31,8 @@ SURFACE_HELP = ("skin surface model of eq 3.1.1's diffuse term: thesis (default;
                 "energy-conserving)")
 BANDS_METAVAR = "C[/FWHM],..."
 BANDS_HELP = ("band centres and optional FWHM in nm, e.g. 544,633,1080/20,1580/40 (no FWHM: "
-              "monochromatic), or ranges START:STOP:STEP[/FWHM], e.g. 450:1650:10 (450, 460, ..., 1650)")
+              "monochromatic), ranges START:STOP:STEP[/FWHM], e.g. 450:1650:10 (450, 460, ..., 1650), a named "
+              "camera (rededge-mx, thesis), or a response table FILE.csv (wavelength_nm, then one column per band)")
 
 #: the atmosphere options (``render``, ``light``) -> ``scene.Atmosphere`` fields
 ATMOSPHERE_OPTIONS = {"--aerosol": "aerosol_500nm", "--water": "precipitable_water_cm", "--ozone": "ozone_atm_cm",

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 
 from .. import tissue
-from ..bands import DEFAULT_BANDS, parse_bands
+from ..bands import DEFAULT_BANDS, parse_bands, scene_bands
 from ..errors import check_input_file, check_output_folder
 from ..render.scene import Scene
 from .options import (
@@ -48,7 +48,7 @@ def _scene_from_args(args: argparse.Namespace) -> Scene:
                        panels=args.panels, diffuse_only=args.diffuse_only, ground=not args.no_ground,
                        surface=args.surface, illumination=args.illumination)
     if args.bands:
-        sc.bands = [[b.center_nm, b.fwhm_nm] for b in parse_bands(args.bands)]
+        sc.bands = scene_bands(parse_bands(args.bands))
     if args.sky_background:
         sc.background = "sky"
     return sc

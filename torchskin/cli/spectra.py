@@ -109,12 +109,13 @@ def cmd_spectra(args: argparse.Namespace) -> int:
         cols, vals = (wl_out.tolist(), R) if args.bands else ([b.center_nm for b in DEFAULT_BANDS], Rb)
         if len(cols) > 12:
             cols, vals = [b.center_nm for b in DEFAULT_BANDS], Rb  # a long grid: see --json or --plot
+        width = max([7] + [len(f"{c:g}") + 1 for c in cols])  # a column per band, wide enough for its centre
         head = f"{'skin':<14}{'mel':>6}{'blood':>6}{'oxy':>6}  " + "".join(
-            f"{c:>7g}" for c in cols) + f"{'NDGRI':>9}{'NDSI':>8}  box"
+            f"{c:>{width}g}" for c in cols) + f"{'NDGRI':>9}{'NDSI':>8}  box"
         print(head)
         for k in range(min(len(labels), 50)):
             print(f"{labels[k]:<14}{pdict['melanosome'][k]:>6.3f}{pdict['blood'][k]:>6.2f}"
-                  f"{pdict['oxygenation'][k]:>6.2f}  " + "".join(f"{x:>7.3f}" for x in vals[k].tolist())
+                  f"{pdict['oxygenation'][k]:>6.2f}  " + "".join(f"{x:>{width}.3f}" for x in vals[k].tolist())
                   + f"{float(g[k]):>9.3f}{float(s[k]):>8.3f}  {'in' if inside[k] else 'OUT'}")
         if len(labels) > 50:
             print(f"... {len(labels) - 50} more (use --json)")

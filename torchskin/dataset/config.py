@@ -171,9 +171,11 @@ def _check(section: str, key: str, value, domain):
     if domain == "bands":
         if not isinstance(value, str):
             raise ValueError(f"{name} must be a band list in the --bands syntax (a string such as "
-                             f"\"544,633,1080/20,1580/40\" or \"450:1650:10\"), got {value!r}")
-        config_bands({section: {key: value}}, name)  # a bad band: one line naming the key
-        return value.strip()
+                             f"\"544,633,1080/20,1580/40\", \"450:1650:10\", \"rededge-mx\" or a response table "
+                             f"\"filters.csv\"), got {value!r}")
+        got = config_bands({section: {key: value}}, name)  # a bad band: one line naming the key
+        # a response table is read once: the configuration (and a dataset's manifest) keeps its curves, not a path
+        return got.to_json() if value.strip().lower().endswith(".csv") else value.strip()
     if domain == "paths":
         if not isinstance(value, list) or any(not isinstance(p, str) for p in value):
             raise ValueError(f"{name} must be a list of OBJ/PLY paths, got {value!r}")

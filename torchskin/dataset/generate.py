@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths
+from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths, scene_bands
 from ..errors import check_folder_empty
 from ..io import atomic_path, write_text
 from ..render.elm import (
@@ -142,7 +142,7 @@ def group_scene(group: PoseGroup) -> Scene:
     suns = [Sun(zenith_deg=s["zenith_deg"], azimuth_deg=s["azimuth_deg"], atmosphere=atm,
                 sky_fraction=group.light["sky_fraction"] if thesis else 0.0) for s in group.suns]
     return Scene(mats, [body, *panels, ground, *confusers], [cam], suns, illumination=group.light["model"],
-                 bands=[[b.center_nm, b.fwhm_nm] for b in group.bands])
+                 bands=scene_bands(group.bands))
 
 
 def group_body(group: PoseGroup) -> tuple[dict, dict]:

@@ -26,7 +26,7 @@ runs on: ``detector_head``), ``checks`` (the reflectance range), ``bandplan`` (t
 
 from __future__ import annotations
 
-from .bandplan import MAX_SAMPLE_GAP_NM, apply_plan, band_plan, match_bands, model_fwhm
+from .bandplan import MAX_SAMPLE_GAP_NM, apply_plan, band_plan, match_bands, model_fwhm, plan_bands
 from .checks import (
     REFLECTANCE_CEILING,
     REFLECTANCE_MAX,
@@ -43,6 +43,6 @@ __all__ = [
     "BOX_HEAD_KINDS", "FLOOR_BAND", "MAX_SAMPLE_GAP_NM", "REFLECTANCE_CEILING", "REFLECTANCE_MAX",
     "REFLECTANCE_MAX_SHARE", "REFLECTANCE_MIN", "SHIPPED_DETECTOR", "TILE_BYTES", "OnboardBoxes", "OnboardDetector",
     "apply_plan", "band_plan", "calibrate_file", "check_panel_regions", "check_reflectance_range", "detect_file",
-    "detector_head", "elm_apply", "elm_fit", "elm_line", "load_cube", "mask_rows", "match_bands", "model_fwhm",
+    "detector_head", "elm_apply", "elm_fit", "elm_line", "load_cube", "mask_rows", "match_bands", "model_fwhm", "plan_bands",
     "model_inputs", "panel_reference", "panel_signal", "write_mask",
 ]

@@ -6,13 +6,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
 from ..bands import BAND_MATCH_NM  # how far a cube's band centre may lie from the model's
 
 if TYPE_CHECKING:
+    from ..bands import Band
     from .runtime import _Model
 
 #: the widest step (nm) between a cube's samples inside (or bracketing) a model band's response that
@@ -42,12 +43,13 @@ def match_bands(cube_bands: Sequence[float], model_bands: Sequence[float], tol_n
     return order
 
 
-def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, model_bands: Sequence[float],
-              model_fwhm: Sequence[float] | None = None) -> dict:
+def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None,
+              model_bands: Sequence[float] | Sequence[Band], model_fwhm: Sequence[float] | None = None) -> dict:
     """How to read the model's bands from a cube with bands ``cube_bands`` (nm): ``{"kind": "reorder", "order":
     [...]}`` when the cube has exactly the model's bands (``match_bands``: used as they are, reordered), else
     ``{"kind": "synthesis", "matrix": (n_model, n_cube) float64}``, each row summing to 1: the model's band
-    (``model_fwhm``, 0 = monochromatic: the renderer's default bands) by the band response model of the renderer
+    (``model_bands`` as centres with ``model_fwhm``, 0 = monochromatic: the renderer's default bands; or as
+    ``bands.Band``, a measured response curve included) by the band response model of the renderer
     (``bands.response_weights``) on the cube's spectrum, linearly interpolated between its samples onto a 1 nm grid
     over the band's support. The cube's own FWHM (``cube_fwhm``) is not deconvolved: its samples are taken as the
     spectrum at their centres. ``ValueError`` naming the band and the cube's range when the cube does not cover
@@ -59,21 +61,23 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, mo
     >>> p["kind"], p["matrix"].shape, [round(float(w), 2) for w in p["matrix"][0, 9:11]]
     ('synthesis', (4, 121), [0.6, 0.4])
     """
-    from ..bands import SUPPORT_FWHM, response_weights
+    from ..bands import Band, response_weights
 
     cb = np.asarray([float(b) for b in cube_bands], dtype=np.float64)
     mf = [0.0] * len(model_bands) if model_fwhm is None else [float(f) for f in model_fwhm]
-    if len(cb) == len(model_bands):
+    bands = [b if isinstance(b, Band) else Band(float(cast(float, b)), f) for b, f in zip(model_bands, mf)]
+    if len(cb) == len(bands):
         try:
-            return {"kind": "reorder", "order": match_bands(cb.tolist(), model_bands)}
+            return {"kind": "reorder", "order": match_bands(cb.tolist(), [b.center_nm for b in bands])}
         except ValueError:
             pass
     order = np.argsort(cb)
     x = cb[order]
     lo, hi = float(x[0]), float(x[-1])
     rows = []
-    for c, f in zip((float(b) for b in model_bands), mf):
-        s_lo, s_hi = c - SUPPORT_FWHM * f, c + SUPPORT_FWHM * f
+    for band in bands:
+        c, f = band.center_nm, band.fwhm_nm
+        s_lo, s_hi = band.support
         near = np.abs(x - c)
         if f == 0 and near.min() <= BAND_MATCH_NM and not (lo <= c <= hi):
             s_lo = s_hi = float(x[near.argmin()])  # a band just past the cube's last sample, within the match
@@ -88,7 +92,7 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None, mo
                              f"band (at most {MAX_SAMPLE_GAP_NM:g} nm between samples is interpolated)")
         grid = np.array([s_lo]) if f == 0 else np.linspace(s_lo, s_hi, max(math.ceil(s_hi - s_lo), 8) + 1)
         interp = np.stack([response_weights(x, g, 0.0) for g in np.clip(grid, lo, hi)])  # cube samples -> grid
-        w = response_weights(grid, s_lo if f == 0 else c, f) @ interp
+        w = response_weights(grid, s_lo if f == 0 else c, f, band.response) @ interp
         row = np.zeros(len(x))
         row[order] = w
         rows.append(row)
@@ -107,6 +111,12 @@ def apply_plan(plan: dict, block: np.ndarray) -> np.ndarray:
         for k in np.flatnonzero(m[j]):  # its spectrum alone, not on the tile's size or its place in it (a GEMM's
             out[j] += m[j, k] * block[k].astype(np.float64)  # blocking would change the rounding with the tile)
     return out.astype(np.float32)
+
+
+def plan_bands(det: _Model) -> list[Band] | list[float]:
+    """The model's bands for ``band_plan``: its metadata ``bands`` (``bands.Band``, response curves included),
+    or, in exports without it, its centres (nm; with ``model_fwhm``)."""
+    return list(det.band_set.bands) if det.band_set is not None else list(det.bands_nm)
 
 
 def model_fwhm(det: _Model) -> list[float] | None:

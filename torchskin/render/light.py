@@ -194,7 +194,7 @@ def light_tables(model: str, suns: Sequence[Sun], bands: Sequence[Sequence[float
         each table (S, B).
     """
     entry = check_light(model, suns)
-    band_list = as_bands([b if isinstance(b, Band) else tuple(b) for b in bands])  # type: ignore[misc]
+    band_list = as_bands(bands)
     grid, W = band_sampling(band_list, dtype=torch.float64)
     sp = entry.spectra(suns, grid)
     cz = torch.tensor([math.cos(math.radians(s.zenith_deg)) for s in suns], dtype=torch.float64)[:, None]
@@ -228,7 +228,7 @@ def path_transmittance(atmosphere: Atmosphere, bands: Sequence[Sequence[float]] 
     if not (math.isfinite(range_m) and range_m >= 0):
         raise ValueError(f"range_m must be a finite distance >= 0 m, got {range_m}")
     out = []
-    for b in as_bands([b if isinstance(b, Band) else tuple(b) for b in bands]):  # type: ignore[misc]
+    for b in as_bands(bands):
         um = b.center_nm / 1000.0
         tau_r = 1.0 / (um**4 * (115.6406 - 1.335 / um**2)) * atmosphere.pressure_pa / STANDARD_PRESSURE_PA
         tau_a = atmosphere.aerosol_500nm * (um / 0.5) ** -atmosphere.angstrom_alpha

@@ -357,7 +357,7 @@ def compile_materials(materials: dict[str, Material], bands: Sequence[Sequence[f
         ``MaterialTables`` on ``device`` in ``dtype`` (float64 computation, cast once).
     """
     names = list(materials) if names is None else list(names)
-    bands = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
+    bands = as_bands(bands)
     if skins is not None and ("skin" not in names or materials["skin"].kind != "skin"):
         raise ValueError("skins needs a material named 'skin' of kind 'skin'")
     entries = {n: check_material(materials[n]) for n in names}
@@ -405,10 +405,10 @@ class MaterialCache:
         """``compile_materials`` through the cache (single skins; batches are compiled directly), keyed on the
         first sun and the light model too (they weight each band)."""
         names = list(materials) if names is None else list(names)
-        band_list = as_bands([b if isinstance(b, Band) else cast(tuple[float, float], tuple(b)) for b in bands])
+        band_list = as_bands(bands)
         try:
             spec = json.dumps([names, [asdict(materials[n]) for n in names],
-                               [(b.center_nm, b.fwhm_nm) for b in band_list], asdict(suns[0]), len(suns),
+                               [b.to_dict() for b in band_list], asdict(suns[0]), len(suns),
                                illumination], sort_keys=True)
         except TypeError:  # parameters that are not JSON data: no reliable key
             return compile_materials(materials, band_list, suns, names, dtype, device, illumination=illumination)

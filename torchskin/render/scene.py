@@ -23,7 +23,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -289,7 +289,7 @@ class Scene:
     meshes: list[MeshSpec]
     cameras: list[Camera]
     suns: list[Sun]
-    bands: list[list[float]] = field(default_factory=default_bands)
+    bands: list = field(default_factory=default_bands)  # [centre, fwhm] pairs, or Band.to_dict (response curves)
     panels: list[str] = field(default_factory=lambda: ["panel_white", "panel_dark"])
     background: str = "void"
     illumination: str = DEFAULT_ILLUMINATION
@@ -315,11 +315,11 @@ class Scene:
                 raise ValueError(f"reference panel {p!r} must be lambertian or spectralon")
         if not self.cameras or not self.suns:
             raise ValueError("a scene needs at least one camera and one sun")
-        check_ascending(as_bands([cast(tuple[float, float], tuple(b)) for b in self.bands]), "scene bands")
+        check_ascending(self.band_list, "scene bands")
 
     @property
     def band_list(self) -> tuple[Band, ...]:
-        return as_bands([cast(tuple[float, float], tuple(b)) for b in self.bands])
+        return as_bands(self.bands)
 
     def mesh(self, name: str) -> MeshSpec:
         for m in self.meshes:
@@ -359,7 +359,7 @@ class Scene:
             meshes=[MeshSpec(**m) for m in d["meshes"]],
             cameras=[Camera(**c) for c in d["cameras"]],
             suns=[Sun(**s) for s in d["suns"]],
-            bands=[list(b) for b in d.get("bands", default_bands())],
+            bands=[dict(b) if isinstance(b, dict) else list(b) for b in d.get("bands", default_bands())],
             panels=list(d.get("panels", ["panel_white", "panel_dark"])),
             background=d.get("background", "void"),
             illumination=d.get("illumination", DEFAULT_ILLUMINATION),
