@@ -3,7 +3,7 @@
 the thesis skin surface model, clothing drawn from each dataset's earthlib partition).
 
     python scripts/pipeline_generate.py [--work out/pipeline] [--train-configs 9600] [--heldout-configs 2400]
-                                        [--test-configs 960]
+                                        [--test-configs 960] [--bands SPEC]
 
 Writes WORK/train (seed 1, earthlib train partition), WORK/heldout (seed 2, test partition: used to compare
 the models and choose the detector) and WORK/test (seed 3, test partition: never used for any choice, the
@@ -27,6 +27,7 @@ def run(argv=None) -> int:
     ap.add_argument("--train-configs", type=int, default=9600)
     ap.add_argument("--heldout-configs", type=int, default=2400)
     ap.add_argument("--test-configs", type=int, default=960)
+    ap.add_argument("--bands", default=None, help="the camera's bands (generate --bands; default the index bands)")
     a = ap.parse_args(argv)
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -45,8 +46,9 @@ def run(argv=None) -> int:
             print(f"[generate] {name}: dataset schema {old.get('schema_version')}, regenerating with schema "
                   f"{SCHEMA_VERSION}", flush=True)
             keep = "--overwrite"
+        bands = ["--bands", a.bands] if a.bands else []
         rc = main(["generate", "--config", str(cfg), "--configs", str(n), "--seed", str(seed), "--out",
-                   f"{a.work}/{name}", keep])
+                   f"{a.work}/{name}", keep, *bands])
         if rc:
             return rc
     return 0

@@ -345,11 +345,12 @@ def test_no_earthlib_train_spectrum_is_skin_at_any_brightness(lut_model):
     assert ck["meta"]["options"]["earthlib_margin"] == 1 and ck["meta"]["earthlib_margin_cells"] >= 0
 
 
-def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tmp_path, capsys):
+def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tmp_path, capsys, lut_model,
+                                                                             tiny_dataset):
     """A silicon five-band camera (MicaSense RedEdge-MX's centres and widths): the table is learned over its
     bands, the checkpoint and the graph's metadata name them, the card says five, and the torch reference, the
     graph run whole and the numpy head tiled on two workers agree pixel for pixel (5^5 cells a slice: the table's
-    slices do not start on a byte). `evaluate` refuses it in one line (it reads the index bands only so far)."""
+    slices do not start on a byte). `evaluate` judges it in its own bands, without the static box."""
     import onnx
     import onnxruntime as ort
     from conftest import tiny_generate
@@ -381,7 +382,28 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
     assert 0 < int(tm.sum()) < tm.numel(), "the cube must hold pixels on both sides"
     for mask, score in ((gm, gs), (out["mask"], out["score"])):
         assert np.array_equal(mask, tm.numpy()) and np.array_equal(score, ts.numpy())
+    # evaluate in the model's own bands: no static box (it reads the index bands), the checkpoint and its graph alike
+    from torchskin.dataset.files import read_rows
+    from torchskin.evaluation import MIN_REFLECTANCE, evaluate
+
+    res = evaluate(tmp_path / "ds", [str(tmp_path / "lut5.pt"), str(tmp_path / "ex" / "detector.onnx")])
+    assert res["static"] is None and len(res["models"]) == 2 and res["bands_nm"] == list(bands.centers)
+    a, b = (dict(m["overall"]) for m in res["models"])
+    assert math.isnan(a.pop("area_mean")) and math.isnan(b.pop("area_mean")) and a == b  # no (NDGRI, NDSI) plane
+    rows = read_rows(tmp_path / "ds", [*model.features, *bands.columns, "label", "shadow"])
+    R = torch.from_numpy(rows.stack(bands.columns, np.float32))
+    X = torch.from_numpy(rows.stack(model.features, np.float32))
+    hit = model.decide(R, X).bool() & (R.mean(-1) > MIN_REFLECTANCE)
+    lit = torch.from_numpy(rows["label"] & ~rows["shadow"])
+    assert res["learned"]["pd_sunlit"] == pytest.approx(float(hit[lit].float().mean()), abs=1e-12)
+    assert res["learned"]["sunlit_skin_pixels"] == int(lit.sum()) > 0
     capsys.readouterr()
-    assert main(["evaluate", "--data", str(tmp_path / "ds"), "--model", str(tmp_path / "lut5.pt")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "475, 560, 668, 717, 842 nm" in err, err
+    five = ["--model", str(tmp_path / "lut5.pt")]
+    assert main(["evaluate", "--data", str(tmp_path / "ds"), *five, "--plots", str(tmp_path / "plots")]) == 0
+    table = capsys.readouterr().out
+    assert "lut5.pt" in table and "static box" not in table and (tmp_path / "plots" / "pd_heatmap.png").is_file()
+    for data, models, words in ((tmp_path / "ds", [*five, "--model", str(lut_model / "lut.pt")], "different bands"),
+                                (tiny_dataset, five, "lacks the 475, 560, 668, 717, 842 nm bands")):
+        assert main(["evaluate", "--data", str(data), *models]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and words in err, err

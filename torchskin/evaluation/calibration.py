@@ -35,8 +35,13 @@ def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLi
     calibrate = getattr(model, "calibrate_to_budget", None)
     if calibrate is None:
         raise ValueError(f"{str(model_path)!r}: detector kind {registry.kind_of(model)!r} cannot be calibrated")
-    rows = held_out(data_dir, list(model.features))
-    test_R, test_pts = earthlib_test()
+    from ..dataset.files import require_bands
+    from ..export import model_bands
+
+    bands = model_bands(model).centers  # the model's own bands: the index bands for box kinds
+    require_bands(data_dir, bands, f"--model {model_path}")
+    rows = held_out(data_dir, list(model.features), bands)
+    test_R, test_pts = earthlib_test(bands)
     tb = test_R.mean(-1) > min_reflectance
     data = CalibrationData(R=rows.R, X=rows.X, ndgri=rows.g, ndsi=rows.s, ndvn=rows.v, cfg_X=rows.cfg_X,
                            nonskin=~rows.label, bright=rows.R.mean(-1) > min_reflectance, test_R=test_R,

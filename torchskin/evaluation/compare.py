@@ -8,12 +8,12 @@ import os
 from collections.abc import Sequence
 
 from ..angles import BACKLIT_MIN_DEG
-from ..bands import BAND_MATCH_NM, INDEX_BANDS_NM
+from ..bands import BAND_MATCH_NM
 from ..dataset.files import require_bands
 from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
 from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
 from .provenance import provenance, render_revision
-from .regions import ROC_SCALES, earthlib_test, judge, roc
+from .regions import ROC_SCALES, earthlib_test, is_index_bands, judge, roc
 
 
 def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
@@ -30,8 +30,9 @@ def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
 
 def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Sequence[float] = ROC_SCALES,
              min_reflectance: float = MIN_REFLECTANCE) -> dict:
-    """Every model of ``model_paths`` and the static box on the held-out dataset at ``data_dir``, all under the
-    brightness floor ``min_reflectance``: Pd of skin pixels (sunlit, glint-affected, shadowed), Pfa on the
+    """Every model of ``model_paths`` and, when they read the index bands, the static box on the held-out dataset at
+    ``data_dir``, all under the brightness floor ``min_reflectance``, in the models' own bands (any set the dataset
+    holds; all models alike): Pd of skin pixels (sunlit, glint-affected, shadowed), Pfa on the
     earthlib test spectra and on the scene's non-skin pixels, decision-region areas, overall, at sun zenith >=
     60° and per (sun zenith x camera zenith) bin, and, when the first model has boxes, its ROC.
 
@@ -53,26 +54,29 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     if not (0.0 <= float(min_reflectance) < 1.0) or not math.isfinite(min_reflectance):
         raise ValueError(f"min_reflectance must lie in [0, 1), got {min_reflectance}")
     cands = load_candidates(model_paths)
-    features = cands[0].features
-    cands.append(static_candidate())
+    features, bands = cands[0].features, cands[0].bands
+    for c in cands[1:]:
+        if len(c.bands) != len(bands) or any(abs(a - b) > BAND_MATCH_NM for a, b in zip(c.bands, bands)):
+            raise ValueError(f"models read different bands: --model {c.name} {', '.join(f'{b:g}' for b in c.bands)} "
+                             f"nm, --model {cands[0].name} {', '.join(f'{b:g}' for b in bands)} nm")
+    index = is_index_bands(bands)
+    if index:  # the static box reads the index bands: the comparison of every evaluation in them
+        cands.append(static_candidate())
     for c in cands:  # each model's bands (its kind's required_bands), before any row is read
         require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
-        if len(c.bands) != len(INDEX_BANDS_NM) or any(abs(a - b) > BAND_MATCH_NM for a, b in zip(c.bands,
-                                                                                              INDEX_BANDS_NM)):
-            # the held-out rows and the earthlib test spectra are read in the index bands
-            raise ValueError(f"--model {c.name} reads the bands {', '.join(f'{b:g}' for b in c.bands)} nm; evaluate "
-                             f"reads the index bands ({', '.join(f'{b:g}' for b in INDEX_BANDS_NM)} nm) only so far")
-    rows = held_out(data_dir, features)
-    test_R, test_pts = earthlib_test()
+    rows = held_out(data_dir, features, bands)
+    test_R, test_pts = earthlib_test(bands)
     judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
     models = [model_entry(c, j, rows) for c, j in zip(cands, judged)]
-    first, static = models[0], models[-1]
-    out = {"models": models, "learned": first["overall"], "static": static["overall"],
-           "sun_zenith_ge_60": {"learned": first["sun_zenith_ge_60"], "static": static["sun_zenith_ge_60"]},
+    first, static = models[0], (models[-1] if index else None)
+    out = {"models": models, "learned": first["overall"], "static": static["overall"] if static else None,
+           "sun_zenith_ge_60": {"learned": first["sun_zenith_ge_60"],
+                                "static": static["sun_zenith_ge_60"] if static else None},
            "bins": [{"sun_zenith_deg": a["sun_zenith_deg"], "camera_zenith_deg": a["camera_zenith_deg"],
                      "learned": {k: v for k, v in a.items() if not k.endswith("_deg")},
-                     "static": {k: v for k, v in b.items() if not k.endswith("_deg")}}
-                    for a, b in zip(first["bins"], static["bins"])],
+                     "static": {k: v for k, v in b.items() if not k.endswith("_deg")} if b else None}
+                    for a, b in zip(first["bins"], static["bins"] if static else [None] * len(first["bins"]))],
+           "bands_nm": list(bands),
            "features": features, "rows": rows.n, "rows_excluded_no_sunlit_panels": rows.excluded,
            "configurations": rows.n_cfg, "glint_reflectance": GLINT_REFLECTANCE,
            "render_revision": render_revision(data_dir),
@@ -102,7 +106,7 @@ def table(result: dict) -> str:
                  f"affected (specular >= {result['glint_reflectance']:g} at 1580 nm) and not; shadow: skin without "
                  f"direct sun; backlit: all skin of configurations with relative azimuth >= {BACKLIT_MIN_DEG:g}° (the "
                  "camera looks towards the sun); area: mean decision-region area per configuration in the (NDGRI, "
-                 "NDSI) plane)")
+                 "NDSI) plane, nan for models of other bands)")
     return "\n".join(lines)
 
 

@@ -107,8 +107,10 @@ def plots(result: dict, out_dir: str | os.PathLike) -> None:
                  else "ROC: the first model has no boxes to scale", fontsize=9)
     fig.tight_layout()
     save_figure(fig, out / "roc.png")
-    fig, axes = plt.subplots(1, 2, figsize=(10.5, 4.4), layout="constrained")
-    for ax, name in zip(axes, ("learned", "static")):
+    static = any(b.get("static") is not None for b in result["bins"])  # the static box: index-band models only
+    names = ("learned", "static") if static else ("learned",)
+    fig, axes = plt.subplots(1, len(names), figsize=(5.6 * len(names), 4.4), layout="constrained", squeeze=False)
+    for ax, name in zip(axes[0], names):
         grid = np.full((len(SUN_BINS) - 1, len(CAMERA_BINS) - 1), np.nan)
         for b in result["bins"]:
             i = SUN_BINS.index(b["sun_zenith_deg"][0])
@@ -124,7 +126,7 @@ def plots(result: dict, out_dir: str | os.PathLike) -> None:
         for (i, j), v in np.ndenumerate(grid):
             if np.isfinite(v):
                 ax.text(j, i, f"{v:.2f}", ha="center", va="center", color="k" if v > 0.6 else "w", fontsize=7)
-    fig.colorbar(im, ax=axes, fraction=0.03, label="Pd, sunlit skin (fraction detected)")
+    fig.colorbar(im, ax=axes[0].tolist(), fraction=0.03, label="Pd, sunlit skin (fraction detected)")
     save_figure(fig, out / "pd_heatmap.png")
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,8 +20,9 @@ import torch
 from numpy.typing import ArrayLike
 
 from ..angles import BACKLIT_MIN_DEG
-from ..dataset.files import read_rows
-from ..dataset.schema import Rows
+from ..bands import INDEX_BANDS_NM
+from ..dataset.files import dataset_bands, read_rows
+from ..dataset.schema import Rows, has_band
 from ..detectors.features import BAND_COLUMNS
 from ..detectors.features import MIN_REFLECTANCE as _MIN_REFLECTANCE
 
@@ -125,14 +127,16 @@ class HeldOut:
     """The held-out rows a model is judged on (typed ``Rows`` of ``read_rows``), with their configurations and
     categories as tensors: features ``X``, reflectance ``R``, label, shadow, glint, angles, configuration id."""
 
-    def __init__(self, rows: Rows, features):
+    def __init__(self, rows: Rows, features, band_columns: Sequence[str] = BAND_COLUMNS):
         self.excluded = rows.excluded
         self.n = len(rows)
         col = rows.columns
         self.X = torch.from_numpy(rows.stack(features, np.float32))
-        self.R = torch.from_numpy(rows.bands(np.float32))
+        self.R = torch.from_numpy(rows.stack(band_columns, np.float32))  # the models' bands, in their order
         self.g, self.s = torch.from_numpy(col["ndgri"]).float(), torch.from_numpy(col["ndsi"]).float()
-        self.v = torch.from_numpy(rows.index("ndvn", np.float32))  # float32, as ratio_indices(self.R)
+        index = all(has_band(rows.band_set, w) for w in INDEX_BANDS_NM)
+        self.v = (torch.from_numpy(rows.index("ndvn", np.float32)) if index  # float32, as ratio_indices(self.R)
+                  else torch.full((self.n,), math.nan))  # the index plane exists with the index bands only
         self.label = torch.from_numpy(col["label"]).bool()
         self.shadow = torch.from_numpy(col["shadow"]).bool()
         self.glint = glint_affected(col["theta_i_deg"], col["theta_r_deg"], col["delta_phi_deg"]) & ~self.shadow
@@ -150,15 +154,18 @@ class HeldOut:
         self.features = list(features)
 
 
-def held_out(data_dir: str | os.PathLike, features) -> HeldOut:
-    """The ``HeldOut`` rows of a dataset folder for models taking ``features``."""
+def held_out(data_dir: str | os.PathLike, features, bands_nm: Sequence[float] = INDEX_BANDS_NM) -> HeldOut:
+    """The ``HeldOut`` rows of a dataset folder for models taking ``features`` and reading the bands
+    ``bands_nm`` (their columns in the dataset's own set, ``dataset_bands``: the caller checks it holds them)."""
+    have = dataset_bands(data_dir)
+    band_cols = [have.columns[have.index(w)] for w in bands_nm]
     cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg",
-                               "label", "shadow", "ndgri", "ndsi", "group", "sun", "skin", *BAND_COLUMNS,
+                               "label", "shadow", "ndgri", "ndsi", "group", "sun", "skin", *band_cols,
                                "theta_i_deg", "theta_r_deg", "delta_phi_deg"]))
     rows = read_rows(data_dir, cols, optional=("material", "confuser", "clothing"))  # checks the folder, columns
     if len(rows) == 0:
         raise ValueError(f"no rows with a valid ELM in {str(data_dir)!r}")
-    return HeldOut(rows, features)
+    return HeldOut(rows, features, band_cols)
 
 
 @dataclass

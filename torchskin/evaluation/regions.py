@@ -11,7 +11,7 @@ from typing import cast
 import numpy as np
 import torch
 
-from ..bands import INDEX_BANDS_NM
+from ..bands import BAND_MATCH_NM, INDEX_BANDS_NM
 from ..detectors.features import ratio_indices
 from ..detectors.protocol import false_alarm_rate, inside_box
 from .candidates import Candidate
@@ -22,13 +22,22 @@ AREA_GRID = 64
 ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
 
 
-def earthlib_test() -> tuple[torch.Tensor, torch.Tensor]:
-    """The earthlib test spectra in the index bands: reflectance (m, 4) float32 and, row for row, their
-    (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined)."""
+def is_index_bands(bands_nm: Sequence[float]) -> bool:
+    """Whether ``bands_nm`` are the index bands, in order (each within ``bands.BAND_MATCH_NM``): the bands the
+    (NDGRI, NDSI) plane, the static box and box models read."""
+    return len(bands_nm) == len(INDEX_BANDS_NM) and all(abs(a - b) <= BAND_MATCH_NM
+                                                        for a, b in zip(bands_nm, INDEX_BANDS_NM))
+
+
+def earthlib_test(bands_nm: Sequence[float] = INDEX_BANDS_NM) -> tuple[torch.Tensor, torch.Tensor]:
+    """The earthlib test spectra at the band centres ``bands_nm`` (default the index bands): reflectance (m, n)
+    float32 and, row for row, their (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined, and everywhere for other bands)."""
     from ..confusers import band_reflectance
 
-    _, test_R = band_reflectance(INDEX_BANDS_NM, "test")
+    _, test_R = band_reflectance(list(bands_nm), "test")
     test_R = test_R.float()
+    if not is_index_bands(bands_nm):
+        return test_R, torch.full((test_R.shape[0], 3), math.nan)
     return test_R, torch.stack(ratio_indices(test_R), -1)
 
 
@@ -49,7 +58,8 @@ def judge(cand: Candidate, rows: HeldOut, test_R: torch.Tensor, test_pts: torch.
         area_cfg = (w * h).double()
     else:
         pfa_cfg = pfa_by_config(cand, cfg_X, test_R, bright)
-        area_cfg = grid_area(cand, cfg_X, rows)
+        area_cfg = (grid_area(cand, cfg_X, rows) if is_index_bands(cand.bands)  # the plane needs the index bands
+                    else torch.full((rows.n_cfg,), math.nan, dtype=torch.float64))
     return Judged(hit, pfa_cfg, area_cfg)
 
 
@@ -120,4 +130,5 @@ def roc(cand: Candidate, static: Candidate, rows: HeldOut, test_pts, scales: Seq
     return out
 
 
-__all__ = ["AREA_GRID", "ROC_SCALES", "earthlib_test", "grid_area", "judge", "pfa_by_config", "roc", "scaled"]
+__all__ = ["AREA_GRID", "ROC_SCALES", "earthlib_test", "grid_area", "is_index_bands", "judge", "pfa_by_config",
+           "roc", "scaled"]
