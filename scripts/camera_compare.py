@@ -2,10 +2,11 @@
 """Another camera's bands through the whole detector pipeline: generate, train, calibrate, evaluate, export and
 detect on a rendered ENVI cube, with the lookup-table kind, beside the thesis's four bands.
 
-    python scripts/camera_compare.py --bands rededge-mx [--work out/camera/rededge-mx] [--reference out/pipeline]
+    python scripts/camera_compare.py --bands thesis --bands rededge-mx [--work out/camera]
                                      [--train-configs 9600] [--heldout-configs 2400] [--test-configs 960]
 
-For the bands (any ``--bands`` value: a list, a preset, a response table):
+For each band set (``--bands``, repeatable; any ``--bands`` value: a list, a preset, a response table), in
+WORK/<name>:
 
 1. datasets as ``make demo`` draws them (``pipeline_generate.py --bands``): WORK/train (seed 1, earthlib train
    partition), WORK/heldout (seed 2) and WORK/test (seed 3), both of the test partition;
@@ -16,13 +17,13 @@ For the bands (any ``--bands`` value: a list, a preset, a response table):
    its ELM reflectance written as an ENVI cube and read by ``torchskin detect``: Pd of the frame's sunlit skin
    and its false-alarm pixels against the renderer's own labels.
 
-``--reference``: a pipeline work folder of the thesis's bands (``make demo``'s out/pipeline): its calibrated
-lut.pt is evaluated on its own test set and its export run on the same frame, for the row beside. Writes
+Every set is drawn, trained and judged the same way, so the rows compare cameras, not procedures. Writes
 WORK/camera.json and prints one table.
 """
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -80,52 +81,50 @@ def evaluated(model: Path, test: Path) -> dict:
             "skin_pixels": o["skin_pixels"]}
 
 
+def camera(bands: str, work: Path, a: argparse.Namespace) -> dict:
+    """One band set through the pipeline in ``work``: its test-set figures and its frame check."""
+    import pipeline_generate
+
+    from torchskin.cli import main
+    from torchskin.detectors import registry
+    from torchskin.evaluation import calibrate_to_budget
+
+    rc = pipeline_generate.run(["--work", str(work), "--bands", bands, "--train-configs", str(a.train_configs),
+                                "--heldout-configs", str(a.heldout_configs), "--test-configs", str(a.test_configs)])
+    if rc:
+        raise SystemExit(rc)
+    run_args = next(r for r in registry.pipeline_runs() if r.name == "lut").args
+    if main(["train", "--data", str(work / "train"), "--out", str(work / "lut.trained.pt"), *run_args]):
+        raise SystemExit(1)
+    rec = calibrate_to_budget(work / "lut.trained.pt", work / "heldout", work / "lut.pt")
+    print(f"[camera] {bands}: calibrated on heldout: {rec['knob']} {rec['before']:.4g} -> {rec['after']:.4g}, scene "
+          f"Pfa {rec['pfa_scene']:.2e}", flush=True)
+    shutil.rmtree(work / "export", ignore_errors=True)  # this run's model, exported afresh
+    if main(["export", "--model", str(work / "lut.pt"), "--out", str(work / "export")]):
+        raise SystemExit(1)
+    return {**evaluated(work / "lut.pt", work / "test"), "calibration": rec,
+            "frame": frame_check(work / "export" / "detector.onnx", bands, work / "frame")}
+
+
 def run(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--bands", required=True, help="the camera's bands (any --bands value)")
-    ap.add_argument("--work", default=None, help="work folder (default out/camera/<bands>)")
-    ap.add_argument("--reference", default=None, help="a pipeline work folder of the thesis's bands (out/pipeline)")
+    ap.add_argument("--bands", required=True, action="append", help="a camera's bands (any --bands value; repeatable)")
+    ap.add_argument("--work", default="out/camera", help="work folder (default out/camera)")
     ap.add_argument("--train-configs", type=int, default=9600)
     ap.add_argument("--heldout-configs", type=int, default=2400)
     ap.add_argument("--test-configs", type=int, default=960)
     a = ap.parse_args(argv)
     from torchskin.bands import BandSet
-    from torchskin.cli import main
-    from torchskin.detectors import registry
-    from torchskin.evaluation import calibrate_to_budget
     from torchskin.io import write_text
 
-    try:
-        BandSet.parse(a.bands)
-    except ValueError as e:
-        ap.error(str(e))
-    if a.reference and not (Path(a.reference) / "lut.pt").is_file():
-        ap.error(f"--reference {a.reference!r} holds no lut.pt (run make demo, or scripts/pipeline_*.py, first)")
-    work = Path(a.work or f"out/camera/{Path(a.bands).stem if a.bands.endswith('.csv') else a.bands}")
-    import pipeline_generate
-
-    rc = pipeline_generate.run(["--work", str(work), "--bands", a.bands, "--train-configs", str(a.train_configs),
-                                "--heldout-configs", str(a.heldout_configs), "--test-configs", str(a.test_configs)])
-    if rc:
-        return rc
-    run_args = next(r for r in registry.pipeline_runs() if r.name == "lut").args
-    if main(["train", "--data", str(work / "train"), "--out", str(work / "lut.trained.pt"), *run_args]):
-        return 1
-    rec = calibrate_to_budget(work / "lut.trained.pt", work / "heldout", work / "lut.pt")
-    print(f"[camera] calibrated on heldout: {rec['knob']} {rec['before']:.4g} -> {rec['after']:.4g}, scene Pfa "
-          f"{rec['pfa_scene']:.2e}", flush=True)
-    if main(["export", "--model", str(work / "lut.pt"), "--out", str(work / "export"), "--overwrite"]):
-        return 1
-    rows = {a.bands: {**evaluated(work / "lut.pt", work / "test"),
-                      "frame": frame_check(work / "export" / "detector.onnx", a.bands, work / "frame")}}
-    if a.reference:
-        ref = Path(a.reference)
-        export = ref / "export"
-        if not (export / "detector.onnx").is_file():
-            if main(["export", "--model", str(ref / "lut.pt"), "--out", str(export), "--overwrite"]):
-                return 1
-        rows["thesis (544, 633, 1080, 1580)"] = {**evaluated(ref / "lut.pt", ref / "test"),
-                                                 "frame": frame_check(export / "detector.onnx", None, work / "frame_thesis")}
+    for b in a.bands:
+        try:
+            BandSet.parse(b)
+        except ValueError as e:
+            ap.error(str(e))
+    work = Path(a.work)
+    rows = {b: camera(b, work / (Path(b).stem if b.lower().endswith(".csv") else b.replace("/", "_")), a)
+            for b in a.bands}
     write_text(work / "camera.json", json.dumps(rows, indent=1))
     print(f"{'bands':<32}{'Pd sunlit':>10}{'shadow':>8}{'backlit':>8}{'sun>=60':>8}{'Pfa earthlib':>13}"
           f"{'Pfa scene':>11}{'frame Pd':>9}{'frame FA':>9}")

@@ -407,3 +407,30 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
         assert main(["evaluate", "--data", str(data), *models]) == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and words in err, err
+
+
+def test_a_camera_with_its_filters_off_is_judged_positionally(lut_model, tmp_path):
+    """The filter-tolerance rows: a dataset rendered 5 nm above the index bands lacks the model's bands, unless
+    read in order as the model's own (``positional_bands``): then its decisions are the model's on those columns,
+    and the static box is judged on them too."""
+    from conftest import tiny_generate
+
+    from torchskin.dataset.files import read_rows
+    from torchskin.evaluation import MIN_REFLECTANCE, evaluate
+
+    ds = tiny_generate(tmp_path, "549,638,1085,1585")
+    model_path = str(lut_model / "lut.pt")
+    with pytest.raises(ValueError, match="lacks the 544, 633, 1080, 1580 nm bands"):
+        evaluate(ds, [model_path])
+    res = evaluate(ds, [model_path], positional_bands=True)
+    assert res["dataset_bands_nm"] == [549.0, 638.0, 1085.0, 1585.0] and res["static"] is not None
+    model, _ = registry.load(model_path)
+    rows = read_rows(ds, [*model.features, "r549", "r638", "r1085", "r1585", "label", "shadow"])
+    R = torch.from_numpy(rows.stack(["r549", "r638", "r1085", "r1585"], np.float32))
+    hit = model.decide(R, torch.from_numpy(rows.stack(model.features, np.float32))).bool() & (R.mean(-1) > MIN_REFLECTANCE)
+    lit = torch.from_numpy(rows["label"] & ~rows["shadow"])
+    assert res["learned"]["pd_sunlit"] == pytest.approx(float(hit[lit].float().mean()), abs=1e-12)
+    (tmp_path / "five").mkdir()
+    five = tiny_generate(tmp_path / "five", "rededge-mx")
+    with pytest.raises(ValueError, match="holds 5 bands; the models read 4"):
+        evaluate(five, [model_path], positional_bands=True)

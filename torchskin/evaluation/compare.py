@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 from ..angles import BACKLIT_MIN_DEG
 from ..bands import BAND_MATCH_NM
-from ..dataset.files import require_bands
+from ..dataset.files import dataset_bands, require_bands
 from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
 from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
 from .provenance import provenance, render_revision
@@ -29,7 +29,7 @@ def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
 
 
 def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Sequence[float] = ROC_SCALES,
-             min_reflectance: float = MIN_REFLECTANCE) -> dict:
+             min_reflectance: float = MIN_REFLECTANCE, positional_bands: bool = False) -> dict:
     """Every model of ``model_paths`` and, when they read the index bands, the static box on the held-out dataset at
     ``data_dir``, all under the brightness floor ``min_reflectance``, in the models' own bands (any set the dataset
     holds; all models alike): Pd of skin pixels (sunlit, glint-affected, shadowed), Pfa on the
@@ -42,6 +42,10 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
             baseline_box.onnx, detector.onnx, or "static"); all must take the same features.
         scales: the box scale factors of the ROC (``ROC_SCALES``).
         min_reflectance: the brightness floor, in [0, 1) (``MIN_REFLECTANCE``).
+        positional_bands: read the dataset's bands in order as the models' own, whatever their centres: a camera
+            whose filters sit off the models' nominal bands (the filter-tolerance rows of
+            ``scripts/shift_table.py``). The dataset must hold as many bands as the models read; the earthlib test
+            spectra are read at the dataset's centres.
 
     Returns:
         A JSON-ready dict, complete (what ``torchskin evaluate --save`` writes): ``models`` (one entry per model,
@@ -62,10 +66,18 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     index = is_index_bands(bands)
     if index:  # the static box reads the index bands: the comparison of every evaluation in them
         cands.append(static_candidate())
-    for c in cands:  # each model's bands (its kind's required_bands), before any row is read
-        require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
-    rows = held_out(data_dir, features, bands)
-    test_R, test_pts = earthlib_test(bands)
+    read = bands
+    if positional_bands:  # the camera's own bands, in order, whatever their centres
+        have = dataset_bands(data_dir)
+        if len(have) != len(bands):
+            raise ValueError(f"dataset {str(data_dir)!r} holds {len(have)} bands; the models read {len(bands)} "
+                             "(positional_bands reads the dataset's bands in order as theirs)")
+        read = have.centers
+    else:
+        for c in cands:  # each model's bands (its kind's required_bands), before any row is read
+            require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
+    rows = held_out(data_dir, features, read)
+    test_R, test_pts = earthlib_test(read, indices=index)
     judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
     models = [model_entry(c, j, rows) for c, j in zip(cands, judged)]
     first, static = models[0], (models[-1] if index else None)
@@ -76,7 +88,7 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
                      "learned": {k: v for k, v in a.items() if not k.endswith("_deg")},
                      "static": {k: v for k, v in b.items() if not k.endswith("_deg")} if b else None}
                     for a, b in zip(first["bins"], static["bins"] if static else [None] * len(first["bins"]))],
-           "bands_nm": list(bands),
+           "bands_nm": list(bands), "dataset_bands_nm": list(read),
            "features": features, "rows": rows.n, "rows_excluded_no_sunlit_panels": rows.excluded,
            "configurations": rows.n_cfg, "glint_reflectance": GLINT_REFLECTANCE,
            "render_revision": render_revision(data_dir),

@@ -29,14 +29,17 @@ def is_index_bands(bands_nm: Sequence[float]) -> bool:
                                                         for a, b in zip(bands_nm, INDEX_BANDS_NM))
 
 
-def earthlib_test(bands_nm: Sequence[float] = INDEX_BANDS_NM) -> tuple[torch.Tensor, torch.Tensor]:
+def earthlib_test(bands_nm: Sequence[float] = INDEX_BANDS_NM,
+                  indices: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The earthlib test spectra at the band centres ``bands_nm`` (default the index bands): reflectance (m, n)
-    float32 and, row for row, their (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined, and everywhere for other bands)."""
+    float32 and, row for row, their (NDGRI, NDSI, NDVN) (m, 3) (NaN: undefined). ``indices``: whether the bands
+    stand for the index bands, in order (default: whether they are them, ``is_index_bands``; a camera with its
+    filters a few nm off reads them as such); NaN points otherwise."""
     from ..confusers import band_reflectance
 
     _, test_R = band_reflectance(list(bands_nm), "test")
     test_R = test_R.float()
-    if not is_index_bands(bands_nm):
+    if not (is_index_bands(bands_nm) if indices is None else indices):
         return test_R, torch.full((test_R.shape[0], 3), math.nan)
     return test_R, torch.stack(ratio_indices(test_R), -1)
 
