@@ -132,6 +132,7 @@ BAD_TABLES = {
     "text": ("wavelength_nm,a\n500,0\n510,high\n520,0\n", "non-number"),
     "ragged": ("wavelength_nm,a,b\n500,0,0\n510,1\n520,0,0\n", "line 3 has 2 values"),
     "outside": ("wavelength_nm,a\n1690,0\n1700,1\n1750,0\n", "outside the model's 400-1700 nm"),
+    "micrometres": ("wavelength_nm,a\n0.5,0\n0.55,1\n0.6,0\n", "wavelengths in µm?"),
     "unsorted bands": ("wavelength_nm,a,b\n500,0,0\n600,0,1\n700,1,0\n800,0,0\n", "strictly ascending"),
 }
 

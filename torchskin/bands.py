@@ -207,8 +207,9 @@ def check_band_within(band: Band, lo: float, hi: float) -> None:
         return
     c, f = band.center_nm, band.fwhm_nm
     if band.response is not None:
+        hint = " (wavelengths in µm? a response table's are nm)" if s_hi < 10 else ""
         raise ValueError(f"band {band.describe()} nm: its response spans {s_lo:g}..{s_hi:g} nm, outside the "
-                         f"model's {lo:g}-{hi:g} nm")
+                         f"model's {lo:g}-{hi:g} nm{hint}")
     if not (lo <= c <= hi):
         raise ValueError(f"band {c:g}/{f:g} nm: the centre lies outside the model's {lo:g}-{hi:g} nm")
     fmax = min(c - lo, hi - c) / SUPPORT_FWHM
@@ -403,8 +404,8 @@ class BandSet:
         except UnicodeDecodeError:
             raise ValueError(f"response table {name}: not a UTF-8 text CSV") from None
         if len(rows) < 3 or len(rows[0]) < 2:
-            raise ValueError(f"response table {name}: needs a header (wavelength_nm, then one column per band) and "
-                             "at least two rows of numbers")
+            raise ValueError(f"response table {name}: needs a comma-separated header (wavelength_nm, then one column "
+                             "per band) and at least two rows of numbers")
         width = len(rows[0])
         data = []
         for k, row in enumerate(rows[1:], start=2):
