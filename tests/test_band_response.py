@@ -161,3 +161,14 @@ def test_the_rededge_mx_preset_names_its_five_bands():
     b = BandSet.parse("rededge-mx")
     assert [(x.center_nm, x.fwhm_nm) for x in b] == [(475, 32), (560, 27), (668, 14), (717, 12), (842, 57)]
     assert json.loads(b.to_json())[0] == {"center_nm": 475.0, "fwhm_nm": 32.0}
+
+
+def test_a_cube_lacking_model_bands_is_told_which_before_any_gap():
+    """A silicon camera's cube (475..842 nm) for the index-band model: the bands it lacks (1080 and 1580 nm) are
+    named, not the wide gap it leaves around 544 nm."""
+    from torchskin.onboard import band_plan
+
+    with pytest.raises(ValueError, match="does not cover the model's 1080 nm band .*, nor its 1580 nm band$"):
+        band_plan([475, 560, 668, 717, 842], None, [544, 633, 1080, 1580])
+    with pytest.raises(ValueError, match="gap inside the model's 544 nm band"):  # spanned, but too sparsely
+        band_plan([475, 560, 668, 717, 842, 1100, 1600], None, [544, 633, 1080, 1580])

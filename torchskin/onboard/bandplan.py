@@ -74,16 +74,24 @@ def band_plan(cube_bands: Sequence[float], cube_fwhm: Sequence[float] | None,
     order = np.argsort(cb)
     x = cb[order]
     lo, hi = float(x[0]), float(x[-1])
-    rows = []
-    for band in bands:
+    spans = []
+    for band in bands:  # each band's response, where the cube must hold samples
         c, f = band.center_nm, band.fwhm_nm
         s_lo, s_hi = band.support
         near = np.abs(x - c)
         if f == 0 and near.min() <= BAND_MATCH_NM and not (lo <= c <= hi):
             s_lo = s_hi = float(x[near.argmin()])  # a band just past the cube's last sample, within the match
-        if len(x) < 2 or s_lo < lo - 1e-9 or s_hi > hi + 1e-9:
-            raise ValueError(f"the cube's {len(x)} bands span {lo:g}..{hi:g} nm, which does not cover the model's "
-                             f"{c:g} nm band (its response needs {s_lo:g}..{s_hi:g} nm)")
+        spans.append((s_lo, s_hi))
+    missing = [k for k, (s_lo, s_hi) in enumerate(spans) if len(x) < 2 or s_lo < lo - 1e-9 or s_hi > hi + 1e-9]
+    if missing:  # every band the cube lacks, before any gap inside one it spans
+        k = missing[0]
+        more = [f"{bands[j].center_nm:g}" for j in missing[1:]]
+        raise ValueError(f"the cube's {len(x)} bands span {lo:g}..{hi:g} nm, which does not cover the model's "
+                         f"{bands[k].center_nm:g} nm band (its response needs {spans[k][0]:g}..{spans[k][1]:g} nm)"
+                         + (f", nor its {', '.join(more)} nm band{'s' * (len(more) > 1)}" if more else ""))
+    rows = []
+    for band, (s_lo, s_hi) in zip(bands, spans):
+        c, f = band.center_nm, band.fwhm_nm
         a = max(int(np.searchsorted(x, s_lo, side="right")) - 1, 0)
         b = min(int(np.searchsorted(x, s_hi, side="left")), len(x) - 1)
         gap = float(np.diff(x[a:b + 1]).max()) if b > a else 0.0
