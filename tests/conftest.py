@@ -61,9 +61,9 @@ def tiny_dataset(tmp_path_factory):
     return tiny_generate(tmp_path_factory.mktemp("registry"))
 
 
-def tiny_generate(d, bands: str | None = None):
+def tiny_generate(d, bands: str | None = None, seed: int = 7):
     """The tiny dataset (``tiny_dataset``) generated into ``d / "ds"``, in the bands ``bands`` (a ``--bands`` list;
-    default the index bands); returns its folder."""
+    default the index bands), from ``seed``; returns its folder."""
     from torchskin.dataset.config import resolve_config
     from torchskin.dataset.generate import generate
     from torchskin.render.meshes import sphere_mesh, write_obj
@@ -75,7 +75,7 @@ def tiny_generate(d, bands: str | None = None):
                           "sampling": {"groups_per_shard": 2, "pixels_per_class": 24},
                           "confusers": {"partition": "test"}, "clothing": {"partition": "test"},
                           **({"bands": {"spec": bands}} if bands else {})})
-    generate(cfg, 12, 7, d / "ds", quiet=True)
+    generate(cfg, 12, seed, d / "ds", quiet=True)
     return d / "ds"
 
 

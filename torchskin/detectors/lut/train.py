@@ -62,7 +62,8 @@ def learner_features(R: np.ndarray, X: np.ndarray) -> np.ndarray:
             s = R[:, i] + R[:, j]
             nd.append(np.divide(R[:, i] - R[:, j], s, out=np.zeros_like(s), where=s > 0))
     log_b = np.log(np.maximum(R.sum(1), 1e-9))
-    return np.concatenate([R, np.stack(nd, 1), log_b[:, None], np.asarray(X, np.float64)], 1)
+    nds = np.stack(nd, 1) if nd else np.zeros((len(R), 0))  # one band: no difference (the band design's k = 1)
+    return np.concatenate([R, nds, log_b[:, None], np.asarray(X, np.float64)], 1)
 
 
 def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
