@@ -63,3 +63,8 @@ def test_a_coarse_dataset_is_refused(tmp_path):
     ds = tiny_generate(tmp_path)
     with pytest.raises(ValueError, match="holds 4 bands; the band design synthesises bands"):
         load_design_rows(ds, ds)
+
+
+def test_a_missing_dataset_is_named(tmp_path):
+    with pytest.raises(ValueError, match="dataset folder '.*nope' does not exist"):
+        load_design_rows(tmp_path / "nope", tmp_path / "nope")

@@ -48,9 +48,15 @@ def load_design_rows(train_dir: str | os.PathLike, heldout_dir: str | os.PathLik
                      seed: int = 0, fresh_dir: str | os.PathLike | None = None) -> DesignRows:
     """The training, held-out (and fresh) rows (physical-ELM frames, above the brightness floor, at most
     ``max_rows`` each, a seeded draw) of datasets rendered in the same fine bands."""
+    from pathlib import Path
+
     from ..dataset.files import dataset_bands, read_rows
     from ..detectors.features import FEATURES, MIN_REFLECTANCE
 
+    for d in (train_dir, heldout_dir, fresh_dir):
+        if d is not None and not (Path(d) / "_manifest.json").is_file():
+            raise ValueError(f"dataset folder {str(d)!r} does not exist or holds no dataset (torchskin generate "
+                             "writes one)")
     bands = dataset_bands(train_dir)
     for other in (heldout_dir, fresh_dir):
         if other is not None and dataset_bands(other) != bands:
