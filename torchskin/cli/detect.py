@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import Parser, check_input_file, check_output_file
 from ..io import npy_header, parse_band_list, read_bands_sidecar, sidecar_path
-from ..onboard import SHIPPED_DETECTOR, OnboardDetector, apply_plan, band_plan, detect_file, model_fwhm, plan_bands
+from ..onboard import SHIPPED_DETECTOR, OnboardDetector, apply_plan, band_plan, detect_file, plan_bands
 from .cubes import load_cube, write_mask_png
 from .options import add_bands, add_json, add_max_megapixels, add_out_file, add_tile_rows
 
@@ -101,7 +101,7 @@ def model_bands(cube: np.ndarray, args: argparse.Namespace,
         raise ValueError(f"{where} gives {len(cube_bands)} bands, but --cube {args.cube!r} holds {cube.shape[1]} "
                          f"(shape {cube.shape[1:]} per frame)")
     try:
-        plan = band_plan(cube_bands, None, plan_bands(det), model_fwhm(det))
+        plan = band_plan(cube_bands, None, plan_bands(det))
     except ValueError as e:
         raise ValueError(f"--cube {args.cube!r} ({where}): {e}") from None
     return np.stack([apply_plan(plan, frame) for frame in cube]), None

@@ -8,12 +8,11 @@ import os
 from collections.abc import Sequence
 
 from ..angles import BACKLIT_MIN_DEG
-from ..bands import BAND_MATCH_NM
 from ..dataset.files import dataset_bands, require_bands
 from .candidates import Candidate, ModelPaths, load_candidates, static_candidate
 from .metrics import GLINT_REFLECTANCE, MIN_REFLECTANCE, HeldOut, Judged, azimuth_bins, bins, held_out
 from .provenance import provenance, render_revision
-from .regions import ROC_SCALES, earthlib_test, is_index_bands, judge, roc
+from .regions import ROC_SCALES, earthlib_test, is_index_bands, judge, roc, same_bands
 
 
 def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
@@ -60,7 +59,7 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     cands = load_candidates(model_paths)
     features, bands = cands[0].features, cands[0].bands
     for c in cands[1:]:
-        if len(c.bands) != len(bands) or any(abs(a - b) > BAND_MATCH_NM for a, b in zip(c.bands, bands)):
+        if not same_bands(c.bands, bands):
             raise ValueError(f"models read different bands: --model {c.name} {', '.join(f'{b:g}' for b in c.bands)} "
                              f"nm, --model {cands[0].name} {', '.join(f'{b:g}' for b in bands)} nm")
     index = is_index_bands(bands)

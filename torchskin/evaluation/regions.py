@@ -22,11 +22,16 @@ AREA_GRID = 64
 ROC_SCALES = tuple(float(x) for x in np.linspace(0.25, 3.0, 23))
 
 
+def same_bands(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Whether two lists of band centres (nm) name the same bands in the same order, each within
+    ``bands.BAND_MATCH_NM``."""
+    return len(a) == len(b) and all(abs(x - y) <= BAND_MATCH_NM for x, y in zip(a, b))
+
+
 def is_index_bands(bands_nm: Sequence[float]) -> bool:
-    """Whether ``bands_nm`` are the index bands, in order (each within ``bands.BAND_MATCH_NM``): the bands the
-    (NDGRI, NDSI) plane, the static box and box models read."""
-    return len(bands_nm) == len(INDEX_BANDS_NM) and all(abs(a - b) <= BAND_MATCH_NM
-                                                        for a, b in zip(bands_nm, INDEX_BANDS_NM))
+    """Whether ``bands_nm`` are the index bands, in order (``same_bands``): the bands the (NDGRI, NDSI) plane,
+    the static box and box models read."""
+    return same_bands(bands_nm, INDEX_BANDS_NM)
 
 
 def earthlib_test(bands_nm: Sequence[float] = INDEX_BANDS_NM,
@@ -134,4 +139,4 @@ def roc(cand: Candidate, static: Candidate, rows: HeldOut, test_pts, scales: Seq
 
 
 __all__ = ["AREA_GRID", "ROC_SCALES", "earthlib_test", "grid_area", "is_index_bands", "judge", "pfa_by_config",
-           "roc", "scaled"]
+           "roc", "same_bands", "scaled"]

@@ -121,10 +121,15 @@ def apply_plan(plan: dict, block: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def plan_bands(det: _Model) -> list[Band] | list[float]:
-    """The model's bands for ``band_plan``: its metadata ``bands`` (``bands.Band``, response curves included),
-    or, in exports without it, its centres (nm; with ``model_fwhm``)."""
-    return list(det.band_set.bands) if det.band_set is not None else list(det.bands_nm)
+def plan_bands(det: _Model) -> list[Band]:
+    """The model's bands for ``band_plan``: its metadata ``bands`` (response curves included), or, in exports
+    without it, its centres with ``model_fwhm``."""
+    from ..bands import Band
+
+    if det.band_set is not None:
+        return list(det.band_set.bands)
+    fwhm = model_fwhm(det) or [0.0] * len(det.bands_nm)
+    return [Band(float(c), float(f)) for c, f in zip(det.bands_nm, fwhm)]
 
 
 def model_fwhm(det: _Model) -> list[float] | None:

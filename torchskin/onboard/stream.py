@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..io import MAX_MEGAPIXELS, StrPath, as_float32
-from .bandplan import apply_plan, band_plan, model_fwhm, plan_bands
+from .bandplan import apply_plan, band_plan, plan_bands
 from .checks import REFLECTANCE_MAX, check_reflectance_range
 from .elm import check_panel_regions, elm_apply, elm_line, panel_reference, panel_signal
 from .runtime import OnboardDetector  # imported, not under TYPE_CHECKING: the docs resolve detect_file's annotation
@@ -165,7 +165,7 @@ def detect_file(det: OnboardDetector, cube: Any, config: ArrayLike, out: StrPath
         plan: dict = {"kind": "reorder", "order": list(range(nb))}
     else:
         try:
-            plan = band_plan(cube_bands, cf.fwhm, plan_bands(det), model_fwhm(det))
+            plan = band_plan(cube_bands, cf.fwhm, plan_bands(det))
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
     c = np.asarray(config, dtype=np.float64).reshape(1, -1)
