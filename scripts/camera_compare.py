@@ -123,6 +123,10 @@ def run(argv=None) -> int:
         except ValueError as e:
             ap.error(str(e))
     work = Path(a.work)
+    try:  # before minutes of work
+        work.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--work {a.work!r} cannot be made a folder ({e.strerror})")
     rows = {b: camera(b, work / (Path(b).stem if b.lower().endswith(".csv") else b.replace("/", "_")), a)
             for b in a.bands}
     write_text(work / "camera.json", json.dumps(rows, indent=1))

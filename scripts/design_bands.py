@@ -53,13 +53,16 @@ def run(argv=None) -> int:
         ap.error(f"--ranges must name {', '.join(RANGES)}, got {a.ranges!r}")
     if not (1 <= a.k_max <= 10) or a.step <= 0 or a.fwhm < 0 or a.trees < 1 or not (0 < a.budget < 1):
         ap.error("--k-max in 1..10, --step > 0, --fwhm >= 0, --trees >= 1, --budget in (0, 1)")
+    out = Path(a.out)
+    try:  # before minutes of work
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--out {a.out!r} cannot be made a folder ({e.strerror})")
     try:
         rows = load_design_rows(a.data, a.heldout, a.max_rows, fresh_dir=a.fresh)
     except ValueError as e:
         ap.error(str(e))
     within = (min(rows.centres), max(rows.centres))
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     result = {"options": vars(a), "ranges": {}}
     for r in ranges:
         cands = candidates(RANGES[r], a.step, a.fwhm, within)
