@@ -156,6 +156,12 @@ CASES = [
     ("export --model " + str(EXPORTS / "classifier.pt") + " --detector " + str(EXPORTS / "boundaries.pt")
      + " --out {w}/x", "classifier"),
     ("evaluate --data {w}/notadataset --model {w}/junk.pt", "junk.pt"),
+    ("design-bands --data {w}/nothere --heldout {w}/nothere --fresh {w}/nothere --out {w}/design", "nothere"),
+    ("design-bands --data {w}/notadataset --heldout {w}/notadataset --fresh {w}/notadataset --out {w}/design",
+     "notadataset"),
+    ("design-bands --data {w}/nothere --heldout {w}/nothere --fresh {w}/nothere --out {w}/design --ranges uv",
+     "--ranges"),
+    ("design-bands --data {w}/nothere --heldout {w}/nothere --fresh {w}/nothere --out {w}/design --step 0", "--step"),
     ("evaluate --data {w}/nothere --model " + BND, "nothere"),
     ("evaluate --data {w}/notadataset --model " + BND, "notadataset"),
     ("evaluate --data {w}/notadataset --model " + BND + " --save {w}/adir", "--save"),
@@ -213,7 +219,7 @@ def test_at_least_sixty_cases_over_every_command():
     assert len(CASES) >= 60
     commands = {c[0].split()[0] for c in CASES}
     assert commands >= {"spectra", "render", "experiment", "fit-skin", "fit-brdf", "generate", "dataset", "train",
-                        "export", "evaluate", "detect", "calibrate", "bench"}
+                        "export", "evaluate", "design-bands", "detect", "calibrate", "bench"}
 
 
 def test_debug_shows_the_traceback(world, capsys):

@@ -16,7 +16,7 @@ from torchskin.cli.parser import COMMANDS
 from torchskin.render import light, materials, scene
 
 EXPECTED = {"spectra", "render", "light", "experiment", "fit-skin", "fit-brdf", "generate", "dataset", "train",
-            "export", "evaluate", "detect", "calibrate", "bench"}
+            "export", "evaluate", "design-bands", "detect", "calibrate", "bench"}
 #: modules of the package that are not commands
 HELPERS = {"options", "parser", "cubes", "__main__"}
 

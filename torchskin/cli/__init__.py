@@ -8,7 +8,7 @@ error path (``torchskin.errors.run_command``): one line on stderr, status 2 for 
 a traceback only with ``--debug``.
 
 Command modules: ``spectra``, ``render``, ``light``, ``experiment``, ``fit_skin``, ``fit_brdf``, ``generate``,
-``dataset``, ``train``, ``export``, ``evaluate``, ``bench`` and the torch-free ``detect`` and ``calibrate``.
+``dataset``, ``train``, ``export``, ``evaluate``, ``design_bands``, ``bench`` and the torch-free ``detect`` and ``calibrate``.
 """
 
 from __future__ import annotations

@@ -15,7 +15,8 @@ from ..errors import Parser
 #: every command: (name on the command line, module of ``torchskin.cli``), in ``--help`` order
 COMMANDS = (("spectra", "spectra"), ("render", "render"), ("light", "light"), ("experiment", "experiment"),
             ("fit-skin", "fit_skin"), ("fit-brdf", "fit_brdf"), ("generate", "generate"), ("dataset", "dataset"),
-            ("train", "train"), ("export", "export"), ("evaluate", "evaluate"), ("detect", "detect"),
+            ("train", "train"), ("export", "export"), ("evaluate", "evaluate"), ("design-bands", "design_bands"),
+            ("detect", "detect"),
             ("calibrate", "calibrate"), ("bench", "bench"))
 #: the commands ``torchskin.cli.main`` runs without importing torch (numpy and onnxruntime only)
 TORCH_FREE = ("detect", "calibrate")

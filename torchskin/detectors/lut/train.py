@@ -66,6 +66,21 @@ def learner_features(R: np.ndarray, X: np.ndarray) -> np.ndarray:
     return np.concatenate([R, nds, log_b[:, None], np.asarray(X, np.float64)], 1)
 
 
+def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin: int,
+                       g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The learner's earthlib negatives: the spectra ``C`` (m, n) drawn ``EARTHLIB_DRAWS`` times at most (about
+    ``rows`` rows in all), each under a random configuration of ``domain`` (k, 2) and a random brightness
+    (``EARTHLIB_SCALE``, log-uniform), from ``g``. Returns reflectance, configuration and the weight of each: all
+    together they weigh at most as much as the dataset's ``nonskin`` pixels."""
+    lo_c, hi_c = domain[:, 0], domain[:, 1]
+    draws = min(EARTHLIB_DRAWS, max(1, round(rows / len(C))))
+    m = len(C) * draws
+    XC = lo_c + (hi_c - lo_c) * torch.rand(m, len(lo_c), generator=g)
+    a, b = EARTHLIB_SCALE
+    RC = C.repeat(draws, 1) * (a * (b / a) ** torch.rand(m, 1, generator=g))
+    return RC, XC, min(1.0, nonskin / m)
+
+
 def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The table's (lo, inv) per coordinate axis (float32): the training skin's coordinates between the
     ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE`` quantiles, widened by two cells on each side."""
@@ -209,16 +224,11 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     model.lo.copy_(lo)
     model.inv.copy_(inv)
     C = earthlib_reflectance("train", model.bands.centers)
-    lo_c, hi_c = model.domain[:, 0], model.domain[:, 1]
-    draws = min(EARTHLIB_DRAWS, max(1, round(len(R) / len(C))))
-    m = len(C) * draws
-    XC = lo_c + (hi_c - lo_c) * torch.rand(m, len(lo_c), generator=g)
-    a, b = EARTHLIB_SCALE
-    RC = C.repeat(draws, 1) * (a * (b / a) ** torch.rand(m, 1, generator=g))
+    RC, XC, wc = earthlib_negatives(C, model.domain, len(R), int((~label).sum()), g)
+    m = len(RC)
     F = np.concatenate([learner_features(R.numpy(), X[:, :k].numpy()), learner_features(RC.numpy(), XC[:, :k].numpy())])
     y = np.concatenate([label.numpy(), np.zeros(m, dtype=bool)]).astype(np.float64)
-    # the earthlib spectra weigh at most as much, all together, as the dataset's own non-skin pixels
-    w = np.concatenate([np.ones(len(R)), np.full(m, min(1.0, int((~label).sum()) / m))])
+    w = np.concatenate([np.ones(len(R)), np.full(m, wc)])
     params = {**LEARNER, "seed": int(seed)}
     booster = lgb.train(params, lgb.Dataset(F, y, weight=w, free_raw_data=True), num_boost_round=int(trees))
     where = support(model, R[label], support_dilation)
@@ -323,6 +333,6 @@ def bins_text(model: LookupModel) -> str:
     return f"{model.bins}^{model.n_bands} cells"
 
 
-__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "bake", "check_options", "learn", "learner_features", "load_rows",
+__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "earthlib_negatives", "bake", "check_options", "learn", "learner_features", "load_rows",
            "slice_centres",
            "support", "table_range", "train_on_dataset", "tune_threshold"]
