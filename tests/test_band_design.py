@@ -174,8 +174,9 @@ def test_design_bands_command_writes_the_table_figure_and_json(fine_dirs, tmp_pa
     (["--compare", "rededge-mx"], "--compare 'rededge-mx': its 475 nm band's response spans 427..523 nm, beyond the "
                                   "datasets' 450..1650 nm"),
     (["--compare", "cam=633"], "--compare 'cam': a camera of two or more bands"),
+    (["--compare", "=560/27,668/14"], "NAME=BANDS with a name of its own"),
     (["--fwhm", "40"], "the datasets sample every 50 nm, too coarse to synthesise bands of --fwhm 40 nm"),
-    (["--compare", "cam=1000,633"], "--compare"),
+    (["--compare", "cam=1000,633"], "--compare must list band centres in strictly ascending order"),
 ])
 def test_design_bands_refuses_bad_options_in_one_line(fine_dirs, tmp_path, capsys, args, says):
     from torchskin.cli import main
@@ -216,3 +217,45 @@ def test_the_proxy_never_calls_skin_where_the_table_would_not(fine):
     got = score(np.stack([np.full(m, 0.5), np.zeros(m), fine.R[np.flatnonzero(fine.y)[0]]]), X)
     assert got[0] == -np.inf and got[1] == -np.inf and np.isfinite(got[2])
     assert thr >= 0.0 and s.shape == (len(fine.R_val),)
+
+
+def test_design_bands_checks_every_range_before_any_search(fine_dirs, tmp_path, capsys, monkeypatch):
+    """A range with too few candidates is refused before the search of the ranges before it (minutes of work)."""
+    import torchskin.evaluation.band_design as bd
+    from torchskin.cli import main
+
+    def no_search(*a, **k):
+        raise AssertionError("searched before every range was checked")
+
+    monkeypatch.setattr(bd, "greedy", no_search)
+    train, heldout, fresh = fine_dirs
+    assert main(["design-bands", "--data", str(train), "--heldout", str(heldout), "--fresh", str(fresh), "--out",
+                 str(tmp_path / "o"), "--ranges", "both,silicon", "--k-max", "6", "--step", "200", "--fwhm", "0", "--min-light", "0",
+                 "--quiet"]) == 2
+    assert "range silicon: 3 candidate bands" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_design_bands_without_the_thesis_bands_or_the_kind(tmp_path, capsys):
+    """Data that stop short of 1580 nm: the thesis's bands are not scored (said once); --kind-trees 0 gives the
+    proxy's columns only."""
+    import json
+
+    from conftest import tiny_generate
+
+    from torchskin.cli import main
+
+    dirs = []
+    for name, seed in (("train", 7), ("heldout", 8), ("fresh", 9)):
+        (tmp_path / name).mkdir()
+        dirs.append(tiny_generate(tmp_path / name, "450:1000:50", seed=seed))
+    out = tmp_path / "design"
+    assert main(["design-bands", "--data", str(dirs[0]), "--heldout", str(dirs[1]), "--fresh", str(dirs[2]), "--out",
+                 str(out), "--ranges", "silicon,silicon", "--k-max", "2", "--step", "200", "--fwhm", "0", "--trees", "4",
+                 "--kind-trees", "0", "--budget", "0.05", "--min-light", "0"]) == 0
+    captured = capsys.readouterr()
+    assert "warning: the datasets span 450..1000 nm: the thesis's bands" in captured.err
+    res = json.loads((out / "design.json").read_text())
+    assert res["thesis"] is None and list(res["ranges"]) == ["silicon"] and "kind" not in res["ranges"]["silicon"][1]
+    md = (out / "design.md").read_text()
+    assert "thesis" not in md and "lut fresh" not in md and md.count("\n") == 2 + 2
+    assert (out / "design.png").is_file() and not (out / "design.tmp.png").exists()

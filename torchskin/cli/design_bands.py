@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
+import sys
+from typing import Any
 
 from ..errors import check_output_folder
 from .options import add_json, check_number
@@ -41,38 +45,57 @@ def cmd_design_bands(args: argparse.Namespace) -> int:
             raise ValueError(f"{name} must be at least {lo}, got {v}")
     compare = []
     for spec in args.compare or ():
-        name, _, bands = spec.partition("=") if "=" in spec else (spec, "", spec)
-        compare.append((name.strip(), list(BandSet.parse(bands.strip(), option="--compare").bands)))
+        name, bands = spec.split("=", 1) if "=" in spec else (spec, spec)  # a path with '=' needs NAME= before it
+        name = name.strip()
+        if not name or any(c in name for c in "|,\n"):
+            raise ValueError(f"--compare {spec!r}: NAME=BANDS with a name of its own (no '|' or ',') is expected")
+        compare.append((name, list(BandSet.parse(bands.strip(), option="--compare").bands)))
     if len({n for n, _ in compare}) < len(compare):
         raise ValueError(f"--compare names a camera twice: {[n for n, _ in compare]}")
     out = check_output_folder(args.out, "--out")
     result = design(args.data, args.heldout, args.fresh, ranges, args.k_max, args.step, args.fwhm, args.trees,
                     args.max_rows, args.budget, args.min_light, args.kind_trees or None, compare,
                     progress=not args.quiet)
+    for w in result["warnings"]:
+        print(f"torchskin design-bands: warning: {w}", file=sys.stderr)
     text = table(result)
     out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "design.json", json.dumps(result, indent=1))
+    figure(result, out / "design.tmp.png")  # the figure first: a failure leaves none of the three
+    data = json.dumps(_no_nan(result), indent=1)
+    write_text(out / "design.json", data)
     write_text(out / "design.md", text)
-    figure(result, out / "design.png")
+    os.replace(out / "design.tmp.png", out / "design.png")
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(_no_nan(result)))
     else:
         print(text, end="")
         print(f"wrote {out / 'design.json'}, {out / 'design.md'}, {out / 'design.png'}")
     return 0
 
 
+def _no_nan(x: Any) -> Any:
+    """``x`` with every NaN float as None (JSON's null: NaN is not JSON)."""
+    if isinstance(x, float) and math.isnan(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _no_nan(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_no_nan(v) for v in x]
+    return x
+
+
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """The ``torchskin design-bands`` command."""
     p = sub.add_parser(
-        "design-bands", help="which bands to buy: the best k bands per detector range, from finely sampled datasets",
+        "design-bands", help="which bands to buy: a greedy search for k bands per detector range",
         formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG,
-        description="Search the best k bands (k = 1 ... --k-max) for skin detection at the scene false-alarm budget, "
-                    "per detector range (silicon 400-1000 nm, InGaAs 900-1700 nm, both). Candidate bands are "
-                    "synthesised from datasets rendered at fine spectral sampling, as detect synthesises a "
-                    "hyperspectral cube. A fast proxy learner chooses greedily on the held-out set; each chosen "
-                    "set, and the thesis's four bands, is then trained as the lut detector, calibrated on the "
-                    "held-out set and judged on the fresh set.")
+        description="Search greedily (one band added at a time) for the best k bands, k = 1 ... --k-max, for skin "
+                    "detection at the scene false-alarm budget, per detector range (silicon 400-1000 nm, InGaAs "
+                    "900-1700 nm, both). Candidate bands are synthesised from datasets rendered at fine spectral "
+                    "sampling, as detect synthesises a hyperspectral cube. A fast proxy of the lut detector chooses "
+                    "on the held-out set. Each chosen set of two or more bands, the thesis's four and each --compare "
+                    "camera are then trained as the lut detector, calibrated on the held-out set and judged on the "
+                    "fresh set.")
     p.add_argument("--data", required=True, help="training dataset rendered at fine spectral sampling "
                                                  "(e.g. generate --bands 400:1700:10)")
     p.add_argument("--heldout", required=True, help="held-out dataset in the same bands (another seed): the search "

@@ -5,10 +5,14 @@ learner on held-out rows.
 >>> sorted(RANGES)
 ['both', 'ingaas', 'silicon']
 
-The proxy is the lookup-table kind's learner (LightGBM on the reflectances, every normalized difference, the log
-brightness and the configuration: ``detectors.lut.train.learner_features``) with few trees and no table. Its
-score is held-out Pd of sunlit skin at a scene false-alarm budget, the threshold set on the held-out non-skin
-rows, as ``calibrate_to_budget`` sets a detector's. The search chooses among many sets on those rows, so the
+The proxy is the lookup-table kind without its bake: the kind's learner (LightGBM on the reflectances, every
+normalized difference, the log brightness and the configuration: ``detectors.lut.train.learner_features``, with
+the earthlib train spectra as negatives) with a few dozen trees at a larger step, each pixel scored at the centre
+of its table cell and never skin outside the cells the kind keeps (the training skin's support, less the earthlib
+margin). Its score is held-out Pd of sunlit skin at a scene false-alarm budget, the threshold set on the held-out
+non-skin rows, as ``calibrate_to_budget`` sets a detector's. It differs from the kind in what it learns from (a
+sample of the physical-ELM frames, each pixel under its own configuration rather than its slice's centre) and
+ranks sets as the kind does, a little above it (docs/benchmarks.md). The search chooses among many sets on those rows, so the
 chosen sets are then scored on a fresh dataset (``fresh_pd``: the threshold from the held-out rows, Pd and Pfa on
 the fresh ones). A band is synthesised from the fine dataset's columns through the renderer's band response
 (``onboard.band_plan``, ``bands.response_weights``), as a hyperspectral cube is read by ``detect``.
@@ -22,6 +26,7 @@ leave out the bands below ``min_light``.
 
 from __future__ import annotations
 
+import itertools
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -165,7 +170,7 @@ def _proxy(rows: DesignRows, bands: Sequence[Band], trees: int, budget: float, s
             return booster.predict(learner_features(synthesise(Rf, W), X), raw_score=True, num_threads=1)
 
         return raw, *_threshold(raw, rows, budget)
-    table = LookupModel(n, bins, bands=BandSet.of(bands))
+    table = LookupModel(n, bins, bands=BandSet.of(bands), config_counts=(1,) * rows.X.shape[1])  # cells only
     lo, inv = table_range(torch.from_numpy(R[rows.y]).float(), bins)
     table.lo.copy_(lo)
     table.inv.copy_(inv)
@@ -372,19 +377,28 @@ def design(train_dir: str | os.PathLike, heldout_dir: str | os.PathLike, fresh_d
     from tqdm import tqdm
 
     from ..bands import INDEX_BANDS
+    from ..detectors.lut.train import MAX_CELLS, default_bins
 
+    ranges = list(dict.fromkeys(ranges))
     for r in ranges:
         if r not in RANGES:
             raise ValueError(f"--ranges must name {', '.join(RANGES)}, got {r!r}")
+    # everything that can refuse is checked before minutes of search
     rows = load_design_rows(train_dir, heldout_dir, max_rows, fresh_dir=fresh_dir)
     within = (min(rows.centres), max(rows.centres))
     spacing = float(np.max(np.diff(rows.centres)))
     if fwhm_nm > 0 and spacing > fwhm_nm / 2 + 1e-9:
         raise ValueError(f"the datasets sample every {spacing:g} nm, too coarse to synthesise bands of --fwhm {fwhm_nm:g} "
                          f"nm (samples at most FWHM / 2 apart: e.g. generate --bands 400:1700:10 for 20 nm bands)")
-    for name, bands in compare:  # before minutes of search: the fine data must cover each band
-        if name in (*RANGES, "thesis") or len(bands) < 2:
-            raise ValueError(f"--compare {name!r}: a camera of two or more bands, not named {', '.join(RANGES)} or thesis")
+    warnings = []
+    for name, bands in compare:
+        if name in (*RANGES, "thesis"):
+            raise ValueError(f"--compare {name!r}: name the camera something else than {', '.join(RANGES)} or thesis")
+        if len(bands) < 2:
+            raise ValueError(f"--compare {name!r}: a camera of two or more bands is expected, got {len(bands)}")
+        if default_bins(len(bands)) ** len(bands) > MAX_CELLS:
+            raise ValueError(f"--compare {name!r}: {len(bands)} bands are more than the lut table holds ({MAX_CELLS} "
+                             "cells a slice: 22 bands at most)")
         for b in bands:
             if b.support[0] < within[0] - 1e-9 or b.support[1] > within[1] + 1e-9:
                 raise ValueError(f"--compare {name!r}: its {b.center_nm:g} nm band's response spans {b.support[0]:g}.."
@@ -393,27 +407,39 @@ def design(train_dir: str | os.PathLike, heldout_dir: str | os.PathLike, fresh_d
             synthesis(rows.centres, bands)
         except ValueError as e:
             raise ValueError(f"--compare {name!r}: {e}") from None
+        narrow = [b for b in bands if 0 < b.fwhm_nm < 2 * spacing]
+        if narrow:
+            warnings.append(f"--compare {name!r}: its bands of {', '.join(f'{b.fwhm_nm:g}' for b in narrow)} nm FWHM are "
+                            f"narrower than twice the datasets' {spacing:g} nm sampling: they are read from samples "
+                            "interpolated linearly between them")
+    thesis = list(INDEX_BANDS)
+    if any(b.center_nm < within[0] or b.center_nm > within[1] for b in thesis):
+        warnings.append(f"the datasets span {within[0]:g}..{within[1]:g} nm: the thesis's bands (544, 633, 1080, "
+                        "1580 nm) are not scored")
+        thesis = []
     water = wettest_air(train_dir)
+    pools = {}
+    for r in ranges:
+        pools[r] = candidates(RANGES[r], step_nm, fwhm_nm, within, min_light, water)
+        if len(pools[r]) < k_max:
+            raise ValueError(f"range {r}: {len(pools[r])} candidate bands inside the data's {within[0]:g}-{within[1]:g} "
+                             f"nm with at least {min_light:g} W m-2 nm-1 of light (--min-light), fewer than --k-max "
+                             f"{k_max}")
+    kind = load_kind_rows(train_dir, heldout_dir, fresh_dir) if kind_trees else None
     sets: dict[str, list] = {}
     for r in ranges:
-        cands = candidates(RANGES[r], step_nm, fwhm_nm, within, min_light, water)
-        if len(cands) < k_max:
-            raise ValueError(f"range {r}: {len(cands)} candidate bands inside the data's {within[0]:g}-{within[1]:g} nm"
-                             f" with at least {min_light:g} W m-2 nm-1 of light (--min-light), fewer than --k-max "
-                             f"{k_max}")
-        total = sum(len(cands) - k for k in range(k_max))
+        total = sum(len(pools[r]) - k for k in range(k_max))
         with tqdm(total=total, desc=f"search {r}", unit="set", disable=not progress) as bar:
-            steps = greedy(rows, cands, k_max, trees, budget, progress=bar.update)
+            steps = greedy(rows, pools[r], k_max, trees, budget, progress=bar.update)
         sets[r] = [[Band(c, f) for c, f in st["bands"]] for st in steps]
-    thesis = list(INDEX_BANDS)
-    named = [(r, k + 1, b) for r, steps in sets.items() for k, b in enumerate(steps)] + [("thesis", 4, thesis)]
+    named = [(r, k + 1, b) for r, steps in sets.items() for k, b in enumerate(steps)]
+    named += [("thesis", 4, thesis)] if thesis else []
     named += [(name, len(bands), list(bands)) for name, bands in compare]
-    kind = load_kind_rows(train_dir, heldout_dir, fresh_dir) if kind_trees else None
     out: dict = {"options": {"ranges": list(ranges), "k_max": k_max, "step_nm": step_nm, "fwhm_nm": fwhm_nm,
                              "trees": trees, "max_rows": max_rows, "budget": budget, "min_light": min_light,
                              "kind_trees": kind_trees, "light_water_cm": water, "light_zenith_deg": LIGHT_ZENITH_DEG},
                  "data": {"train": str(train_dir), "heldout": str(heldout_dir), "fresh": str(fresh_dir)},
-                 "ranges": {r: [] for r in sets}, "thesis": None, "compare": {}}
+                 "ranges": {r: [] for r in sets}, "thesis": None, "compare": {}, "warnings": warnings}
     for r, k, bands in tqdm(named, desc="score sets", unit="set", disable=not progress):
         entry = {"k": k, **fresh_pd(rows, bands, trees, budget), "light": band_light(bands, water)}
         if kind is not None and kind_trees:  # the lut kind reads normalized differences: two bands at least
@@ -454,7 +480,8 @@ def table(result: dict) -> str:
 
     for r, steps in result["ranges"].items():
         lines += [row(r, e) for e in steps]
-    lines.append(row("thesis", result["thesis"]))
+    if result.get("thesis"):
+        lines.append(row("thesis", result["thesis"]))
     lines += [row(name, e) for name, e in result.get("compare", {}).items()]
     return "\n".join(lines) + "\n"
 
@@ -476,10 +503,11 @@ def figure(result: dict, path: str | os.PathLike) -> None:
                     label=f"{r} {lo:g}-{hi:g} nm, lut")
         ax.plot(ks, [e["fresh_pd_sunlit"] for e in steps], "s--" if kind else "o-", color=f"C{i}",
                 alpha=0.5 if kind else 1.0, ms=4 if kind else 6, label=f"{r}, proxy" if kind else f"{r} {lo:g}-{hi:g} nm")
-    t = result["thesis"]
-    ax.plot([4], [t["kind"]["pd_sunlit"] if kind else t["fresh_pd_sunlit"]], "k*", ms=13,
-            label="thesis bands 544, 633, 1080, 1580 nm")
-    for name, e, mk in zip(result.get("compare", {}), result.get("compare", {}).values(), "DP^vX"):
+    t = result.get("thesis")
+    if t:
+        ax.plot([4], [t["kind"]["pd_sunlit"] if kind else t["fresh_pd_sunlit"]], "k*", ms=13,
+                label="thesis bands 544, 633, 1080, 1580 nm")
+    for (name, e), mk in zip(result.get("compare", {}).items(), itertools.cycle("DP^vXhd")):
         ax.plot([e["k"]], [e["kind"]["pd_sunlit"] if kind else e["fresh_pd_sunlit"]], mk, color="0.3", ms=9,
                 label=f"{name}: " + ", ".join(f"{c:g}" for c, _ in e["bands"]) + " nm")
     ax.set_xlabel("number of bands k (greedy forward selection)")
