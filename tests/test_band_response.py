@@ -172,3 +172,32 @@ def test_a_cube_lacking_model_bands_is_told_which_before_any_gap():
         band_plan([475, 560, 668, 717, 842], None, [544, 633, 1080, 1580])
     with pytest.raises(ValueError, match="gap inside the model's 544 nm band"):  # spanned, but too sparsely
         band_plan([475, 560, 668, 717, 842, 1100, 1600], None, [544, 633, 1080, 1580])
+
+
+def test_a_wide_band_sees_a_materials_spectrum_averaged_over_its_response():
+    """A material's spectrum given at wavelengths: a monochromatic band reads it at its centre (as before, bit for
+    bit), a constant spectrum stays that constant under any band, and a step inside a wide band's response reads
+    between its two levels, falling from the high level to the low as the step moves up through the band (the
+    centre alone would read one level or the other)."""
+    import torch
+
+    from torchskin.bands import at_wavelengths, per_band
+    from torchskin.render.materials import band_reflectance, spectral_context
+    from torchskin.render.scene import Sun
+
+    suns = [Sun(zenith_deg=30.0)]
+    mono = [Band(544.0), Band(633.0), Band(1080.0), Band(1580.0)]
+    spec = at_wavelengths([0.12, 0.34, 0.2, 0.41, 0.05], [500.0, 600.0, 900.0, 1300.0, 1650.0])
+    sp = spectral_context(mono, suns, "spectrl2")
+    assert band_reflectance(spec, sp, "r").tolist() == per_band(spec, mono, "r")
+    wide = [Band(560.0, 27.0), Band(1080.0, 40.0)]
+    sp = spectral_context(wide, suns, "spectrl2")
+    assert torch.allclose(band_reflectance(at_wavelengths([0.3, 0.3], [400.0, 1700.0]), sp, "r"),
+                          torch.full((2,), 0.3, dtype=torch.float64), rtol=0, atol=1e-15)
+    reads = []
+    for edge in (1010.0, 1050.0, 1070.0, 1090.0, 1110.0, 1150.0):  # 0.6 below the edge, 0.1 above
+        step = at_wavelengths([0.6, 0.6, 0.1, 0.1], [400.0, edge - 0.5, edge + 0.5, 1700.0])
+        reads.append(float(band_reflectance(step, sp, "r")[1]))
+    assert abs(reads[0] - 0.1) < 1e-3 and abs(reads[-1] - 0.6) < 1e-3  # the step outside the response
+    assert all(a < b for a, b in zip(reads, reads[1:]))  # rises as the step moves up through the band
+    assert 0.2 < reads[2] < 0.5 and 0.2 < reads[3] < 0.5

@@ -726,6 +726,23 @@ def at_wavelengths(values: Sequence[float], wavelengths_nm: Sequence[float] = IN
     return spec
 
 
+def spectrum_at(values: PerBand, wavelengths_nm: Sequence[float], what: str) -> list[float] | None:
+    """A per-band setting given as a spectrum at wavelengths (``at_wavelengths``), interpolated linearly at
+    ``wavelengths_nm`` (held constant outside its nodes); None for the other forms (a number, one value per band).
+
+    >>> spectrum_at(at_wavelengths([0.1, 0.3], [500.0, 700.0]), [500.0, 600.0, 800.0], "reflectance")
+    [0.1, 0.2, 0.3]
+    >>> spectrum_at(0.5, [500.0], "reflectance") is None
+    True
+    """
+    import numpy as np
+
+    if not isinstance(values, Mapping):
+        return None
+    wl, vals = _spectrum_nodes(values, what)
+    return [float(v) for v in np.interp(np.asarray(wavelengths_nm, dtype=np.float64), wl, vals)]
+
+
 def _spectrum_nodes(spec: object, what: str) -> tuple[list[float], list[float]]:
     """(wavelengths, values) of a spectrum given at wavelengths (``at_wavelengths``); ``ValueError`` naming
     ``what`` when it is malformed."""

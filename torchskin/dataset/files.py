@@ -23,9 +23,11 @@ MANIFEST = "_manifest.json"  # leading underscore: Parquet readers skip it when 
 #: ``generate --resume`` does not keep shards of another revision (2: anny bodies in float64, camera rays and
 #: facing tests and angles written out in a fixed order; 3: the light stage: SPECTRL2 sun, sky and ground-reflected
 #: light, sky views, RTLSR ground and confusers; 4: ``elm_valid`` asks the panels to receive at least a third of the
-#: light a surface facing the sun and sky does, ``render.elm.ELM_MAX_IRRADIANCE_RATIO``; 1 or missing: before).
+#: light a surface facing the sun and sky does, ``render.elm.ELM_MAX_IRRADIANCE_RATIO``; 5: a band with a width
+#: sees clothing, confuser and ground spectra averaged over its response, ``render.materials.band_reflectance``
+#: (monochromatic bands, the default's, render the same bytes as 4); 1 or missing: before).
 #: ``elm_valid``'s noise and gain checks (``render.elm.elm_line_valid``) change no row of the default datasets
-RENDER_REVISION = 4
+RENDER_REVISION = 5
 #: the subfolder of ``--images`` cubes, out of the way of Parquet readers of the dataset folder
 IMAGES_DIR = "images"
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from .. import __version__
-from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths, scene_bands
+from ..bands import INDEX_BANDS_NM, BandSet, PerBand, at_wavelengths, band_sampling, scene_bands
 from ..errors import check_folder_empty
 from ..io import atomic_path, write_text
 from ..render.elm import (
@@ -111,9 +111,11 @@ def group_scene(group: PoseGroup) -> Scene:
                  target=[0.0, 0.0, SUBJECT_TARGET_Z], fov_deg=cam_cfg["fov_deg"])
     from ..confusers import spectrum
 
-    centres = list(group.bands.centers)  # earthlib spectra at the band centres
-    # the fixed spectra are at the INDEX_BANDS_NM: interpolated in wavelength for any bands (bands.at_wavelengths)
-    clothing = at_wavelengths(spectrum(group.clothing, centres), centres) if group.clothing else \
+    # earthlib spectra on the bands' sampling grid (their centres for monochromatic bands; a wide band's response
+    # sampled every nm): the renderer averages them over each band (materials.band_reflectance). The fixed spectra
+    # are at the INDEX_BANDS_NM, interpolated in wavelength for any bands (bands.at_wavelengths)
+    grid = band_sampling(list(group.bands), dtype=torch.float64)[0].tolist()
+    clothing = at_wavelengths(spectrum(group.clothing, grid), grid) if group.clothing else \
         at_wavelengths(FIXED_CLOTHING)
     mats = {"skin": Material("skin", skin="I-II", surface=group.surface),
             "clothing": Material("lambertian", reflectance=clothing),
@@ -130,10 +132,10 @@ def group_scene(group: PoseGroup) -> Scene:
     ground = MeshSpec("ground", "ground", "ground", params={"size": 40.0})
     confusers = []
     for k, c in enumerate(group.confusers):  # flat patches on the ground around the subject
-        refl = spectrum(c["name"], centres)
+        refl = spectrum(c["name"], grid)
         # "rtlsr" where its energy bound allows (rtlsr.RHO_MAX): brighter spectra stay Lambertian
         kind = group.ground_brdf if max(refl) <= RHO_MAX else "lambertian"
-        mats[f"confuser{k}"] = Material(kind, reflectance=at_wavelengths(refl, centres))
+        mats[f"confuser{k}"] = Material(kind, reflectance=at_wavelengths(refl, grid))
         confusers.append(MeshSpec(f"confuser{k}", "plane", f"confuser{k}",
                                   params={"width": c["size"], "height": c["size"]},
                                   position=[c["x"], c["y"], 0.002 * (k + 1)], tilt_deg=90.0))

@@ -33,7 +33,7 @@ from typing import cast
 import torch
 
 from .. import data, tissue
-from ..bands import Band, PerBand, as_bands, band_sampling, per_band, setting_values
+from ..bands import Band, PerBand, as_bands, band_sampling, per_band, setting_values, spectrum_at
 from ..optics import SURFACE_MODELS, THESIS_SPECULAR, skin_brdf_cos, spectralon_brdf_cos, surface_front
 from .light import check_light
 from .rtlsr import DEFAULT_KERNELS, check_rtlsr, kernel_weights, rtlsr_brdf_cos
@@ -175,9 +175,19 @@ def _check_lambertian(m: Material) -> None:
             raise ValueError(f"reflectance must lie in [0, 1], got {v}")
 
 
+def band_reflectance(values: PerBand, sp: Spectral, what: str) -> torch.Tensor:
+    """A material's reflectance per band (B,) float64. A spectrum given at wavelengths (``at_wavelengths``) is
+    averaged over each band's response under the first sun's direct spectrum (``Spectral.sun_weights``), as skin's
+    is: a 40 nm filter sees the spectrum's mean over its band, not its value at the centre. A monochromatic band
+    reads the spectrum at its centre; a number or one value per band is taken as it is (``bands.per_band``)."""
+    on_grid = spectrum_at(values, sp.grid.tolist(), what)
+    if on_grid is None:
+        return torch.tensor(per_band(values, sp.bands, what), dtype=torch.float64)
+    return torch.tensor(on_grid, dtype=torch.float64) @ sp.sun_weights
+
+
 def _lambertian(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
-    r = torch.tensor(per_band(cast(PerBand, m.reflectance), sp.bands, "a lambertian reflectance"),
-                     dtype=torch.float64)  # checked: not None
+    r = band_reflectance(cast(PerBand, m.reflectance), sp, "a lambertian reflectance")  # checked: not None
     return Compiled(albedo=r[None])
 
 
@@ -264,8 +274,7 @@ def _check_rtlsr(m: Material) -> None:
 def _rtlsr(m: Material, sp: Spectral, skins: tissue.SkinParams | None) -> Compiled:
     """The white-sky albedo per band is the albedo; the Roy et al. (2016) kernel weights scaled to it
     (``rtlsr.kernel_weights``) are the BRDF's parameters."""
-    rho = torch.tensor(per_band(cast(PerBand, m.reflectance), sp.bands, "an rtlsr reflectance"),
-                       dtype=torch.float64)
+    rho = band_reflectance(cast(PerBand, m.reflectance), sp, "an rtlsr reflectance")
     f_iso, f_vol, f_geo = kernel_weights(rho, sp.wavelengths, m.params.get("kernels", DEFAULT_KERNELS))
     return Compiled(albedo=rho[None], params={"f_iso": f_iso[None], "f_vol": f_vol[None], "f_geo": f_geo[None]})
 
