@@ -203,6 +203,11 @@ def proxy_pd(rows: DesignRows, bands: Sequence[Band], trees: int = 40, budget: f
     """Held-out Pd of sunlit skin of the proxy (``_proxy``) on ``bands`` at the scene false-alarm ``budget`` (the
     threshold set on the held-out non-skin rows), and the held-out Pfa it reaches."""
     _, s, thr = _proxy(rows, bands, trees, budget, seed)
+    return _held_out_entry(rows, bands, s, thr)
+
+
+def _held_out_entry(rows: DesignRows, bands: Sequence[Band], s: np.ndarray, thr: float) -> dict:
+    """A set's entry: its bands, held-out Pd of sunlit skin and scene Pfa at the threshold ``thr``."""
     return {"bands": [[b.center_nm, b.fwhm_nm] for b in bands], "pd_sunlit": float((s[rows.lit_val] > thr).mean()),
             "pfa_scene": float((s[~rows.y_val] > thr).mean()), "threshold": float(thr)}
 
@@ -216,9 +221,8 @@ def fresh_pd(rows: DesignRows, bands: Sequence[Band], trees: int = 40, budget: f
     score, s, thr = _proxy(rows, bands, trees, budget, seed)
     R, X, y, lit = rows.fresh
     f = score(R, X)
-    return {"bands": [[b.center_nm, b.fwhm_nm] for b in bands], "pd_sunlit": float((s[rows.lit_val] > thr).mean()),
-            "pfa_scene": float((s[~rows.y_val] > thr).mean()), "threshold": float(thr),
-            "fresh_pd_sunlit": float((f[lit] > thr).mean()), "fresh_pfa_scene": float((f[~y] > thr).mean())}
+    return {**_held_out_entry(rows, bands, s, thr), "fresh_pd_sunlit": float((f[lit] > thr).mean()),
+            "fresh_pfa_scene": float((f[~y] > thr).mean())}
 
 
 def greedy(rows: DesignRows, candidates: Sequence[Band], k_max: int, trees: int = 40, budget: float = 1e-4,
@@ -332,7 +336,7 @@ def kind_scores(rows: KindRows, bands: Sequence[Band], trees: int = 300, seed: i
     from ..bands import BandSet
     from ..detectors.features import MIN_REFLECTANCE
     from ..detectors.lut.train import default_bins, learn
-    from ..detectors.protocol import CalibrationData
+    from .calibration import calibration_data
     from .candidates import model_candidate
     from .regions import earthlib_test, judge
 
@@ -341,7 +345,6 @@ def kind_scores(rows: KindRows, bands: Sequence[Band], trees: int = 300, seed: i
     model, _ = learn(rows.X, synthesise(rows.R, W.astype(np.float32)), rows.label, seed=seed, domain=rows.domain, bins=default_bins(len(bands)),
                      trees=trees, pfa_budget=pfa_budget, scene_budget=scene_budget, physical=rows.physical, bands=bs)
     test_R, test_pts = earthlib_test(bs.centers, indices=False)
-    tb = test_R.mean(-1) > MIN_REFLECTANCE
 
     def synthesised(h):
         out = copy.copy(h)
@@ -349,10 +352,7 @@ def kind_scores(rows: KindRows, bands: Sequence[Band], trees: int = 300, seed: i
         return out
 
     held, fresh = synthesised(rows.heldout), synthesised(rows.fresh)
-    model.calibrate_to_budget(CalibrationData(
-        R=held.R, X=held.X, ndgri=held.g, ndsi=held.s, ndvn=held.v, cfg_X=held.cfg_X, nonskin=~held.label,
-        bright=held.R.mean(-1) > MIN_REFLECTANCE, test_R=test_R, test_bright=tb, test_pts=test_pts), scene_budget,
-        pfa_budget)
+    model.calibrate_to_budget(calibration_data(held, test_R, test_pts), scene_budget, pfa_budget)
     cand = model_candidate(model, "lut")
     with torch.no_grad():
         j = judge(cand, fresh, test_R, test_pts, MIN_REFLECTANCE)

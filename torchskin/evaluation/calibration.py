@@ -11,8 +11,20 @@ import torch
 from ..detectors import registry
 from ..detectors.protocol import CalibrationData
 from .candidates import load_model
-from .metrics import MIN_REFLECTANCE, held_out
+from .metrics import MIN_REFLECTANCE, HeldOut, held_out
 from .regions import earthlib_test
+
+
+def calibration_data(rows: HeldOut, test_R: torch.Tensor, test_pts: torch.Tensor,
+                     min_reflectance: float = MIN_REFLECTANCE) -> CalibrationData:
+    """What a kind calibrates itself on (``CalibrationData``): the held-out ``rows`` and the earthlib test spectra
+    ``test_R`` with their index points ``test_pts`` (``regions.earthlib_test``), each judged above the brightness
+    floor only (the others' points NaN)."""
+    tb = test_R.mean(-1) > min_reflectance
+    return CalibrationData(R=rows.R, X=rows.X, ndgri=rows.g, ndsi=rows.s, ndvn=rows.v, cfg_X=rows.cfg_X,
+                           nonskin=~rows.label, bright=rows.R.mean(-1) > min_reflectance, test_R=test_R,
+                           test_bright=tb, test_pts=torch.where(tb[:, None], test_pts,
+                                                                torch.full_like(test_pts, math.nan)))
 
 
 def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLike, out_path: str | os.PathLike,
@@ -41,13 +53,7 @@ def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLi
     bands = model_bands(model).centers  # the model's own bands: the index bands for box kinds
     require_bands(data_dir, bands, f"--model {model_path}")
     rows = held_out(data_dir, list(model.features), bands)
-    test_R, test_pts = earthlib_test(bands)
-    tb = test_R.mean(-1) > min_reflectance
-    data = CalibrationData(R=rows.R, X=rows.X, ndgri=rows.g, ndsi=rows.s, ndvn=rows.v, cfg_X=rows.cfg_X,
-                           nonskin=~rows.label, bright=rows.R.mean(-1) > min_reflectance, test_R=test_R,
-                           test_bright=tb, test_pts=torch.where(tb[:, None], test_pts,
-                                                                torch.full_like(test_pts, math.nan)))
-    c = calibrate(data, scene_budget, pfa_budget, iters)
+    c = calibrate(calibration_data(rows, *earthlib_test(bands), min_reflectance), scene_budget, pfa_budget, iters)
     knob, start, value, rate = c["knob"], c["before"], c["after"], c["pfa_scene"]
     record = {"data": str(data_dir), "scene_budget": scene_budget, "pfa_budget": pfa_budget, "knob": knob,
               "before": start, "after": value, "pfa_scene": rate, "rows": rows.n}
@@ -55,4 +61,4 @@ def calibrate_to_budget(model_path: str | os.PathLike, data_dir: str | os.PathLi
     return record
 
 
-__all__ = ["calibrate_to_budget"]
+__all__ = ["calibrate_to_budget", "calibration_data"]
