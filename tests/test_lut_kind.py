@@ -23,33 +23,33 @@ pytest.importorskip("lightgbm")
 
 @pytest.mark.parametrize("n", [2, 3, 4, 5, 7])
 def test_coordinates_describe_a_spectrum_completely(n):
-    """The tree's normalized differences and the brightness (s - k) / (s + k) invert exactly (float64), for any
-    band count; a tree over n bands has n - 1 nodes covering every band once at the root."""
+    """The tree's shares and the brightness s / (s + k) invert exactly (float64), for any band count; a tree over n
+    bands has n - 1 nodes covering every band once at the root."""
     R = torch.rand(500, n, dtype=torch.float64, generator=torch.Generator().manual_seed(n)) + 1e-3
     tree = band_tree(n)
     assert len(tree) == n - 1 and sorted(tree[-1][0] + tree[-1][1]) == list(range(n))
     torch.testing.assert_close(reflectance_of(coordinates(R)), R, rtol=1e-12, atol=1e-14)
-    # scale changes the brightness coordinate alone, as the band sum's normalized difference against n / 4
+    # scale changes the brightness coordinate alone, as the band sum's share against n / 4
     U, U2 = coordinates(R), coordinates(R * 16)
     torch.testing.assert_close(U2[:, :-1], U[:, :-1], rtol=1e-12, atol=1e-12)
     s16 = 16 * R.sum(1)
-    torch.testing.assert_close(U2[:, -1], (s16 - n / 4) / (s16 + n / 4), rtol=1e-12, atol=1e-12)
-    assert (U2[:, -1] > U[:, -1]).all() and (U.abs() < 1).all()
+    torch.testing.assert_close(U2[:, -1], s16 / (s16 + n / 4), rtol=1e-12, atol=1e-12)
+    assert (U2[:, -1] > U[:, -1]).all() and ((U > 0) & (U < 1)).all()
 
 
-def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn():
+def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn_as_shares():
     from torchskin.detect import ratio_indices
 
     R = torch.rand(200, 4, generator=torch.Generator().manual_seed(1)) + 0.01
     U = coordinates(R)
     for a, b in zip(U.T[:3], ratio_indices(R)):
-        torch.testing.assert_close(a, b)
-    torch.testing.assert_close(U[:, 3], (R.sum(1) - 1) / (R.sum(1) + 1))  # k = 4 / 4: a mean reflectance of 0.25
+        torch.testing.assert_close(2 * a - 1, b)
+    torch.testing.assert_close(U[:, 3], R.sum(1) / (R.sum(1) + 1))  # k = 4 / 4: a mean reflectance of 0.25
 
 
 def test_cells_cut_each_axis_at_exact_edges_and_clip_outside():
-    lo, inv, bins = torch.tensor([0.0, -1.0]), torch.tensor([4.0, 2.0]), 4  # cells of 0.25 and 0.5
-    U = torch.tensor([[0.0, -1.0], [0.2499, -0.51], [0.25, -0.5], [0.99, 0.99], [-5.0, 7.0], [float("nan"), 0.2]])
+    lo, inv, bins = torch.tensor([0.0, 0.25]), torch.tensor([4.0, 8.0]), 4  # cells of 0.25 from 0, 0.125 from 0.25
+    U = torch.tensor([[0.0, 0.0], [0.2499, 0.374], [0.25, 0.375], [0.99, 0.74], [-5.0, 7.0], [float("nan"), 0.5]])
     q0 = torch.tensor([0, 0, 1, 3, 0, 0])
     q1 = torch.tensor([0, 0, 1, 3, 3, 2])
     assert cells(U, lo, inv, bins).tolist() == (q0 * 4 + q1).tolist()
@@ -58,7 +58,8 @@ def test_cells_cut_each_axis_at_exact_edges_and_clip_outside():
 
 
 def test_centres_land_in_their_own_cells():
-    lo, inv, bins = torch.tensor([-0.8, -0.3, -1.0, 0.3]), torch.tensor([30.0, 25.0, 16.0, 11.0]), 6
+    inv, bins = torch.tensor([30.0, 25.0, 16.0, 11.0]), 6
+    lo = torch.tensor([3.0, 11.0, 0.0, 7.0]) / inv  # whole cells from 0
     C = cell_centres(lo, inv, bins)
     assert torch.equal(cells(C.float(), lo, inv, bins), torch.arange(bins ** 4))
 
@@ -71,8 +72,8 @@ def test_undefined_coordinates_are_never_valid():
 def ndsi_table(bins: int = 8) -> LookupModel:
     """A table baked from a known score: +4 log-odds where NDSI > 0.3, -4 elsewhere, the same in every slice."""
     m = LookupModel(4, bins, config_counts=(2, 1, 1))
-    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))  # every coordinate spans (-1, 1)
-    m.inv.copy_(torch.tensor([bins / 2, bins / 2, bins / 2, bins / 2]))
+    m.lo.copy_(torch.zeros(4))  # every coordinate spans (0, 1)
+    m.inv.copy_(torch.full((4,), float(bins)))
 
     def predict(f: np.ndarray) -> np.ndarray:
         ndsi = f[:, 4 + 5]  # the learner's features: 4 reflectances, then the pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
@@ -86,13 +87,13 @@ def ndsi_table(bins: int = 8) -> LookupModel:
 def test_a_baked_table_holds_its_score_at_every_cell_centre():
     m = ndsi_table()
     C = cell_centres(m.lo, m.inv, m.bins)
-    want = to_levels(torch.where(C[:, 1] > 0.3, 4.0, -4.0))
+    want = to_levels(torch.where(2 * C[:, 1] - 1 > 0.3, 4.0, -4.0))
     want = torch.where(want >= EVEN_ODDS_LEVEL, want, torch.zeros_like(want))  # below even odds: stored as 0
     for s in range(m.levels.shape[0]):
         assert torch.equal(m.levels[s], want)
     R = reflectance_of(C).float()
     X = slice_centres(m).float()[torch.zeros(len(R), dtype=torch.long)]
-    assert torch.equal(m.decide(R, X), C[:, 1] > 0.3)  # the rule at cell centres, decided from reflectance
+    assert torch.equal(m.decide(R, X), 2 * C[:, 1] - 1 > 0.3)  # the rule at cell centres, decided from reflectance
 
 
 def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_never_goes_below_it():
@@ -114,11 +115,11 @@ def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_
 
 def test_the_support_leaves_out_every_edge_cell():
     m = LookupModel(4, 8, config_counts=(1, 1, 1))
-    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))  # every coordinate spans (-1, 1)
-    m.inv.copy_(torch.full((4,), 4.0))
+    m.lo.copy_(torch.zeros(4))  # every coordinate spans (0, 1)
+    m.inv.copy_(torch.full((4,), 8.0))
     R = torch.tensor([[0.3, 0.2, 0.5, 0.1], [1.0, 0.0, 0.5, 0.5]])  # the second: NDGRI 1, clipped into the last cell
     where = support(m, R, 1).reshape(8, 8, 8, 8)
-    q = (torch.floor((coordinates(R) - m.lo) * m.inv).clamp(0, 7)).long()
+    q = (torch.floor(coordinates(R) * m.inv).clamp(0, 7)).long()
     assert bool(where[tuple(q[0])]) and not bool(where[tuple(q[1])])
     for axis in range(4):
         assert not where.select(axis, 0).any() and not where.select(axis, 7).any()
@@ -281,31 +282,39 @@ def test_a_damaged_table_is_one_line_naming_the_file(lut_model, tiny_dataset, tm
 
 @pytest.mark.parametrize("n,bins", [(2, 40), (3, 16), (4, 8), (5, 6), (7, 4)])
 def test_the_onboard_head_puts_every_pixel_in_the_torch_cell_for_any_band_count(n, bins):
-    """The numpy head's batched tree (``onboard.lut._tree_plan``: nodes whose children lie at one stride share a
-    call) and its clipping (skipped on axes whose cells cover [-1, 1]) give the cell torch gives, for band counts
-    whose trees are not regular, on pixels inside, outside and at the edge of the table."""
-    from torchskin.bands import TREE_COORDINATES
+    """The numpy head's batched tree (``onboard.lut._tree_plans``: nodes whose children, and coordinates whose
+    numerators, lie at one stride share a call), its clipping (skipped on an axis from 0 with fewer than ``bins``
+    cells to 1) and its offset table give the cell torch gives, for band counts whose trees are not regular, on
+    pixels inside, outside and at the edge of the table; an undefined pixel's index reads the table's first entry."""
+    from torchskin.bands import TREE_COORDINATES, grid_offsets
     from torchskin.onboard.lut import LutHead
 
     rng = np.random.default_rng(n)
-    lo = rng.uniform(-0.9, -0.2, n).astype(np.float32)
-    lo[-1] = -1.25  # this axis covers [-1, 1]: no clip
-    inv = (bins / rng.uniform(0.5, 1.2, n)).astype(np.float32)
-    inv[-1] = bins / 2.5
+    inv = (bins / rng.uniform(0.25, 0.6, n)).astype(np.float32)
+    lo = (np.floor(rng.uniform(0.05, 0.4, n) * inv) / inv).astype(np.float32)  # whole cells from 0
+    inv[-1] = (bins - 1) / 1.1
+    lo[-1] = -1 / inv[-1]  # this axis starts one cell below 0 and covers [0, 1]: no clip
+    if n == 3:
+        lo[:-1] = 0.0  # every tree axis from 0: the offsets sum below 0, subtracted in a pass
     grid = {"coordinates": TREE_COORDINATES, "bins": bins, "n_bands": n, "lo": lo.tolist(), "inv": inv.tolist(),
             "cfg_lo": [0.0], "cfg_inv": [1.0], "config_counts": [1]}
-    head = LutHead(grid, np.zeros(bins ** n // 8, dtype=np.uint8))
-    assert (head.clip_rows[-1][1] if head.clip_rows else 0) <= n - 1  # the last axis is not clipped
+    head = LutHead(grid, np.zeros(-(-bins ** n // 8), dtype=np.uint8))
+    assert head.clip_rows == n - 1  # the brightness axis is not clipped, every tree axis is
+    base = int(sum(bins ** (n - 1 - k) * o for k, o in enumerate(grid_offsets(lo, inv))))
+    assert head.offset_free == (base >= 0) and head.base == max(base, 0) and (n != 3 or not head.offset_free)
+    assert head.table(0).shape == (head.base + bins ** n,) and head.table(0)[0] == 0
     R = (rng.random((n, 5000)) * rng.choice([0.01, 0.5, 3.0], (1, 5000))).astype(np.float32)
     R[:, :50] = 0.0  # every node's sum 0: undefined
     R[: n // 2, 50:100] = 0.0  # the left half dark
     sc = head.scratch(R.shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        idx = head._cells(R, sc)
+        head._cells(R, sc)
     want = cells(coordinates(torch.from_numpy(R.T)), torch.from_numpy(lo), torch.from_numpy(inv), bins)
     ok = valid(torch.from_numpy(R.T)).numpy()
-    assert np.isnan(idx[~ok]).all() and not np.isnan(idx[ok]).any()
-    assert np.array_equal(sc["cell"][ok], want.numpy()[ok])
+    assert np.array_equal(sc["cell"][ok] - head.base, want.numpy()[ok])
+    # an undefined pixel lands on the first cell of a tree axis: an edge cell
+    q = (sc["cell"][~ok] - head.base)[:, None] // bins ** np.arange(n - 1, -1, -1) % bins
+    assert ((q[:, :-1] == 0).any(1)).all() and (sc["cell"] >= head.base).all()
 
 
 def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbours():
@@ -314,8 +323,8 @@ def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbou
     from torchskin.detectors.lut.train import MARGIN_SCALES, earthlib_cells
 
     m = LookupModel(4, 8, config_counts=(1, 1, 1))
-    m.lo.copy_(torch.tensor([-1.0, -1.0, -1.0, -1.0]))
-    m.inv.copy_(torch.full((4,), 4.0))
+    m.lo.copy_(torch.zeros(4))
+    m.inv.copy_(torch.full((4,), 8.0))
     spectra = torch.tensor([[0.3, 0.2, 0.5, 0.1], [0.05, 0.06, 0.3, 0.2]])
     a, b, k = MARGIN_SCALES
     scales = torch.logspace(math.log10(a), math.log10(b), k)

@@ -492,12 +492,24 @@ INDEX_BANDS = BandSet.of(INDEX_BANDS_NM)
 DEFAULT_BANDS: tuple[Band, ...] = INDEX_BANDS.bands
 
 
-#: the ``lut`` table's coordinates by name, kept in its checkpoints and graphs (``detectors.lut.grid``): the
-#: ``band_tree``'s normalized differences, then the band sum's normalized difference against
-#: ``BRIGHTNESS_REF_PER_BAND`` times the band count. A table built on other coordinates is refused
-TREE_COORDINATES = "tree-nd+brightness-nd/4"
-#: the mean reflectance at which the ``lut`` brightness coordinate is 0
+#: the ``lut`` table's coordinates by name, kept in its checkpoints and graphs (``detectors.lut.grid``): each
+#: ``band_tree`` node's left share (left sum / (left sum + right sum)), then the band sum's share against
+#: ``BRIGHTNESS_REF_PER_BAND`` times the band count, cut into cells whose edges are whole multiples of each axis's
+#: cell width. A table built on other coordinates is refused
+TREE_COORDINATES = "tree-share+brightness-share/4"
+#: the mean reflectance at which the ``lut`` brightness coordinate is 1/2
 BRIGHTNESS_REF_PER_BAND = 0.25
+
+
+def grid_offsets(lo: Iterable[float], inv: Iterable[float]) -> list[float]:
+    """The first cell of each ``lut`` table axis in whole cell widths from 0: ``round(lo * inv)`` in double
+    precision (the table's ``lo`` is a whole number of its cells, ``1 / inv``; ``detectors.lut.grid``). One formula
+    for torch, the graph and the onboard head.
+
+    >>> grid_offsets([0.25, 0.0], [32.0, 8.0])
+    [8.0, 0.0]
+    """
+    return [float(round(float(a) * float(b))) for a, b in zip(lo, inv, strict=True)]
 
 
 def band_tree(n: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:

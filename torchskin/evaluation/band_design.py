@@ -139,7 +139,7 @@ def _proxy(rows: DesignRows, bands: Sequence[Band], trees: int, budget: float, s
 
     from ..bands import BandSet
     from ..detectors.features import earthlib_reflectance
-    from ..detectors.lut.grid import reflectance_of, valid
+    from ..detectors.lut.grid import axis_centres, reflectance_of, valid
     from ..detectors.lut.model import LookupModel
     from ..detectors.lut.train import (
         LEARNER,
@@ -176,13 +176,12 @@ def _proxy(rows: DesignRows, bands: Sequence[Band], trees: int, budget: float, s
     table.inv.copy_(inv)
     keep = support(table, torch.from_numpy(R[rows.y]).float(), 1) & ~earthlib_cells(table, C, 1)
     strides = bins ** torch.arange(n - 1, -1, -1)
-    lo64, inv64 = lo.double(), inv.double()
 
     def score(Rf, X):
         Rt = torch.from_numpy(synthesise(Rf, W)).float()
         cell = table.cells_of(Rt)
         q = (cell[:, None] // strides) % bins  # each axis's cell
-        centre = reflectance_of(lo64 + (q.double() + 0.5) / inv64).numpy()
+        centre = reflectance_of(axis_centres(q, lo, inv)).numpy()
         s = booster.predict(learner_features(centre, X), raw_score=True, num_threads=1)
         return np.where((keep[cell] & valid(Rt)).numpy(), s, -np.inf)
 

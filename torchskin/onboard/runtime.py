@@ -119,6 +119,7 @@ class _TileBinding:
         self.frame, self.ws = -1, []
         self.lut = det._lut.scratch(n) if det._lut is not None else None  # the lookup-table head's buffers
         self.table: np.ndarray | None = None  # the frame's table slice (lookup-table head)
+        self.edge_free = True  # whether that slice holds no skin where an undefined pixel lands
         if self.head is not None:
             self.io, self.sums = self.head.session.io_binding(), self.head.sums.io_binding()
             self.head.bind(self.io, self.sums, self.t, self.edges, self.total, self.nir_min)
@@ -201,13 +202,13 @@ class OnboardDetector(_Model):
         third band (1080 nm: bright for skin, vegetation and most materials) lies above the floor keeps its mask
         without a sum: its sum is at least that band (the others are non-negative, and float32 addition of
         non-negative terms never rounds below either), so only the masked pixels dark in that band (``dark``, an
-        (n,) bool scratch buffer) are summed: nothing more where there are none (most tiles: one comparison over
-        a quarter of the tile), at those pixels alone when they are few (the same sums), and over the tile into
-        ``total`` otherwise (by ``band_sum()`` when given: the head's ``sums`` session)."""
-        if not m.any():  # a tile without skin (most of a frame's)
-            return
+        (n,) bool scratch buffer) are summed: nothing more where no pixel is dark in it (most tiles: one comparison
+        over a quarter of the tile), at those pixels alone when they are few (the same sums), and over the tile
+        into ``total`` otherwise (by ``band_sum()`` when given: the head's ``sums`` session)."""
         dark = np.empty(len(m), dtype=bool) if dark is None else dark
         np.less_equal(t[min(FLOOR_BAND, len(t) - 1)], floor, out=dark)
+        if not dark.any():  # no pixel dark in that band (most tiles): two passes over in-cache rows
+            return
         np.logical_and(dark, m, out=dark)
         count = np.count_nonzero(dark)
         if not count:
@@ -252,8 +253,8 @@ class OnboardDetector(_Model):
             n = hi - lo
             tb = bindings.get(n) or self._binding(bindings, n)
             t, edges = tb.t, tb.edges
-            if lut is not None and int(flat[b, :, lo:hi].view(np.uint32).max()) <= _MAX_BITS:
-                t, checked = flat[b, :, lo:hi], None  # the lookup-table head reads the frame's rows in place
+            if lut is not None and int((view := flat[b, :, lo:hi]).view(np.uint32).max()) <= _MAX_BITS:
+                t, checked = view, None  # the lookup-table head reads the frame's rows in place
             else:
                 t[...] = flat[b, :, lo:hi]
                 # the usual tile's one pass: every value within range (``_MAX_BITS``), else the full check
@@ -261,8 +262,9 @@ class OnboardDetector(_Model):
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
             if b != tb.frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if lut is not None:  # a lookup table: the frame's slice
-                    tb.table = lut.table(lut.slice_of(c[b]))
+                if lut is not None:  # a lookup table: the frame's slice (and whether it holds the floor already)
+                    sl = lut.slice_of(c[b])
+                    tb.table, tb.edge_free = lut.table(sl), lut.edge_free(sl)
                 elif head is not None:  # copied into the bound weight buffers
                     for w, v in zip(tb.ws, frame_weights(b), strict=True):  # type: ignore[misc]
                         w[...] = v
@@ -271,7 +273,7 @@ class OnboardDetector(_Model):
                 tb.frame = b
             m, sc = mask[b, lo:hi], score[b, lo:hi]
             if lut is not None:
-                lut.run(t, cast(np.ndarray, tb.table), m, sc, cast(dict, tb.lut))
+                lut.run(t, cast(np.ndarray, tb.table), m, sc, cast(dict, tb.lut), tb.edge_free)
             elif head is not None:
                 run(tb.io)
                 minimum(edges, axis=0, out=sc)  # the graph's Min

@@ -17,7 +17,7 @@ from ...bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
 from ..features import FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
-from .grid import COORDINATES, cells, config_bins, coordinates, valid
+from .grid import COORDINATES, cells, config_bins, coordinates, offsets, valid
 
 if TYPE_CHECKING:
     import onnx
@@ -85,11 +85,11 @@ class LookupModel(nn.Module):
     method_help: ClassVar[str] = ("lut: gradient-boosted trees on every normalized difference, reflectance, "
                                   "brightness and the configuration, baked into a table looked up per pixel")
     #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. Not
-    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~2.0x the box detector and
-    #: ~7.5x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
+    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~1.8x the box detector and
+    #: ~5.9x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
     onboard_head: ClassVar[str] = "lut"
     onboard_selectable: ClassVar[bool] = False
-    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~2.0x the box detector's time per frame and ~7.5x "
+    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~1.8x the box detector's time per frame and ~5.9x "
                                    "the frame-read floor, where the onboard budget is 2x and 5x")
     card_score: ClassVar[str] = "the lookup table: 1 inside the calibrated region, 0 outside (a table holds decisions)"
     pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("lut", ("--method", "lut")),)
@@ -252,6 +252,7 @@ class LookupDetector(nn.Module):
     inv: torch.Tensor
     cfg_lo: torch.Tensor
     cfg_inv: torch.Tensor
+    off: torch.Tensor
 
     def __init__(self, model: LookupModel):
         super().__init__()
@@ -261,12 +262,13 @@ class LookupDetector(nn.Module):
         self.register_buffer("pow2", torch.tensor([1, 2, 4, 8, 16, 32, 64, 128], dtype=torch.int32))
         for name in ("lo", "inv", "cfg_lo", "cfg_inv"):
             self.register_buffer(name, getattr(model, name).clone())
+        self.register_buffer("off", offsets(model.lo, model.inv))
 
     def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mask and score (B, H, W) of a reflectance cube (B, n, H, W) under configurations (B, k)."""
         B, n, H, W = cube.shape
         x = cube.reshape(B, n, H * W).transpose(1, 2)  # (B, HW, n)
-        cell = cells(coordinates(x), self.lo, self.inv, self.bins)  # (B, HW)
+        cell = cells(coordinates(x), self.lo, self.inv, self.bins, self.off)  # (B, HW)
         slice_ = config_bins(config, self.cfg_lo, self.cfg_inv, self.counts)  # (B,)
         flat = slice_[:, None] * self.cells + cell
         byte = self.bits[torch.div(flat, 8, rounding_mode="floor")].to(torch.int32)

@@ -31,6 +31,7 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from ...bands import grid_offsets
     from ...dataset.files import read_rows
     from ...detect import DEFAULT_BOX
     from ...io import atomic_path
@@ -41,10 +42,12 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
     X = torch.from_numpy(rows.stack(FEATURES, np.float32))
     lit = torch.from_numpy(rows["label"].astype(bool) & ~rows["shadow"].astype(bool))
     slices = model.slices(X)
-    U = coordinates(R)
+    U = 2 * coordinates(R) - 1  # shares as normalized differences: NDGRI, NDSI
     theta = rows["theta_i_deg"]
     b = model.bins
-    edges = [(model.lo[k] + torch.arange(b + 1) / model.inv[k]).numpy() for k in range(2)]
+    off = grid_offsets(model.lo[:2].tolist(), model.inv[:2].tolist())
+    edges = [(2 * (off[k] + torch.arange(b + 1, dtype=torch.float64)) / float(model.inv[k]) - 1).numpy()
+             for k in range(2)]
     fig, axes = plt.subplots(1, len(configs), figsize=(3.6 * len(configs) + 1, 4.4), sharey=True,
                              layout="constrained")
     sc = None

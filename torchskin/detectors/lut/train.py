@@ -83,7 +83,10 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
 
 def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The table's (lo, inv) per coordinate axis (float32): the training skin's coordinates between the
-    ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE`` quantiles, widened by two cells on each side."""
+    ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE`` quantiles, widened by two cells on each side, with ``lo`` moved
+    down to a whole number of cells from 0 (``bands.grid_offsets``) and never more than one cell below 0: an axis
+    that reaches 0 keeps its edge cell (never skin) below every share, so that its first share cell can hold skin
+    (the darkest skin on the brightness axis)."""
     U = coordinates(R_skin.double())
     U = U[torch.isfinite(U).all(1)]
     q = torch.tensor([RANGE_QUANTILE, 1 - RANGE_QUANTILE], dtype=torch.float64)
@@ -91,7 +94,8 @@ def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Te
     lo, hi = torch.quantile(U[pick], q, dim=0)
     step = (hi - lo).clamp_min(1e-6) / (bins - 4)
     lo, hi = lo - 2 * step, hi + 2 * step
-    return lo.float(), (bins / (hi - lo)).float()
+    inv = (bins / (hi - lo)).float()
+    return (torch.floor(lo * inv.double()).clamp_min(-1.0) / inv.double()).float(), inv
 
 
 def earthlib_cells(model: LookupModel, spectra: torch.Tensor, margin: int) -> torch.Tensor:
