@@ -581,7 +581,8 @@ def test_a_command_whose_extra_is_missing_names_the_extra(tmp_path, module):
         (tmp_path / "c.img").write_bytes(_skin_cube().astype("<f4").tobytes())
         inputs += ["c.hdr", "c.img"]
     if module == "tifffile":  # a GeoTIFF cube, written here with tifffile, missed by the command
-        pytest.importorskip("tifffile").imwrite(tmp_path / "c.tif", _skin_cube())
+        pytest.importorskip("tifffile").imwrite(tmp_path / "c.tif", _skin_cube(), photometric="minisblack",
+                                                planarconfig="separate")  # the bands as one page's planes
         inputs += ["c.tif"]
     argv = {"onnxruntime": ["detect", "--model", DET, "--cube", "c.npy", *CFG],  # the onboard path itself
             "spectral": ["detect", "--model", DET, "--cube", "c.hdr", *CFG, "--out", "m.png"],
