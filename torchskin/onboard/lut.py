@@ -54,13 +54,18 @@ class LutHead:
         self.off_lo = off.astype(np.int32)[:, None]
         self.off_hi = (off + self.bins - 1).astype(np.int32)[:, None]
         self.sum_plan, self.div_plan = _tree_plans(band_tree(self.n), self.n)
-        # every tree axis is clipped: an undefined share (0 / 0, NaN) casts to an integer far outside, which the clip
-        # puts in the axis's first cell, an edge cell. The brightness is never undefined; it lies in [0, 1], so
+        # every tree axis is clipped: an undefined share (0 / 0, NaN) casts to an integer (INT_MIN on x86-64, 0 on
+        # ARM), which the clip puts in one cell of the axis, ``landing``: the first, an edge cell, unless the axis
+        # starts below 0 and NaN casts to 0. The brightness is never undefined; it lies in [0, 1], so
         # floor(u * inv) in [0, floor(inv)]: from at most 0 with room up to 1 it needs no clip either
         bright_free = off[-1] <= 0 and float(self.inv[-1, 0]) < off[-1] + self.bins
         self.clip_rows = self.n - 1 if bright_free else self.n
+        with np.errstate(invalid="ignore"):
+            nan = np.full(1, np.nan, dtype=np.float32).astype(np.int32)[0]
+        self.landing = [int(np.clip(nan, lo_k, lo_k + self.bins - 1) - lo_k) for lo_k in off[:-1].astype(np.int64)]
         self._slices: dict[int, np.ndarray] = {}
-        self._edge_free: dict[int, bool] = {}  # per slice: no tree axis's first cell holds skin
+        self._edge_free: dict[int, bool] = {}  # per slice: no tree axis's landing cell holds skin
+
     def slice_of(self, config: np.ndarray) -> int:
         """The table slice of one configuration (k,): per feature floor((x - lo) * inv) in float32, clipped to
         [0, count - 1], the first feature slowest (``detectors.lut.grid.config_bins``)."""
@@ -82,9 +87,9 @@ class LutHead:
             t = np.zeros(self.base + self.cells, dtype=np.uint8)  # the zero cells: pages never written or read
             t[self.base:] = bits[first - 8 * b0:first - 8 * b0 + self.cells]
             grid = t[self.base:].reshape((self.bins,) * self.n)
-            # where an undefined pixel lands: the first cell of a tree axis (never skin in a trained table). Kept
-            # before the slice, which another worker may read at once
-            self._edge_free[s] = not any(grid.take(0, axis=k).any() for k in range(self.n - 1))
+            # where an undefined pixel lands: a tree axis's landing cell (its first, never skin in a trained
+            # table, on x86-64). Kept before the slice, which another worker may read at once
+            self._edge_free[s] = not any(grid.take(c, axis=k).any() for k, c in enumerate(self.landing))
             self._slices[s] = t
         return t
 
@@ -98,8 +103,8 @@ class LutHead:
             edge_free: bool = True) -> None:
         """Mask and score (1 skin, 0 not) of a non-negative (n_bands, n) tile ``t`` under one slice's
         ``table``, into ``mask`` and ``score`` (n,), with the buffers ``sc`` (``scratch``). ``edge_free``: the
-        slice holds no skin in any tree axis's first cell (``edge_free``; a trained table's never does), where
-        an undefined pixel lands; otherwise such pixels are found and ruled out."""
+        slice holds no skin in any tree axis's ``landing`` cell (``edge_free``), where an undefined pixel lands;
+        otherwise such pixels are found and ruled out."""
         with np.errstate(invalid="ignore", divide="ignore"):  # 0 / 0: an undefined coordinate, ruled out below
             self._cells(t, sc)
         np.take(table, sc["cell"], out=mask.view(np.uint8), mode="clip")
@@ -110,13 +115,13 @@ class LutHead:
         np.copyto(score, mask)  # 1 (skin) or 0
 
     def edge_free(self, s: int) -> bool:
-        """Whether slice ``s`` holds no skin in the first cell of any tree axis (``table``)."""
+        """Whether slice ``s`` holds no skin in any tree axis's ``landing`` cell (``table``)."""
         self.table(s)
         return self._edge_free[s]
 
     def _cells(self, t: np.ndarray, sc: dict) -> None:
         """The table index (``base`` + cell, ``detectors.lut.grid.cells`` of ``coordinates``) of every pixel of
-        the tile into ``sc["cell"]`` (an undefined pixel's: a cell on the first cell of a tree axis)."""
+        the tile into ``sc["cell"]`` (an undefined pixel's: a cell on a tree axis's ``landing`` cell)."""
         S, U, Q = sc["S"], sc["U"], sc["Q"]
         src = {"t": t, "S": S}
         for first, last, (la, ls, lstep), (ra, rs, rstep) in self.sum_plan:  # nodes first..last-1, one call each

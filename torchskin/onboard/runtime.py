@@ -262,7 +262,7 @@ class OnboardDetector(_Model):
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
             if b != tb.frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if lut is not None:  # a lookup table: the frame's slice (and whether it holds the floor already)
+                if lut is not None:  # a lookup table: the frame's slice (and whether undefined pixels need a pass)
                     sl = lut.slice_of(c[b])
                     tb.table, tb.edge_free = lut.table(sl), lut.edge_free(sl)
                 elif head is not None:  # copied into the bound weight buffers
