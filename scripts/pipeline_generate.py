@@ -8,16 +8,17 @@ the thesis skin surface model, clothing drawn from each dataset's earthlib parti
 Writes WORK/train (seed 1, earthlib train partition), WORK/heldout (seed 2, test partition: used to compare
 the models and choose the detector) and WORK/test (seed 3, test partition: never used for any choice, the
 figures quoted for the exports); an existing complete dataset is kept (--resume), one rendered by another
-renderer revision (``dataset.files.RENDER_REVISION``) or another dataset schema (``SCHEMA_VERSION``) is regenerated
-(--overwrite)."""
+renderer revision (``dataset.files.RENDER_REVISION``), another dataset schema (``SCHEMA_VERSION``) or from another
+configuration (this torchskin's embedded defaults changed, or another seed or size) is regenerated (--overwrite)."""
 
 import argparse
 import sys
 from pathlib import Path
 
 from torchskin.cli import main
+from torchskin.dataset.config import load_config
 from torchskin.dataset.files import RENDER_REVISION, manifest
-from torchskin.dataset.generate import SCHEMA_VERSION
+from torchskin.dataset.generate import SCHEMA_VERSION, same_draw
 from torchskin.io import write_text
 
 
@@ -45,6 +46,10 @@ def run(argv=None) -> int:
         elif old is not None and old.get("schema_version") != SCHEMA_VERSION:
             print(f"[generate] {name}: dataset schema {old.get('schema_version')}, regenerating with schema "
                   f"{SCHEMA_VERSION}", flush=True)
+            keep = "--overwrite"
+        elif old is not None and not same_draw(old, load_config(cfg, bands=a.bands), seed, n):
+            print(f"[generate] {name}: drawn from another configuration, seed or size (this torchskin's defaults "
+                  "changed?), regenerating", flush=True)
             keep = "--overwrite"
         bands = ["--bands", a.bands] if a.bands else []
         rc = main(["generate", "--config", str(cfg), "--configs", str(n), "--seed", str(seed), "--out",

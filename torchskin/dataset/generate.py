@@ -391,6 +391,17 @@ def resolve_compile(compile: bool | str, n_configs: int, device: torch.device | 
     return compile
 
 
+def same_draw(old: dict, cfg: dict, seed: int, n_configs: int) -> bool:
+    """Whether the dataset whose manifest is ``old`` was drawn from the resolved config ``cfg``, ``seed`` and
+    ``n_configs`` configurations (what ``--resume`` requires; a manifest written before ``[bands]``: the index
+    bands)."""
+    old_cfg = old.get("config")
+    if isinstance(old_cfg, dict) and "bands" not in old_cfg:
+        old_cfg = {**old_cfg, "bands": default_config()["bands"]}
+    return (old_cfg == cfg and old.get("master_seed") == seed
+            and old.get("requested_configs", old.get("configs")) == n_configs)
+
+
 def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *, resume: bool = False,
              overwrite: bool = False, quiet: bool = False, device: torch.device | str = "cpu", backend: str = "local", address: str | None = None,
              workers: int | None = None, images: bool = False, compile: bool | str = False) -> dict:
@@ -429,11 +440,7 @@ def generate(cfg: dict, n_configs: int, seed: int, out_dir: str | os.PathLike, *
             raise ValueError(f"--resume: {str(out)!r} holds a dataset of schema {old.get('schema_version')}, this "
                              f"torchskin writes schema {SCHEMA_VERSION} (other rows for the same seed): regenerate it "
                              "with --overwrite")
-        old_cfg = old.get("config")
-        if isinstance(old_cfg, dict) and "bands" not in old_cfg:  # written before [bands]: the index bands
-            old_cfg = {**old_cfg, "bands": default_config()["bands"]}
-        if (old_cfg != cfg or old.get("master_seed") != seed
-                or old.get("requested_configs", old.get("configs")) != n_configs):
+        if not same_draw(old, cfg, seed, n_configs):
             raise ValueError("--resume needs the same config, seed and --configs as the interrupted run")
         if bool(old.get("images")) != images:
             raise ValueError("--resume needs the same --images setting as the interrupted run")
