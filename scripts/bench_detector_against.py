@@ -34,6 +34,16 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+#: the benchmark frame's configuration, per feature (a model takes those it names, in its order)
+BENCH_CONFIG = {"sun_zenith_deg": 40.0, "camera_zenith_deg": 30.0, "relative_azimuth_deg": 60.0, "diffuse_share": 0.2}
+FEATURES = ("sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg")
+
+
+def config_of(features) -> np.ndarray:
+    """The benchmark configuration (1, k) of a detector taking ``features``."""
+    return np.array([[BENCH_CONFIG[f] for f in features]])
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("commit", nargs="?", default="2afa293")
@@ -97,9 +107,10 @@ def main() -> int:
         if args.dark > 0:
             dark = rng.random((1024, 1024)) < args.dark
             cube[0][:, dark] = rng.random((4, int(dark.sum())), dtype=np.float32) * 0.004
-        cfg = np.array([[40.0, 30.0, 60.0]])
+        cfg = config_of(getattr(old, "features", FEATURES))
+        cfg_new = config_of(new.features)
         floor = new.default_min_reflectance if args.graphs == "shipped" or args.model else MIN_REFLECTANCE
-        runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg, min_reflectance=floor),
+        runs = {"old": lambda: old(cube, cfg), "new": lambda: new(cube, cfg_new, min_reflectance=floor),
                 "read": lambda: float(cube.sum())}
         share = {k: float(runs[k]()["mask"].mean()) for k in ("old", "new")}
         for f in runs.values():

@@ -172,7 +172,7 @@ def test_torch_the_graph_and_the_onboard_head_decide_alike(lut_model):
     model, _ = registry.load(lut_model / "lut.pt")
     rng = np.random.default_rng(0)
     cube = (rng.random((3, 4, 96, 128)) * 0.8).astype(np.float32)
-    cfg = np.array([[10.0, 5.0, 20.0], [50.0, 40.0, 150.0], [80.0, 85.0, 170.0]], dtype=np.float32)
+    cfg = np.array([[10.0, 5.0, 20.0, 0.1], [50.0, 40.0, 150.0, 0.45], [80.0, 85.0, 170.0, 0.95]], dtype=np.float32)
     centres = cell_centres(model.lo, model.inv, model.bins)
     for b, s in enumerate(model.slices(torch.from_numpy(cfg)).tolist()):  # the top half: cells near the region
         near = (model.levels[s] > 0).nonzero().squeeze(1)
@@ -213,7 +213,7 @@ def test_graph_metadata_names_the_kind_its_head_and_its_bands(lut_model):
     assert meta["kind"] == "lut" and meta["onboard_head"] == "lut"
     assert BandSet.from_json(meta["bands"]) == INDEX_BANDS
     grid = json.loads(meta["lut_grid"])
-    assert grid["bins"] == 8 and grid["n_bands"] == 4 and grid["config_counts"] == [6, 6, 2]
+    assert grid["bins"] == 8 and grid["n_bands"] == 4 and grid["config_counts"] == [6, 6, 2, 4]
 
 
 def test_the_learner_sees_every_normalized_difference():
@@ -238,7 +238,7 @@ def test_without_the_configuration_one_table_serves_every_sun_and_camera(tiny_da
     assert model.levels.shape[0] == 1 and not model.config_inputs
     assert ck["meta"]["options"]["configuration"] is False  # the training summary says so
     R = torch.rand(300, 4, generator=torch.Generator().manual_seed(0)) * 0.6
-    X1, X2 = torch.tensor([[5.0, 5.0, 10.0]]).expand(300, 3), torch.tensor([[85.0, 80.0, 170.0]]).expand(300, 3)
+    X1, X2 = torch.tensor([[5.0, 5.0, 10.0, 0.1]]).expand(300, 4), torch.tensor([[85.0, 80.0, 170.0, 0.9]]).expand(300, 4)
     assert torch.equal(model.decide(R, X1), model.decide(R, X2))
 
 
@@ -380,7 +380,7 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
     assert "(B, 5, H, W): ELM-calibrated reflectance at 475, 560, 668, 717, 842 nm" in card and "five band" in card
     rng = np.random.default_rng(1)
     cube = (rng.random((2, 5, 48, 64)) * 0.7).astype(np.float32)
-    cfg_rows = np.array([[20.0, 10.0, 30.0], [60.0, 70.0, 160.0]], dtype=np.float32)
+    cfg_rows = np.array([[20.0, 10.0, 30.0], [60.0, 70.0, 160.0]], dtype=np.float32)  # no 544 nm band: no share
     with torch.no_grad():
         tm, ts = model.reference_detector()(torch.from_numpy(cube), torch.from_numpy(cfg_rows))
     gm, gs = ort.InferenceSession(str(tmp_path / "ex" / "detector.onnx"),
@@ -399,9 +399,11 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
     assert res["static"] is None and len(res["models"]) == 2 and res["bands_nm"] == list(bands.centers)
     a, b = (dict(m["overall"]) for m in res["models"])
     assert math.isnan(a.pop("area_mean")) and math.isnan(b.pop("area_mean")) and a == b  # no (NDGRI, NDSI) plane
-    rows = read_rows(tmp_path / "ds", [*model.features, *bands.columns, "label", "shadow"])
+    from torchskin.detectors.features import feature_columns, stack_features
+
+    rows = read_rows(tmp_path / "ds", [*feature_columns(model.features), *bands.columns, "label", "shadow"])
     R = torch.from_numpy(rows.stack(bands.columns, np.float32))
-    X = torch.from_numpy(rows.stack(model.features, np.float32))
+    X = torch.from_numpy(stack_features(rows, model.features))
     hit = model.decide(R, X).bool() & (R.mean(-1) > MIN_REFLECTANCE)
     lit = torch.from_numpy(rows["label"] & ~rows["shadow"])
     assert res["learned"]["pd_sunlit"] == pytest.approx(float(hit[lit].float().mean()), abs=1e-12)
@@ -418,25 +420,32 @@ def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tm
         assert "\n" not in err and words in err, err
 
 
-def test_a_camera_with_its_filters_off_is_judged_positionally(lut_model, tmp_path):
+def test_a_camera_with_its_filters_off_is_judged_positionally(lut_model, tiny_dataset, tmp_path):
     """The filter-tolerance rows: a dataset rendered 5 nm above the index bands lacks the model's bands, unless
     read in order as the model's own (``positional_bands``): then its decisions are the model's on those columns,
-    and the static box is judged on them too."""
+    and the static box is judged on them too. A table that takes the diffuse share is refused there: the dataset
+    records no sky_fraction off 544 nm."""
     from conftest import tiny_generate
 
     from torchskin.dataset.files import read_rows
     from torchskin.evaluation import MIN_REFLECTANCE, evaluate
 
     ds = tiny_generate(tmp_path, "549,638,1085,1585")
-    model_path = str(lut_model / "lut.pt")
+    with pytest.raises(ValueError, match="does not record diffuse_share"):  # sky_fraction is recorded at 544 nm
+        evaluate(ds, [str(lut_model / "lut.pt")], positional_bands=True)
+    model_path = str(tmp_path / "angles.pt")  # the sun-and-camera table
+    assert main(["train", "--data", str(tiny_dataset), "--method", "lut",
+                 "--bins", "8", "--trees", "20", "--seed", "3", "--no-diffuse-share", "--out", model_path]) == 0
     with pytest.raises(ValueError, match="lacks the 544, 633, 1080, 1580 nm bands"):
         evaluate(ds, [model_path])
     res = evaluate(ds, [model_path], positional_bands=True)
     assert res["dataset_bands_nm"] == [549.0, 638.0, 1085.0, 1585.0] and res["static"] is not None
     model, _ = registry.load(model_path)
-    rows = read_rows(ds, [*model.features, "r549", "r638", "r1085", "r1585", "label", "shadow"])
+    from torchskin.detectors.features import feature_columns, stack_features
+
+    rows = read_rows(ds, [*feature_columns(model.features), "r549", "r638", "r1085", "r1585", "label", "shadow"])
     R = torch.from_numpy(rows.stack(["r549", "r638", "r1085", "r1585"], np.float32))
-    hit = model.decide(R, torch.from_numpy(rows.stack(model.features, np.float32))).bool() & (R.mean(-1) > MIN_REFLECTANCE)
+    hit = model.decide(R, torch.from_numpy(stack_features(rows, model.features))).bool() & (R.mean(-1) > MIN_REFLECTANCE)
     lit = torch.from_numpy(rows["label"] & ~rows["shadow"])
     assert res["learned"]["pd_sunlit"] == pytest.approx(float(hit[lit].float().mean()), abs=1e-12)
     (tmp_path / "five").mkdir()

@@ -21,7 +21,10 @@ HELP = "skin mask of a cube with detector.onnx (numpy + onnxruntime only)"
 
 #: the ``torchskin detect`` option (without ``--``, ``_`` for ``-``) that gives each configuration feature
 FLAG_FOR_FEATURE = {"sun_zenith_deg": "sun_zenith", "camera_zenith_deg": "camera_zenith",
-                    "relative_azimuth_deg": "relative_azimuth", "range_m": "range"}
+                    "relative_azimuth_deg": "relative_azimuth", "range_m": "range", "diffuse_share": "diffuse_share"}
+#: the physical range of a feature whose values cannot lie outside it (a share): others may leave the training
+#: domain (the runtime flags that), these are refused
+PHYSICAL_RANGE = {"diffuse_share": (0.0, 1.0)}
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
@@ -38,6 +41,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--camera-zenith", type=float, help="degrees")
     ap.add_argument("--relative-azimuth", type=float, help="degrees, |sun - camera azimuth| in [0, 180]")
     ap.add_argument("--range", type=float, help="metres (if the model uses it)")
+    ap.add_argument("--diffuse-share", type=float,
+                    help="the sky's share of the light on a horizontal surface at 544 nm, in [0, 1]: a shaded "
+                         "horizontal panel's signal over a sunlit one's (if the model uses it: lut detectors)")
     add_out_file(ap, "the mask of the first frame: .png; .tif (a GeoTIFF; required for a georeferenced GeoTIFF "
                      "cube, whose transform and CRS it keeps); or .hdr (ENVI; required for an ENVI cube with 'map "
                      "info', which it keeps)", required=False)
@@ -78,6 +84,9 @@ def configuration_values(args: argparse.Namespace, features: list[str]) -> list[
             raise ValueError(f"the model needs --{flag.replace('_', '-')} ({f})")
         if not np.isfinite(v):
             raise ValueError(f"--{flag.replace('_', '-')} must be a finite number, got {v}")
+        lo, hi = PHYSICAL_RANGE.get(f, (-np.inf, np.inf))
+        if not lo <= v <= hi:
+            raise ValueError(f"--{flag.replace('_', '-')} must lie in [{lo:g}, {hi:g}] (a share, not per cent), got {v:g}")
         values.append(v)
     return values
 

@@ -32,14 +32,15 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "per_pose": (16, "int>=1"),
     },
     # the light model (render.light) and its clear-sky atmosphere, drawn per pose group (one place and day: its
-    # suns share it). Ranges: aerosol optical depth at 500 nm of clean to hazy continental sites (AERONET
-    # climatology, Holben et al. 2001, J Geophys Res 106:12067: annual means 0.03-0.4); precipitable water of dry
-    # to humid air masses (Gueymard 2001, Solar Energy 71:325, SMARTS: 0.5-4 cm); total ozone (TOMS/OMI
-    # climatology: 250-450 Dobson units, 0.25-0.45 atm-cm); surface pressure from sea level to about 1500 m.
+    # suns share it). Ranges: aerosol optical depth at 500 nm from clean air to haze and smoke (AERONET: annual
+    # means of continental sites 0.03-0.4, Holben et al. 2001, J Geophys Res 106:12067; hazy and smoky days 1 and
+    # more, Eck et al. 1999, J Geophys Res 104:31333); precipitable water of dry to tropical humid air masses
+    # (0.5-6 cm; SMARTS, Gueymard 2001, Solar Energy 71:325); total ozone (TOMS/OMI climatology: 250-450 Dobson
+    # units, 0.25-0.45 atm-cm); surface pressure from sea level to about 1500 m.
     "light": {
         "model": ("spectrl2", ("spectrl2", "thesis")),
-        "aerosol_500nm": ([0.03, 0.4], (0.0, 2.0)),
-        "precipitable_water_cm": ([0.5, 4.0], (0.0, 10.0)),
+        "aerosol_500nm": ([0.03, 1.0], (0.0, 2.0)),
+        "precipitable_water_cm": ([0.5, 6.0], (0.0, 10.0)),
         "ozone_atm_cm": ([0.25, 0.45], (0.0, 1.0)),
         "pressure_pa": ([85000.0, 102000.0], (30000.0, 110000.0)),
         "day_of_year": ([1.0, 365.0], (1.0, 366.0)),

@@ -24,11 +24,48 @@ from ..detect import ratio_indices
 
 #: default configuration features (what an onboard computer knows: sun position and camera pointing)
 FEATURES = ("sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg")
+#: the sky's share of the light on an open horizontal surface at 544 nm (the first band): diffuse horizontal over
+#: global horizontal irradiance, in [0, 1]. A horizontal panel in the sun and one in shade measure it every frame
+#: (E_shade / E_sun). Haze raises it: under it a shadow is lit by a bluer, relatively stronger sky
+DIFFUSE_SHARE = "diffuse_share"
 FEATURE_UNITS = {"sun_zenith_deg": "deg", "camera_zenith_deg": "deg", "relative_azimuth_deg": "deg",
-                 "range_m": "m"}
+                 "range_m": "m", DIFFUSE_SHARE: "1"}
 #: training domain of each feature (inputs outside it are flagged onboard)
 FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0),
-                  "relative_azimuth_deg": (0.0, 180.0), "range_m": (0.0, 10000.0)}
+                  "relative_azimuth_deg": (0.0, 180.0), "range_m": (0.0, 10000.0), DIFFUSE_SHARE: (0.0, 1.0)}
+#: features computed from dataset columns rather than stored: the columns each needs (``stack_features``)
+DERIVED_FEATURES = {DIFFUSE_SHARE: ("sky_fraction", "sun_zenith_deg")}
+
+
+def diffuse_share(sky_fraction: Any, sun_zenith_deg: Any) -> np.ndarray:
+    """The diffuse share of horizontal irradiance, D / (D + B cos(sun zenith)), from the dataset's ``sky_fraction``
+    (D / B: diffuse horizontal over direct normal) and the sun zenith; 1 with the sun at or below the horizon, NaN
+    where ``sky_fraction`` is (a dataset without a band at 544 nm does not record it). float32.
+
+    >>> diffuse_share([0.1, 1.0, 0.3, float("nan")], [0.0, 60.0, 90.0, 30.0]).round(4)
+    array([0.0909, 0.6667, 1.    ,    nan], dtype=float32)
+    """
+    s = np.asarray(sky_fraction, np.float64)
+    c = np.cos(np.deg2rad(np.asarray(sun_zenith_deg, np.float64)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(c > 1e-12, s / (s + c), np.where(np.isnan(s), np.nan, 1.0))
+    return out.astype(np.float32)
+
+
+def feature_columns(features: Sequence[str]) -> list[str]:
+    """The dataset columns that give ``features`` (derived ones, ``DERIVED_FEATURES``, by their sources)."""
+    cols: list[str] = []
+    for f in features:
+        cols += DERIVED_FEATURES.get(f, (f,))
+    return list(dict.fromkeys(cols))
+
+
+def stack_features(rows: Any, features: Sequence[str], dtype: Any = np.float32) -> np.ndarray:
+    """The configuration (N, k) of ``rows`` (``dataset.schema.Rows`` read with ``feature_columns``): one column per
+    feature, derived ones computed (``diffuse_share``)."""
+    cols = [diffuse_share(rows["sky_fraction"], rows["sun_zenith_deg"]) if f == DIFFUSE_SHARE
+            else np.asarray(rows[f]) for f in features]
+    return (np.stack(cols, 1) if cols else np.zeros((len(rows), 0))).astype(dtype)
 #: brightness floor of the evaluation protocol and of the onboard detector: a pixel whose mean reflectance over the
 #: bands is not above it is not skin (at the noise floor its indices are ratios of sensor noise; the onboard runtime
 #: applies the same floor, ``min_reflectance``, recorded in the exported detector's metadata)
@@ -82,7 +119,7 @@ def domain_from_manifest(data_dir: str | os.PathLike,
     declared = {"sun_zenith_deg": cfg.get("sun", {}).get("zenith_deg"),
                 "camera_zenith_deg": cfg.get("camera", {}).get("zenith_deg"),
                 "range_m": cfg.get("camera", {}).get("range_m"),
-                "relative_azimuth_deg": [0.0, 180.0]}
+                "relative_azimuth_deg": [0.0, 180.0], DIFFUSE_SHARE: list(FEATURE_DOMAIN[DIFFUSE_SHARE])}
     out = []
     for f in features:
         r = declared.get(f)
@@ -112,6 +149,7 @@ def confuser_indices(part: str = "train") -> torch.Tensor:
     return pts[torch.isfinite(pts).all(-1)]
 
 
-__all__ = ["BAND_COLUMNS", "FEATURES", "FEATURE_DOMAIN", "FEATURE_UNITS", "HasDomain", "MIN_REFLECTANCE",
-           "config_buffers", "confuser_indices", "distinct_configs", "domain_from_manifest", "earthlib_reflectance",
-           "ratio_indices", "tuning_configs"]
+__all__ = ["BAND_COLUMNS", "DERIVED_FEATURES", "DIFFUSE_SHARE", "FEATURES", "FEATURE_DOMAIN", "FEATURE_UNITS",
+           "HasDomain", "MIN_REFLECTANCE", "config_buffers", "confuser_indices", "diffuse_share", "distinct_configs",
+           "domain_from_manifest", "earthlib_reflectance", "feature_columns", "ratio_indices", "stack_features",
+           "tuning_configs"]

@@ -106,16 +106,11 @@ def graph_bands(meta: dict) -> tuple[float, ...]:
 
 
 def load_candidates(model_paths: ModelPaths) -> list[Candidate]:
-    """The candidates of one path or a list of paths (``load_candidate``), which must take the same features."""
+    """The candidates of one path or a list of paths (``load_candidate``); each takes its own features."""
     paths = model_paths_list(model_paths)
     if not paths:
         raise ValueError("evaluate needs at least one model")
-    cands = [load_candidate(p) for p in paths]
-    features = cands[0].features
-    for c in cands[1:]:
-        if c.features != features:
-            raise ValueError(f"models take different features: {c.name} {c.features} vs {cands[0].name} {features}")
-    return cands
+    return [load_candidate(p) for p in paths]
 
 
 def model_paths_list(model_paths: ModelPaths) -> list:

@@ -19,7 +19,8 @@ def model_entry(cand: Candidate, judged: Judged, rows: HeldOut) -> dict:
     """One model's entry of ``evaluate``'s ``models``: overall, sun zenith >= 60°, per bin (sun x camera zenith,
     and relative azimuth), areas, scene Pfa by family."""
     area = judged.area_cfg
-    return {"name": cand.name, "path": cand.path, "kind": cand.kind, "overall": judged.summary(rows),
+    return {"name": cand.name, "path": cand.path, "kind": cand.kind, "features": list(cand.features),
+            "overall": judged.summary(rows),
             "sun_zenith_ge_60": judged.summary(rows, rows.sz >= 60), "bins": bins(judged, rows),
             "azimuth_bins": azimuth_bins(judged, rows),
             "area": {"mean": float(area.mean()), "median": float(area.median()),
@@ -38,7 +39,7 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     Args:
         data_dir: a generated dataset folder (``torchskin generate``; rows of frames with a valid ELM).
         model_paths: one path or a list (see ``load_candidate``: .pt checkpoints, boundaries.onnx /
-            baseline_box.onnx, detector.onnx, or "static"); all must take the same features.
+            baseline_box.onnx, detector.onnx, or "static"); each is given the configuration features it takes.
         scales: the box scale factors of the ROC (``ROC_SCALES``).
         min_reflectance: the brightness floor, in [0, 1) (``MIN_REFLECTANCE``).
         positional_bands: read the dataset's bands in order as the models' own, whatever their centres: a camera
@@ -75,7 +76,7 @@ def evaluate(data_dir: str | os.PathLike, model_paths: ModelPaths, scales: Seque
     else:
         for c in cands:  # each model's bands (its kind's required_bands), before any row is read
             require_bands(data_dir, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
-    rows = held_out(data_dir, features, read)
+    rows = held_out(data_dir, list(dict.fromkeys(f for c in cands for f in c.features)), read)
     test_R, test_pts = earthlib_test(read, indices=index)
     judged = [judge(c, rows, test_R, test_pts, float(min_reflectance)) for c in cands]
     models = [model_entry(c, j, rows) for c, j in zip(cands, judged)]

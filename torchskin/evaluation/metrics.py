@@ -23,7 +23,7 @@ from ..angles import BACKLIT_MIN_DEG
 from ..bands import INDEX_BANDS_NM
 from ..dataset.files import dataset_bands, read_rows
 from ..dataset.schema import Rows, has_band
-from ..detectors.features import BAND_COLUMNS
+from ..detectors.features import BAND_COLUMNS, feature_columns, stack_features
 from ..detectors.features import MIN_REFLECTANCE as _MIN_REFLECTANCE
 
 SUN_BINS = (0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
@@ -131,7 +131,9 @@ class HeldOut:
         self.excluded = rows.excluded
         self.n = len(rows)
         col = rows.columns
-        self.X = torch.from_numpy(rows.stack(features, np.float32))
+        X = torch.from_numpy(stack_features(rows, features))
+        self._feature = {f: X[:, j] for j, f in enumerate(features)}  # each feature read, for ``X_of``
+        self.X = X
         self.R = torch.from_numpy(rows.stack(band_columns, np.float32))  # the models' bands, in their order
         self.g, self.s = torch.from_numpy(col["ndgri"]).float(), torch.from_numpy(col["ndsi"]).float()
         index = all(has_band(rows.band_set, w) for w in INDEX_BANDS_NM)
@@ -153,13 +155,28 @@ class HeldOut:
         self.family = families(col)
         self.features = list(features)
 
+    def X_of(self, features: Sequence[str]) -> torch.Tensor:
+        """The configuration (n, k) of ``features``, any of those the rows were read with (models that take
+        different features are judged on the same rows)."""
+        missing = [f for f in features if f not in self._feature]
+        if missing:
+            raise ValueError(f"the rows hold no feature {', '.join(missing)} (read: {', '.join(self.features)})")
+        for f in features:
+            if not bool(torch.isfinite(self._feature[f]).all()):
+                raise ValueError(f"the dataset does not record {f} for every row (diffuse_share comes from sky_fraction, "
+                                 "recorded at 544 nm: a dataset without a band there has none): a model taking it "
+                                 "cannot be judged on it")
+        if list(features) == self.features:
+            return self.X
+        return torch.stack([self._feature[f] for f in features], -1) if features else torch.zeros(self.n, 0)
+
 
 def held_out(data_dir: str | os.PathLike, features, bands_nm: Sequence[float] = INDEX_BANDS_NM) -> HeldOut:
     """The ``HeldOut`` rows of a dataset folder for models taking ``features`` and reading the bands
     ``bands_nm`` (their columns in the dataset's own set, ``dataset_bands``: the caller checks it holds them)."""
     have = dataset_bands(data_dir)
     band_cols = [have.columns[have.index(w)] for w in bands_nm]
-    cols = list(dict.fromkeys([*features, "sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg",
+    cols = list(dict.fromkeys([*feature_columns(features), "sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg",
                                "label", "shadow", "ndgri", "ndsi", "group", "sun", "skin", *band_cols,
                                "theta_i_deg", "theta_r_deg", "delta_phi_deg"]))
     rows = read_rows(data_dir, cols, optional=("material", "confuser", "clothing"))  # checks the folder, columns

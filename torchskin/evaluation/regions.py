@@ -52,10 +52,9 @@ def earthlib_test(bands_nm: Sequence[float] = INDEX_BANDS_NM,
 def judge(cand: Candidate, rows: HeldOut, test_R: torch.Tensor, test_pts: torch.Tensor, floor: float) -> Judged:
     """One model's decisions on the rows (under the brightness ``floor``), its earthlib-test Pfa and region area
     per configuration."""
-    if cand.features != rows.features:
-        raise ValueError(f"{cand.name} takes features {cand.features}, the rows hold {rows.features}")
-    cfg_X = rows.cfg_X
-    hit = cand.decide(rows.R, rows.X).bool() & (rows.R.mean(-1) > floor)
+    X = rows.X_of(cand.features)
+    cfg_X = X[rows.first]
+    hit = cand.decide(rows.R, X).bool() & (rows.R.mean(-1) > floor)
     bright = test_R.mean(-1) > floor
     if cand.boxes is not None:
         bx = cand.boxes(cfg_X)
@@ -127,8 +126,9 @@ def roc(cand: Candidate, static: Candidate, rows: HeldOut, test_pts, scales: Seq
     nonskin = ~rows.label
     for key, c in (("learned", cand), ("static", static)):
         boxes_of = cast(Callable, c.boxes)  # both are box models
-        bx = boxes_of(rows.X)
-        cb = boxes_of(rows.cfg_X)
+        X = rows.X_of(c.features)
+        bx = boxes_of(X)
+        cb = boxes_of(X[rows.first])
         pts = []
         for k in scales:
             hit = inside_box(scaled(bx, k), rows.g, rows.s, rows.v) & (rows.R.mean(-1) > floor)

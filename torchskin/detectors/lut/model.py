@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from ...bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
-from ..features import FEATURES, config_buffers
+from ..features import DIFFUSE_SHARE, FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
 from .grid import COORDINATES, cells, config_bins, coordinates, offsets, valid
@@ -29,11 +29,20 @@ if TYPE_CHECKING:
 LEVELS_PER_LOGIT = 8.0
 #: the level of log-odds 0 (even odds): no calibrated threshold lies below it
 EVEN_ODDS_LEVEL = 128
-#: configuration bins per feature (sun zenith, camera zenith, relative azimuth) over the training domain: 15°, 15°
-#: and 90° wide on the demo's domain. Measured on the demo's fresh test set (the learner itself, its configuration
-#: snapped to bin centres, Pd sunlit mean over configurations at sun >= 60°): 30° camera bins lost 0.027, 15° ones
-#: nothing; finer sun or azimuth bins gained nothing
-CONFIG_BINS = (6, 6, 2)
+#: configuration bins per feature over the training domain: sun zenith, camera zenith and relative azimuth 15°, 15°
+#: and 90° wide on the demo's domain, the diffuse share 0.25 wide. Measured on the demo's fresh test set (the learner
+#: itself, its configuration snapped to bin centres, Pd sunlit mean over configurations at sun >= 60°): 30° camera
+#: bins lost 0.027, 15° ones nothing; finer sun or azimuth bins gained nothing. Other features: one bin
+CONFIG_BINS = {"sun_zenith_deg": 6, "camera_zenith_deg": 6, "relative_azimuth_deg": 2, DIFFUSE_SHARE: 4}
+
+
+def config_counts_of(features: Sequence[str]) -> tuple[int, ...]:
+    """The table's bins per configuration feature (``CONFIG_BINS``; 1 for a feature it does not name).
+
+    >>> config_counts_of(["sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg", "diffuse_share"])
+    (6, 6, 2, 4)
+    """
+    return tuple(CONFIG_BINS.get(f, 1) for f in features)
 
 
 def to_levels(score: torch.Tensor) -> torch.Tensor:
@@ -47,8 +56,8 @@ def to_levels(score: torch.Tensor) -> torch.Tensor:
 
 
 def _pack(data: bytes) -> torch.Tensor:
-    """Bytes, LZMA-compressed, as a uint8 tensor (the checkpoint's form of the table: 75 M cells, most of them 0,
-    take ~5 MB)."""
+    """Bytes, LZMA-compressed, as a uint8 tensor (the checkpoint's form of the table: 300 M cells, most of them 0,
+    take ~20 MB)."""
     return torch.frombuffer(bytearray(lzma.compress(data)), dtype=torch.uint8)
 
 
@@ -61,6 +70,8 @@ class LookupModel(nn.Module):
     configuration bin, one level per cell of the bands' coordinates, ``grid``), skin where the level reaches
     ``threshold``. The table is baked from a learner (``train.learn``) over all normalized differences,
     reflectances, brightness and the configuration; cells outside the training skin's support hold level 0.
+    The configuration is the sun and camera angles and, by default, the sky's diffuse share
+    (``features.DIFFUSE_SHARE``, a fourth input of ``detect``: ``--diffuse-share``).
 
     The ``lut`` detector kind (``protocol.DetectorModel``): ``decide`` looks pixels up, ``detector_graph`` is its
     ONNX export (``LookupDetector``: the table as one bit per cell, at the calibrated threshold),
@@ -78,10 +89,13 @@ class LookupModel(nn.Module):
                                           "outside it are never skin (default 1)", int),
         KindOption("earthlib_margin", 1, "lut: cells within this many steps of an earthlib train spectrum (at any "
                                          "brightness) are never skin; -1: no margin (default 1)", int),
-        KindOption("max_rows", 1_500_000, "lut: at most this many training rows (a seeded draw; default "
-                                          "1500000)", int),
+        KindOption("max_rows", 3_000_000, "lut: at most this many training rows (a seeded draw; default "
+                                          "3000000)", int),
         KindOption("configuration", True, "lut: learn without the configuration (one table for every sun and "
-                                          "camera: what the configuration is worth)", bool, "--no-configuration"))
+                                          "camera: what the configuration is worth)", bool, "--no-configuration"),
+        KindOption("diffuse_share", True, "lut: leave the sky's share of the light (diffuse_share, measured by a "
+                                          "sunlit and a shaded panel) out of the configuration: sun and camera "
+                                          "angles only, as the other kinds", bool, "--no-diffuse-share"))
     method_help: ClassVar[str] = ("lut: gradient-boosted trees on every normalized difference, reflectance, "
                                   "brightness and the configuration, baked into a table looked up per pixel")
     #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. Not
@@ -111,7 +125,7 @@ class LookupModel(nn.Module):
     std: torch.Tensor
 
     def __init__(self, n_bands: int = 4, bins: int = 32, features: Sequence[str] = FEATURES,
-                 config_counts: Sequence[int] = CONFIG_BINS, domain: Any = None, lo: Any = None, inv: Any = None,
+                 config_counts: Sequence[int] | None = None, domain: Any = None, lo: Any = None, inv: Any = None,
                  bands: BandSet | None = None):
         super().__init__()
         if bands is None and n_bands != len(INDEX_BANDS_NM):
@@ -121,6 +135,7 @@ class LookupModel(nn.Module):
         if len(self.bands) != n_bands:
             raise ValueError(f"bands holds {len(self.bands)} bands for a {n_bands}-band table")
         self.features = tuple(features)
+        config_counts = config_counts_of(self.features) if config_counts is None else config_counts
         if len(config_counts) != len(self.features):
             raise ValueError(f"config_counts needs one count per feature ({len(self.features)}), got {config_counts}")
         if not 2 <= bins <= 255:
@@ -278,4 +293,4 @@ class LookupDetector(nn.Module):
         return mask.reshape(B, H, W), score.reshape(B, H, W)
 
 
-__all__ = ["CONFIG_BINS", "EVEN_ODDS_LEVEL", "LEVELS_PER_LOGIT", "LookupDetector", "LookupModel", "to_levels"]
+__all__ = ["CONFIG_BINS", "config_counts_of", "EVEN_ODDS_LEVEL", "LEVELS_PER_LOGIT", "LookupDetector", "LookupModel", "to_levels"]

@@ -35,11 +35,12 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
     from ...dataset.files import read_rows
     from ...detect import DEFAULT_BOX
     from ...io import atomic_path
-    from ..features import BAND_COLUMNS, FEATURES
+    from ..features import BAND_COLUMNS, FEATURES, feature_columns, stack_features
     from .grid import coordinates
-    rows = read_rows(data_dir, [*FEATURES, *BAND_COLUMNS, "label", "shadow", "theta_i_deg"], "physical")
+    rows = read_rows(data_dir, [*feature_columns(model.features), *BAND_COLUMNS, "label", "shadow", "theta_i_deg"],
+                     "physical")
     R = torch.from_numpy(rows.bands(np.float32))
-    X = torch.from_numpy(rows.stack(FEATURES, np.float32))
+    X = torch.from_numpy(stack_features(rows, model.features))
     lit = torch.from_numpy(rows["label"].astype(bool) & ~rows["shadow"].astype(bool))
     slices = model.slices(X)
     U = 2 * coordinates(R) - 1  # shares as normalized differences: NDGRI, NDSI
@@ -52,7 +53,7 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
                              layout="constrained")
     sc = None
     for ax, (cfg, title) in zip(np.atleast_1d(axes), configs):
-        s = int(model.slices(torch.tensor([cfg]))[0])
+        s = _slice_of(model, cfg, X, slices, FEATURES)
         on = (model.levels[s] >= model.threshold.to(torch.uint8)).reshape(b, b, b * b).float().mean(-1)
         ax.pcolormesh(edges[0], edges[1], on.T.numpy(), cmap="Greys", vmin=0, vmax=0.5, shading="flat")
         m = (lit & (slices == s)).numpy()
@@ -64,7 +65,7 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
         ax.add_patch(plt.Rectangle((box.b1, box.c1), box.b2 - box.b1, box.c2 - box.c1, fill=False, color="tab:red",
                                    lw=1.2, label="static box (thesis)"))
         kept = f"; kept {hit.mean():.3f} of {m.sum()}" if m.any() else "; no sunlit skin in this slice"
-        ax.set_title(f"{title}\nslice {s}{kept}", fontsize=9)
+        ax.set_title(f"{title}{_other_bins(model, s, FEATURES)}\nslice {s}{kept}", fontsize=9)
         ax.set_xlabel("NDGRI (544, 633 nm)")
         ax.set_xlim(edges[0][0], edges[0][-1])
         ax.set_ylim(edges[1][0], edges[1][-1])
@@ -77,6 +78,36 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+def _other_bins(model: LookupModel, s: int, angles: Sequence[str]) -> str:
+    """The ranges of slice ``s``'s bins of the features other than the angles, as text (", diffuse share
+    0.00-0.25"), "" for a model of the angles alone."""
+    bins = np.unravel_index(s, model.config_counts)
+    out = []
+    for j, f in enumerate(model.features):
+        if f not in angles:
+            lo = float(model.cfg_lo[j]) + bins[j] / float(model.cfg_inv[j])
+            out.append(f"{f.replace('_', ' ')} {lo:.2f}-{lo + 1 / float(model.cfg_inv[j]):.2f}")
+    return "".join(", " + t for t in out)
+
+
+def _slice_of(model: LookupModel, cfg: Sequence[float], X: torch.Tensor, slices: torch.Tensor,
+              angles: Sequence[str]) -> int:
+    """The table slice of the angles ``cfg`` (sun zenith, camera zenith, relative azimuth). A model that also takes
+    other features (the diffuse share) shows the slice that most of the dataset's rows (``X``, in ``slices``) at
+    those angles fall in; with no such row, the other features at 0."""
+    pos = [model.features.index(f) for f in angles]
+    probe = torch.zeros(1, len(model.features))
+    probe[0, pos] = torch.tensor([float(v) for v in cfg])
+    if len(model.features) == len(angles):
+        return int(model.slices(probe)[0])
+    same = torch.ones(len(X), dtype=torch.bool)
+    for j, v in zip(pos, cfg):
+        moved = X.clone()
+        moved[:, j] = float(v)  # a row keeps its slice iff it lies in this angle's bin
+        same &= model.slices(moved) == slices
+    return int(torch.mode(slices[same]).values) if same.any() else int(model.slices(probe)[0])
 
 
 __all__ = ["CONFIGS", "region_plot"]

@@ -6,8 +6,9 @@ Positives are the dataset's skin pixels, sunlit and shadowed. Negatives are its 
 ground and confusers of the training partition) and the earthlib *train* spectra under random configurations
 over the training domain, at random brightness (a Lambertian surface tilted or shaded: times 0.2 to 1.5),
 weighing all together at most as much as the dataset's non-skin pixels.
-LightGBM runs on one thread with ``deterministic=True``: the same rows and seed give the same trees on any
-x86-64 CPU; the seed enters through row bagging.
+LightGBM runs on one thread with ``deterministic=True`` and without row bagging: the same rows and seed give the
+same trees on any x86-64 CPU. The seed enters through the earthlib negatives' configurations and brightness, and
+through the draw of rows on a dataset larger than ``max_rows``.
 
 The table keeps the learner's score only where skin was seen: in cells of the training skin's coordinates,
 widened by ``support_dilation`` cells along every axis. Elsewhere it is 0, never skin, whatever the trees
@@ -26,16 +27,25 @@ import numpy as np
 import torch
 
 from ...bands import BandSet
-from ..features import FEATURES, MIN_REFLECTANCE, domain_from_manifest, earthlib_reflectance
+from ..features import (
+    DIFFUSE_SHARE,
+    FEATURES,
+    MIN_REFLECTANCE,
+    domain_from_manifest,
+    earthlib_reflectance,
+    feature_columns,
+    stack_features,
+)
 from .grid import cell_centres, coordinates, reflectance_of
 from .model import EVEN_ODDS_LEVEL, LookupModel, to_levels
 
-#: the learner's settings (LightGBM; ``trees`` rounds): one setting, not tuned per dataset. ``max_delta_step`` and
+#: the learner's settings (LightGBM; ``trees`` rounds): one setting, not tuned per dataset. No row bagging: with it
+#: the training seed moved the results more than issue 40 allows (docs/benchmarks.md). ``max_delta_step`` and
 #: ``lambda_l2`` bound each leaf's output: without them, leaves of rows classified with near certainty (hessian near
 #: 0) take Newton steps of thousands of log-odds units, and the table's levels saturate on non-skin cells
 LEARNER = {"objective": "binary", "learning_rate": 0.1, "num_leaves": 63, "min_data_in_leaf": 50,
            "max_delta_step": 2.0, "lambda_l2": 1.0,
-           "bagging_fraction": 0.8, "bagging_freq": 1, "deterministic": True, "force_row_wise": True,
+           "deterministic": True, "force_row_wise": True,
            "num_threads": 1, "verbose": -1}
 #: the most draws of the earthlib train spectra (each spectrum under its own random configuration and brightness
 #: per draw); fewer for a small dataset: about as many rows as the dataset has
@@ -194,7 +204,7 @@ def tune_threshold(model: LookupModel, spectra: torch.Tensor, pfa_budget: float,
 
 def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, features: Sequence[str] = FEATURES,
           bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = 1,
-          max_rows: int = 1_500_000,
+          max_rows: int = 3_000_000,
           pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
           configuration: bool = True, bands: BandSet | None = None) -> tuple[LookupModel, dict]:
     """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n) in the
@@ -258,12 +268,13 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
             "earthlib_margin_cells": int((near & where).sum()),
             "options": {"bins": bins, "trees": trees, "support_dilation": support_dilation,
                         "earthlib_margin": earthlib_margin, "max_rows": max_rows,
-                        "seed": seed, "configuration": bool(configuration), "learner": params}}
+                        "seed": seed, "configuration": bool(configuration),
+                        "diffuse_share": DIFFUSE_SHARE in model.features, "learner": params}}
     return model, info
 
 
-#: the most cells a table slice may hold: the cell index stays exact in float32 (below 2 ** 24) and 72 slices
-#: of uint8 levels stay near 300 MB in memory
+#: the most cells a table slice may hold: the cell index stays exact in float32 (below 2 ** 24) and 288 slices
+#: of uint8 levels (sun, camera and sky bins) stay near 1.2 GB in memory
 MAX_CELLS = 1 << 22
 
 
@@ -301,15 +312,16 @@ def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n
         raise ValueError(f"--max-rows must be at least 100, got {max_rows}")
 
 
-def load_rows(data_dir: Any, frames: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Training rows of a dataset (the frames ``frames`` names): configuration (N, k), reflectance (N, n) in the
-    dataset's bands (``dataset_bands``, in its order), skin label and whether the row's frame has a physical ELM
-    (``elm_valid``), numpy."""
+def load_rows(data_dir: Any, frames: str, features: Sequence[str] = FEATURES
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Training rows of a dataset (the frames ``frames`` names): configuration (N, k) of ``features``, reflectance
+    (N, n) in the dataset's bands (``dataset_bands``, in its order), skin label and whether the row's frame has a
+    physical ELM (``elm_valid``), numpy."""
     from ...dataset.files import dataset_bands, read_rows
 
     cols = list(dataset_bands(data_dir).columns)
-    rows = read_rows(data_dir, [*FEATURES, *cols, "label", "elm_valid"], frames)
-    return (rows.stack(FEATURES, np.float32), rows.stack(cols, np.float32), rows["label"].astype(bool),
+    rows = read_rows(data_dir, [*feature_columns(features), *cols, "label", "elm_valid"], frames)
+    return (stack_features(rows, features), rows.stack(cols, np.float32), rows["label"].astype(bool),
             rows["elm_valid"].astype(bool))
 
 
@@ -322,18 +334,25 @@ def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
     bands = dataset_bands(req.data)
     bins = o["bins"] or default_bins(len(bands))
     check_options(bins, o["trees"], o["support_dilation"], o["max_rows"], len(bands), o["earthlib_margin"])
-    X, R, label, physical = load_rows(req.data, req.frames)
-    model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data), bins=bins, bands=bands,
+    features = (*FEATURES, DIFFUSE_SHARE) if o["diffuse_share"] else FEATURES
+    X, R, label, physical = load_rows(req.data, req.frames, features)
+    no_share = o["diffuse_share"] and not np.isfinite(X[:, -1]).any()
+    if no_share:  # sky_fraction is recorded at 544 nm only: a camera without that band trains on the angles
+        features, X = FEATURES, X[:, :-1]
+    model, info = learn(X, R, label, seed=req.seed, domain=domain_from_manifest(req.data, features), bins=bins,
+                        bands=bands, features=features,
                         trees=o["trees"], support_dilation=o["support_dilation"],
                         earthlib_margin=o["earthlib_margin"], max_rows=o["max_rows"],
                         pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
                         physical=physical, configuration=o["configuration"])
     info["frames"] = req.frames
     info["light_classes"] = ["sunlit", "shadow"]
+    note = ("; the dataset records no diffuse share (it has no band at 544 nm): the table takes the sun and camera "
+            "angles only" if no_share else "")
     text = (f"trained (lut) on {info['rows']} skin and {info['nonskin_rows']} non-skin pixels; table "
             f"{model.levels.shape[0]} slices x {bins_text(model)}, skin support {info['support_cells']} cells; "
             f"threshold level {info['threshold']} for Pfa <= {req.pfa_budget:g} on the earthlib train partition; "
-            f"training skin kept {info['train_coverage']:.4f}, scene non-skin {info['pfa_scene_train']:.2e}")
+            f"training skin kept {info['train_coverage']:.4f}, scene non-skin {info['pfa_scene_train']:.2e}{note}")
     return model, info, text
 
 
