@@ -128,7 +128,8 @@ def run(argv: list[str] | None = None) -> int:
             return rc
         if name in FILTER_SHIFTS:  # the camera's bands, read as the detectors' own
             # sky_fraction is recorded at 544 nm only: off that band a model taking the diffuse share is not judged
-            judged = [p for p in models if records_share(out / name) or DIFFUSE_SHARE not in load_candidate(p).features]
+            has_share = records_share(out / name)
+            judged = [p for p in models if has_share or DIFFUSE_SHARE not in load_candidate(p).features]
             res = evaluate(out / name, judged, positional_bands=True)
             res["models"] = [next((m for m in res["models"] if m["path"] == p), {"name": Path(p).name, "path": p})
                              for p in models] + res["models"][len(judged):]

@@ -33,8 +33,6 @@ FEATURE_UNITS = {"sun_zenith_deg": "deg", "camera_zenith_deg": "deg", "relative_
 #: training domain of each feature (inputs outside it are flagged onboard)
 FEATURE_DOMAIN = {"sun_zenith_deg": (0.0, 90.0), "camera_zenith_deg": (0.0, 90.0),
                   "relative_azimuth_deg": (0.0, 180.0), "range_m": (0.0, 10000.0), DIFFUSE_SHARE: (0.0, 1.0)}
-#: features computed from dataset columns rather than stored: the columns each needs (``stack_features``)
-DERIVED_FEATURES = {DIFFUSE_SHARE: ("sky_fraction", "sun_zenith_deg")}
 
 
 def diffuse_share(sky_fraction: Any, sun_zenith_deg: Any) -> np.ndarray:
@@ -52,18 +50,23 @@ def diffuse_share(sky_fraction: Any, sun_zenith_deg: Any) -> np.ndarray:
     return out.astype(np.float32)
 
 
+#: features computed from dataset columns rather than stored: the columns each needs and the function of them
+#: (``stack_features``)
+DERIVED_FEATURES = {DIFFUSE_SHARE: (("sky_fraction", "sun_zenith_deg"), diffuse_share)}
+
+
 def feature_columns(features: Sequence[str]) -> list[str]:
     """The dataset columns that give ``features`` (derived ones, ``DERIVED_FEATURES``, by their sources)."""
     cols: list[str] = []
     for f in features:
-        cols += DERIVED_FEATURES.get(f, (f,))
+        cols += DERIVED_FEATURES[f][0] if f in DERIVED_FEATURES else (f,)
     return list(dict.fromkeys(cols))
 
 
 def stack_features(rows: Any, features: Sequence[str], dtype: Any = np.float32) -> np.ndarray:
     """The configuration (N, k) of ``rows`` (``dataset.schema.Rows`` read with ``feature_columns``): one column per
     feature, derived ones computed (``diffuse_share``)."""
-    cols = [diffuse_share(rows["sky_fraction"], rows["sun_zenith_deg"]) if f == DIFFUSE_SHARE
+    cols = [DERIVED_FEATURES[f][1](*(rows[c] for c in DERIVED_FEATURES[f][0])) if f in DERIVED_FEATURES
             else np.asarray(rows[f]) for f in features]
     return (np.stack(cols, 1) if cols else np.zeros((len(rows), 0))).astype(dtype)
 #: brightness floor of the evaluation protocol and of the onboard detector: a pixel whose mean reflectance over the
