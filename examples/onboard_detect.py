@@ -1,8 +1,8 @@
 """Run the onboard detector (``exports/detector.onnx``, numpy + onnxruntime, no torch) on a calibrated frame.
 
 A small frame of a skin-covered sphere is rendered (as in ``render_custom_mesh.py``); its ELM reflectance cube
-and the frame's geometry (sun zenith, camera zenith, relative azimuth) go to the detector, which picks its
-NDGRI/NDSI box for that geometry. The script compares it with the thesis's static box.
+and the frame's configuration (sun zenith, camera zenith, relative azimuth and the sky's diffuse share) go to the
+detector, which picks its decision region for that configuration. The script compares it with the thesis's static box.
 
     .venv/bin/python examples/onboard_detect.py                      # about 10 s on 2 CPU cores
     .venv/bin/python examples/onboard_detect.py --sun-zenith 70 --sun-azimuth 150
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from torchskin.angles import relative_azimuth_deg
+from torchskin.detectors.features import diffuse_share
 from torchskin.io import write_png
 from torchskin.onboard import OnboardDetector
 from torchskin.render.meshes import sphere_mesh, write_obj
@@ -55,8 +56,13 @@ def main() -> None:
 
     # what a camera system hands the detector: ELM reflectance, bands first, float32, one frame per batch row
     cube = result.cube()[None]  # (1, 4, H, W) float32, the layout of reflectance.npy
-    config = [[args.sun_zenith, camera.zenith_deg, relative_azimuth_deg(args.sun_azimuth, camera.azimuth_deg)]]
     det = OnboardDetector(args.model)
+    # the frame's configuration in the detector's features: the angles and, for a lookup table, the sky's diffuse
+    # share at 544 nm (what a shaded over a sunlit horizontal panel reads; the scene's sky gives sky_fraction times
+    # the sun's normal irradiance on the horizontal)
+    config = [det.config_row(sun_zenith_deg=args.sun_zenith, camera_zenith_deg=camera.zenith_deg,
+                             relative_azimuth_deg=relative_azimuth_deg(args.sun_azimuth, camera.azimuth_deg),
+                             diffuse_share=float(diffuse_share(0.1, args.sun_zenith)))]
     out = det(cube, config, negative="clip", min_reflectance=0.005)  # clip: sensor noise makes dark pixels < 0
     print(f"config {det.features} = {np.round(config[0], 1).tolist()}, out of domain: {bool(out['out_of_domain'][0])}")
 

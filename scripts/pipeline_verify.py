@@ -115,14 +115,16 @@ def run(argv=None) -> int:
     src = out / sel["detector"]
     check(det_meta.get("detector_model") == sel["detector"] and src.is_file(),
           f"detector.onnx made from {sel['detector']} (selection.json)")
-    reference = registry.load(src)[0].reference_detector()  # the torch module its kind's detector.onnx computes
+    det_model = registry.load(src)[0]
+    reference = det_model.reference_detector()  # the torch module its kind's detector.onnx computes
     rng = np.random.default_rng(0)
     # the Type I/II preset's diffuse-model reflectance in the index bands (normal incidence): a skin spectrum
     bands = torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64)
     skin = tissue.reflectance(tissue.preset("I-II"), bands).reshape(4).float().numpy()[:, None, None]
     cube = (rng.random((2, 4, 256, 256)) * 0.6).astype(np.float32)
     cube[:, :, 64:192, 64:192] = skin * (0.8 + 0.4 * rng.random((2, 1, 128, 128))).astype(np.float32)
-    c2 = cfg[:2].numpy()
+    lo, hi = det_model.domain[:, 0], det_model.domain[:, 1]  # two configurations in the detector's own features
+    c2 = (lo + (hi - lo) * torch.rand(2, len(det_model.features), generator=torch.Generator().manual_seed(0))).numpy()
     res = OnboardDetector(out / "detector.onnx")(cube, c2, min_reflectance=0.0)
     with torch.no_grad():
         mt, st = reference(torch.from_numpy(cube), torch.from_numpy(c2))

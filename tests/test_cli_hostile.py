@@ -61,7 +61,7 @@ def snapshot(d: Path) -> dict:
 C = "cube.npy"
 DET = str(EXPORTS / "detector.onnx")
 BND = str(EXPORTS / "boundaries.onnx")
-CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60", "--diffuse-share", "0.2"]  # the shipped lut
 PANELS = ["--panel", "1:4:1:4=0.97", "--panel", "4:7:4:7=0.03"]
 
 # (command line with {w} for the world folder, text the one error line must hold)
@@ -177,9 +177,9 @@ CASES = [
     ("detect --model " + DET + " --cube {w}/text.npy " + " ".join(CFG), "text.npy"),
     ("detect --model " + DET + " --cube {w}/inf.npy " + " ".join(CFG), "inf.npy"),
     ("detect --model " + DET + " --cube {w}/missing.npy " + " ".join(CFG), "missing.npy"),
-    ("detect --model " + DET + " --cube {w}/" + C + " --sun-zenith nan --camera-zenith 30 --relative-azimuth 60",
+    ("detect --model " + DET + " --cube {w}/" + C + " --sun-zenith nan --camera-zenith 30 --relative-azimuth 60 --diffuse-share 0.2",
      "--sun-zenith"),
-    ("detect --model " + DET + " --cube {w}/" + C + " --camera-zenith 30 --relative-azimuth 60", "--sun-zenith"),
+    ("detect --model " + DET + " --cube {w}/" + C + " --camera-zenith 30 --relative-azimuth 60 --diffuse-share 0.2", "--sun-zenith"),
     ("detect --model " + DET + " --cube {w}/" + C + " " + " ".join(CFG) + " --out {w}/adir", "--out"),
     ("detect --model " + DET + " --cube {w}/" + C + " " + " ".join(CFG) + " --min-reflectance 2", "min_reflectance"),
     # onboard: calibrate
@@ -245,10 +245,10 @@ def test_library_entry_points_refuse_bad_input():
         OnboardBoxes(DET)
     d = OnboardDetector(DET)
     cube = np.full((1, 4, 4, 4), 0.3, dtype=np.float32)
-    assert d(cube, np.array([[40, 30, 60]]))["mask"].shape == (1, 4, 4)  # whole-degree integers are cast
+    assert d(cube, np.array([[40, 30, 60, 0]]))["mask"].shape == (1, 4, 4)  # whole-degree integers are cast
     cube[0, 2, 1, 1] = np.inf
     with pytest.raises(ValueError, match="infinite"):
-        d(cube, [[40.0, 30.0, 60.0]])
+        d(cube, [[40.0, 30.0, 60.0, 0.2]])
 
 
 # ------------------------------------------------------------------------------------------------- fuzzing
@@ -297,10 +297,10 @@ def test_fuzz_render_numbers(tmp_path_factory, capsys, opt, value):
 
 @settings(max_examples=40, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(opt=st.sampled_from(["--sun-zenith", "--camera-zenith", "--relative-azimuth", "--min-reflectance"]),
-       value=HOSTILE)
+@given(opt=st.sampled_from(["--sun-zenith", "--camera-zenith", "--relative-azimuth", "--diffuse-share",
+                            "--min-reflectance"]), value=HOSTILE)
 def test_fuzz_detect_numbers(world, capsys, opt, value):
-    args = {"--sun-zenith": "40", "--camera-zenith": "30", "--relative-azimuth": "60"}
+    args = {"--sun-zenith": "40", "--camera-zenith": "30", "--relative-azimuth": "60", "--diffuse-share": "0.2"}
     args[opt] = value
     rc = main(["detect", "--model", DET, "--cube", str(world / C), *[x for kv in args.items() for x in kv]])
     _ok_or_one_line(capsys, rc)
@@ -367,6 +367,7 @@ def test_render_side_and_overhead_views_calibrate_and_detect(tmp_path, capsys, v
     rel = abs((20.0 - camera_az + 180.0) % 360.0 - 180.0)
     capsys.readouterr()
     assert main(["detect", "--model", DET, "--cube", str(tmp_path / "refl.npy"), "--sun-zenith", "45",
-                 "--camera-zenith", str(cam_zen), "--relative-azimuth", str(rel), "--clip-negative", "--json"]) == 0
+                 "--camera-zenith", str(cam_zen), "--relative-azimuth", str(rel), "--diffuse-share", "0.17",
+                 "--clip-negative", "--json"]) == 0
     det = json.loads(capsys.readouterr().out)
     assert det["skin_pixels"] > 20 and det["out_of_domain"] == [False]

@@ -20,8 +20,8 @@ from torchskin.cubefiles.tiff import _gdal_items  # noqa: E402
 from torchskin.onboard import OnboardDetector, apply_plan, band_plan, calibrate_file, detect_file  # noqa: E402
 
 DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
-CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
-CONFIG = [40.0, 30.0, 60.0]
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60", "--diffuse-share", "0.2"]  # the shipped lut takes the share
+CONFIG = [40.0, 30.0, 60.0, 0.2]  # the shipped lut: the angles and the diffuse share
 MODEL_BANDS = [544.0, 633.0, 1080.0, 1580.0]
 SKIN = np.array([0.25, 0.35, 0.55, 0.15], dtype=np.float32)
 
@@ -465,7 +465,7 @@ def test_render_writes_its_cubes_in_the_format_asked_and_calibrate_detect_read_t
     counts = []
     for cube in (cal, out / doc["cubes"]["reflectance"]["files"][0]):
         assert main(["detect", "--model", DET, "--cube", str(cube), "--sun-zenith", "45", "--camera-zenith", "90",
-                     "--relative-azimuth", "20", "--clip-negative", "--json"]) == 0
+                     "--relative-azimuth", "20", "--diffuse-share", "0.17", "--clip-negative", "--json"]) == 0
         counts.append(json.loads(capsys.readouterr().out)["skin_pixels"])
     assert counts[0] > 0 and abs(counts[0] - counts[1]) <= 0.02 * counts[1] + 1, counts
 

@@ -176,7 +176,7 @@ def test_what_the_builtin_kinds_contribute():
         "--margin", "--width-cost", "--spread-cost", "--q", "--no-ndvn-rule"]
     assert registry.options(registry.get("classifier")) == ()
     assert {k for k in registry.kinds() if registry.onboard_head(k) == "boxes"} == BOX_HEAD_KINDS
-    assert registry.onboard_kinds() == ONBOARD_KINDS == ("boxes",)
+    assert registry.onboard_kinds() == ONBOARD_KINDS == ("boxes", "lut")
     assert registry.box_kinds() == ("boxes",)
 
 

@@ -55,8 +55,9 @@ def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported)
 
     skin = tissue.reflectance(tissue.preset("I-II"), torch.tensor([544.0, 633.0, 1080.0, 1580.0], dtype=torch.float64))
     cube[:, :, 10:30, 10:30] = skin.reshape(4).float().numpy()[:, None, None]
-    a = OnboardDetector(EXPORTS / "detector.onnx")(cube, cfg[:2])
-    b = OnboardDetector(reexported / "detector.onnx")(cube, cfg[:2])
+    dcfg = np.concatenate([cfg[:2], [[0.2], [0.6]]], 1)  # the shipped lookup table also takes the diffuse share
+    a = OnboardDetector(EXPORTS / "detector.onnx")(cube, dcfg)
+    b = OnboardDetector(reexported / "detector.onnx")(cube, dcfg)
     assert np.array_equal(a["score"], b["score"]) and a["mask"][:, 10:30, 10:30].all()
     for card in ("boundaries.md", "baseline_box.md", "detector.md"):  # a pure function of checkpoint + evaluation
         assert (reexported / card).read_text() == (EXPORTS / card).read_text(), card
@@ -64,7 +65,7 @@ def test_reexport_reproduces_the_committed_onnx_and_cards(committed, reexported)
 
     for name in ("boundaries", "baseline_box", "detector"):  # the committed graphs carry today's metadata (kind, bands)
         meta = [{p.key: p.value for p in onnx.load(str(d / f"{name}.onnx")).metadata_props} for d in (EXPORTS, reexported)]
-        assert meta[0] == meta[1] and meta[0]["kind"] == "boxes", name
+        assert meta[0] == meta[1] and meta[0]["kind"] == ("lut" if name == "detector" else "boxes"), name
 
 
 def test_committed_metadata_and_cards(committed):
@@ -76,8 +77,10 @@ def test_committed_metadata_and_cards(committed):
         onnx.checker.check_model(m, full_check=True)
         meta = {p.key: p.value for p in m.metadata_props}
         assert m.opset_import[0].version >= 17 and meta["skin_surface_model"] == "thesis"
-        assert json.loads(meta["features"]) == list(model.features)
-        assert json.loads(meta["feature_domain"]) == model.domain.tolist() == [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]
+        angles = [[0.0, 89.0], [0.0, 90.0], [0.0, 180.0]]  # the box graphs; the lookup table adds the diffuse share
+        extra = (["diffuse_share"], [[0.0, 1.0]]) if name == "detector" else ([], [])
+        assert json.loads(meta["features"]) == list(model.features) + extra[0]
+        assert json.loads(meta["feature_domain"]) == model.domain.tolist() + extra[1] == angles + extra[1]
         assert json.loads(meta["bands_nm"]) == [544.0, 633.0, 1080.0, 1580.0] and len(meta["training_manifest_sha256"]) == 64
         card = (EXPORTS / f"{name}.md").read_text()
         for section in ("## Intended use", "## Training data", "## Evaluation", "## Limits"):
@@ -104,8 +107,7 @@ def test_shipped_models_meet_their_claims(committed):
     test = json.loads((EXPORTS / "evaluation_test.json").read_text())
     names = [m["name"] for m in test["models"]]
     # the exports, then the pipeline's checkpoints that are not exported (scripts/pipeline_export.py), the static box
-    assert names == ["boundaries.onnx", "baseline_box.onnx", "detector.onnx", "classifier.pt", "lut.pt",
-                     "static box (thesis)"]
+    assert names == ["boundaries.onnx", "baseline_box.onnx", "detector.onnx", "classifier.pt", "static box (thesis)"]
     det, static = test["models"][2]["overall"], test["models"][-1]["overall"]
     # 960 drawn; the frames whose empirical line is physical (elm_valid) are evaluated: 762 (the rest have
     # unlit or shadowed panels, no line, or panels lit less than a third of what a sun-facing surface gets)
@@ -271,7 +273,7 @@ def reference_box_figures(data_dir, onnx_path, floor: float) -> dict:
 def test_selection_ships_only_graphs_that_meet_the_onboard_budget():
     """A classifier with the highest Pd inside the budgets is reported, not shipped, while a box model is
     eligible (its per-pixel MLP is ~40x the box graph's onboard time); with no box model, or when its kind is
-    allowed, it is chosen."""
+    allowed, it is chosen. A lookup table (onboard within the budget) with the highest Pd is shipped."""
     from torchskin.evaluation import ONBOARD_KINDS, select_detector
 
     def model(name, kind, pd, pfa=0.0, scene=0.0, area=0.3):
@@ -280,11 +282,15 @@ def test_selection_ships_only_graphs_that_meet_the_onboard_budget():
 
     boxes, clf = model("b.pt", "boxes", 0.962), model("c.pt", "classifier", 0.984, 3e-5, 4e-5, 0.8)
     static = model("static box (thesis)", "static", 0.465)
-    assert ONBOARD_KINDS == ("boxes",)
+    assert ONBOARD_KINDS == ("boxes", "lut")
     name, why = select_detector({"models": [boxes, clf, static]})
     assert name == "b.pt" and "onboard cost" in why and "c.pt" in why.split("onboard cost")[1]
     assert select_detector({"models": [boxes, clf, static]}, onboard_kinds=("boxes", "classifier"))[0] == "c.pt"
     assert select_detector({"models": [clf, static]})[0] == "c.pt"  # nothing meets the onboard budget: best Pd
+    lut = model("l.pt", "lut", 0.988, 0.0, 5e-5, 0.4)
+    name, why = select_detector({"models": [boxes, clf, lut, static]})
+    costly = why.split("onboard cost")[1].split("Held-out")[0]
+    assert name == "l.pt" and "c.pt" in costly and "l.pt" not in costly
     # within the Pd tolerance a box model with the smaller region wins, whatever the order
     other = model("b2.pt", "boxes", 0.960, area=0.25)
     assert select_detector({"models": [boxes, other, static]})[0] == "b2.pt"

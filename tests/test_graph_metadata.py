@@ -20,6 +20,13 @@ SHIPPED = Path(__file__).resolve().parents[1] / "exports" / "detector.onnx"
 IO = {"cube", "config", "mask", "score"}
 
 
+@pytest.fixture(scope="module")
+def BOXES(tmp_path_factory) -> Path:
+    """The shipped box model (``exports/boundaries.pt``, the detector before the lookup table) as a detector graph."""
+    model, _ = registry.load(SHIPPED.parent / "boundaries.pt")
+    return Path(export(model, tmp_path_factory.mktemp("boxes"))["detector"])
+
+
 def meta_of(path) -> dict[str, str]:
     return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
 
@@ -103,36 +110,40 @@ def test_every_kind_records_its_kind_and_band_set(tmp_path):
     assert model_fwhm(det) == [10.0, 10.0, 20.0, 40.0]
 
 
-def test_the_shipped_detector_records_its_kind_and_gets_the_box_head():
+def test_the_shipped_detector_records_its_kind_and_gets_its_head(BOXES):
+    """The shipped lookup table gets the lut head; the shipped boxes' detector graph the box head."""
     meta = meta_of(SHIPPED)
-    assert meta["kind"] == "boxes" and BandSet.from_json(meta["bands"]) == INDEX_BANDS
+    assert meta["kind"] == "lut" and BandSet.from_json(meta["bands"]) == INDEX_BANDS
     det = OnboardDetector(SHIPPED, tile=1024)
+    assert det.kind == "lut" and det.head_name == "lut" and det._lut is not None and det._split is None
+    assert meta_of(BOXES)["kind"] == "boxes"
+    det = OnboardDetector(BOXES, tile=1024)
     assert det.kind == "boxes" and det.head_name == "boxes" and det._split is not None
 
 
-def test_a_graph_without_kind_falls_back_to_node_names_with_the_same_result(tmp_path):
+def test_a_graph_without_kind_falls_back_to_node_names_with_the_same_result(tmp_path, BOXES):
     """An export made before graphs recorded ``kind`` and ``bands``: the box head found by node names, the bands
     by ``bands_nm``; the same bits as the graph with its metadata."""
-    old = with_meta(SHIPPED, tmp_path / "old.onnx", drop=("kind", "bands"))
+    old = with_meta(BOXES, tmp_path / "old.onnx", drop=("kind", "bands"))
     det = OnboardDetector(old, threads=2, tile=1024)
     assert det.kind is None and det.band_set is None and det.bands_nm == [544.0, 633.0, 1080.0, 1580.0]
     assert det.head_name == "boxes" and model_fwhm(det) is None
-    same_run(det, OnboardDetector(SHIPPED, threads=2, tile=1024))
+    same_run(det, OnboardDetector(BOXES, threads=2, tile=1024))
 
 
-def test_the_head_follows_the_kind_not_the_node_names(tmp_path):
+def test_the_head_follows_the_kind_not_the_node_names(tmp_path, BOXES):
     """A box graph whose nodes and tensors are renamed still gets the box head when ``kind`` says boxes (and the
     generic head without ``kind``: its names no longer tell); a box graph whose ``kind`` names another kind runs
     as it is. Every head gives the same bits."""
-    ref = OnboardDetector(SHIPPED, threads=2, tile=1024)
-    ren = renamed(SHIPPED, tmp_path / "renamed.onnx")
+    ref = OnboardDetector(BOXES, threads=2, tile=1024)
+    ren = renamed(BOXES, tmp_path / "renamed.onnx")
     det = OnboardDetector(ren, threads=2, tile=1024)
     assert det.head_name == "boxes" and det._split[1].groups == ref._split[1].groups
     same_run(det, ref)
     nameless = OnboardDetector(with_meta(ren, tmp_path / "renamed_old.onnx", drop=("kind",)), threads=2, tile=1024)
     assert nameless.head_name == "generic" and nameless._split is None
     same_run(nameless, ref)
-    other = OnboardDetector(with_meta(SHIPPED, tmp_path / "other.onnx", kind="classifier"), threads=2, tile=1024)
+    other = OnboardDetector(with_meta(BOXES, tmp_path / "other.onnx", kind="classifier"), threads=2, tile=1024)
     assert other.head_name == "generic" and other._split is None
     same_run(other, ref)
 

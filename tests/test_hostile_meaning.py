@@ -257,7 +257,7 @@ def test_a_listening_cluster_is_found_at_once_and_a_malformed_address_is_named()
 from pathlib import Path  # noqa: E402
 
 DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
-CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60", "--diffuse-share", "0.2"]  # the shipped lut takes the share
 
 
 def _skin_cube(h=20, w=20):
@@ -293,7 +293,7 @@ def test_a_calibrated_frame_with_a_glint_is_detected_and_one_in_per_cent_is_not(
     from torchskin.onboard import REFLECTANCE_MAX, REFLECTANCE_MAX_SHARE, OnboardDetector
 
     det = OnboardDetector(DET, tile=tile)
-    cfg = np.array([[40.0, 30.0, 60.0]])
+    cfg = np.array([[40.0, 30.0, 60.0, 0.2]])
     cube = np.tile(_skin_cube(), (1, 4, 4))[None]  # (1, 4, 80, 80): 6,400 pixels, several tiles of 1024
     clean = det(cube, cfg)["mask"]
     glint = cube.copy()
@@ -327,22 +327,22 @@ def test_the_detector_refuses_out_of_meaning_values_on_the_tiled_path_too():
 
     det = OnboardDetector(DET, threads=2, tile=1024)
     cube = np.tile(_skin_cube(), (1, 4, 4))[None]  # 80 x 80: 7 tiles
-    out = det(cube, [40.0, 30.0, 60.0])
+    out = det(cube, [40.0, 30.0, 60.0, 0.2])
     assert out["mask"].sum() > 0
     cube[0, 2, 70, 70] = 1.6  # one value in the last tile: a glint
-    glint = det(cube, [40.0, 30.0, 60.0])["mask"]
+    glint = det(cube, [40.0, 30.0, 60.0, 0.2])["mask"]
     glint[0, 70, 70] = out["mask"][0, 70, 70]  # the glint pixel itself may change its verdict, no other
     assert (glint == out["mask"]).all()
     percent = cube.copy()
     percent[0, 3] *= 100  # one band in per cent: a quarter of the values
     with pytest.raises(ValueError, match="per cent"):
-        det(percent, [40.0, 30.0, 60.0])
+        det(percent, [40.0, 30.0, 60.0, 0.2])
     low = cube.copy()
     low[0, 1, 75, 75] = -0.5  # one value in the last tile: no noise reads that
     with pytest.raises(ValueError, match="far below 0"):
-        det(low, [40.0, 30.0, 60.0], negative="clip")
+        det(low, [40.0, 30.0, 60.0, 0.2], negative="clip")
     cube[0, 2, 70, 70] = -0.05  # noise: clipped, accepted
-    assert "clipped_values" in det(cube, [40.0, 30.0, 60.0], negative="clip")
+    assert "clipped_values" in det(cube, [40.0, 30.0, 60.0, 0.2], negative="clip")
 
 
 @pytest.mark.parametrize("dtype", ["<f8", ">f8", "<f2", ">f4", "<f4"])

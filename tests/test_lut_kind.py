@@ -3,17 +3,27 @@ from torch, the exported graph (onnxruntime) and the onboard numpy head."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from torchskin.bands import band_tree
+from torchskin.bands import BandSet
 from torchskin.cli import main
 from torchskin.detectors import registry
 from torchskin.detectors.lut import LookupModel
-from torchskin.detectors.lut.grid import cell_centres, cells, config_bins, coordinates, reflectance_of, valid
+from torchskin.detectors.lut.grid import (
+    OCTAVE,
+    bits,
+    cell_centres,
+    cells,
+    check_geometry,
+    config_bins,
+    coordinates,
+    reflectance_of,
+)
 from torchskin.detectors.lut.model import EVEN_ODDS_LEVEL, to_levels
 from torchskin.detectors.lut.train import bake, learn, learner_features, slice_centres, support, tune_threshold
 from torchskin.detectors.protocol import CalibrationData
@@ -23,57 +33,80 @@ pytest.importorskip("lightgbm")
 
 @pytest.mark.parametrize("n", [2, 3, 4, 5, 7])
 def test_coordinates_describe_a_spectrum_completely(n):
-    """The tree's shares and the brightness s / (s + k) invert exactly (float64), for any band count; a tree over n
-    bands has n - 1 nodes covering every band once at the root."""
-    R = torch.rand(500, n, dtype=torch.float64, generator=torch.Generator().manual_seed(n)) + 1e-3
-    tree = band_tree(n)
-    assert len(tree) == n - 1 and sorted(tree[-1][0] + tree[-1][1]) == list(range(n))
-    torch.testing.assert_close(reflectance_of(coordinates(R)), R, rtol=1e-12, atol=1e-14)
-    # scale changes the brightness coordinate alone, as the band sum's share against n / 4
-    U, U2 = coordinates(R), coordinates(R * 16)
-    torch.testing.assert_close(U2[:, :-1], U[:, :-1], rtol=1e-12, atol=1e-12)
-    s16 = 16 * R.sum(1)
-    torch.testing.assert_close(U2[:, -1], s16 / (s16 + n / 4), rtol=1e-12, atol=1e-12)
-    assert (U2[:, -1] > U[:, -1]).all() and ((U > 0) & (U < 1)).all()
+    """The coordinates invert exactly (float32 reflectance back from integer bits), for any band count and any
+    reference band; a factor of 16 moves the brightness axis by 4 octaves and no ratio axis at all."""
+    R = torch.rand(500, n, generator=torch.Generator().manual_seed(n)) + 1e-3
+    for ref in range(n):
+        V = coordinates(R, ref)
+        assert V.dtype == torch.int64
+        assert torch.equal(reflectance_of(V.double(), ref).float(), R)
+        V16 = coordinates(R * 16, ref)
+        assert torch.equal(V16[:, 1:], V[:, 1:]) and torch.equal(V16[:, 0], V[:, 0] + 4 * OCTAVE)
 
 
-def test_the_index_bands_coordinates_are_ndgri_ndsi_ndvn_as_shares():
-    from torchskin.detect import ratio_indices
-
-    R = torch.rand(200, 4, generator=torch.Generator().manual_seed(1)) + 0.01
-    U = coordinates(R)
-    for a, b in zip(U.T[:3], ratio_indices(R)):
-        torch.testing.assert_close(2 * a - 1, b)
-    torch.testing.assert_close(U[:, 3], R.sum(1) / (R.sum(1) + 1))  # k = 4 / 4: a mean reflectance of 0.25
+def test_the_index_bands_coordinates_are_log2_ratios_of_neighbours():
+    """Each ratio axis is log2 of a neighbouring bands' ratio, in 2^23 units an octave, within the piecewise-linear
+    log's error (at most 0.0861 octave each way), and exact between powers of two."""
+    R = torch.rand(2000, 4, generator=torch.Generator().manual_seed(1)) + 0.01
+    V = coordinates(R, ref=0)  # the reference 544 nm: 633/544, 1080/633, 1580/1080
+    for k, (i, j) in enumerate(((1, 0), (2, 1), (3, 2)), start=1):
+        err = V[:, k].double() / OCTAVE - torch.log2(R[:, i].double() / R[:, j].double())
+        assert err.abs().max() <= 0.0861
+    P = torch.tensor([[0.25, 1.0, 0.5, 0.125]])
+    assert (coordinates(P, ref=0) // OCTAVE).tolist() == [[125, 2, -1, -2]]  # 0.25 = 2^-2: 127 - 2
 
 
 def test_cells_cut_each_axis_at_exact_edges_and_clip_outside():
-    lo, inv, bins = torch.tensor([0.0, 0.25]), torch.tensor([4.0, 8.0]), 4  # cells of 0.25 from 0, 0.125 from 0.25
-    U = torch.tensor([[0.0, 0.0], [0.2499, 0.374], [0.25, 0.375], [0.99, 0.74], [-5.0, 7.0], [float("nan"), 0.5]])
-    q0 = torch.tensor([0, 0, 1, 3, 0, 0])
-    q1 = torch.tensor([0, 0, 1, 3, 3, 2])
-    assert cells(U, lo, inv, bins).tolist() == (q0 * 4 + q1).tolist()
+    shift, lo, bins = torch.tensor([3, 0]), torch.tensor([1, -2]), 4  # cells of 8 units from 8; of 1 from -2
+    V = torch.tensor([[8, -2], [15, -1], [16, 0], [39, 1], [-5, 7], [7, -3], [2 ** 40, -(2 ** 40)]])
+    q0 = torch.tensor([0, 0, 1, 3, 0, 0, 3])
+    q1 = torch.tensor([0, 1, 2, 3, 3, 0, 0])
+    assert cells(V, shift, lo, bins).tolist() == (q0 * 4 + q1).tolist()
+    assert cells(torch.tensor([[-1, -1]]), torch.tensor([3, 1]), torch.tensor([-1, -1]), 4).tolist() == [0]  # floors
     X = torch.tensor([[0.0, 10.0], [44.9, 10.0], [45.0, 100.0], [89.0, -1.0]])
     assert config_bins(X, torch.tensor([0.0, 0.0]), torch.tensor([2 / 90, 3 / 90]), (2, 3)).tolist() == [0, 0, 5, 3]
 
 
 def test_centres_land_in_their_own_cells():
-    inv, bins = torch.tensor([30.0, 25.0, 16.0, 11.0]), 6
-    lo = torch.tensor([3.0, 11.0, 0.0, 7.0]) / inv  # whole cells from 0
-    C = cell_centres(lo, inv, bins)
-    assert torch.equal(cells(C.float(), lo, inv, bins), torch.arange(bins ** 4))
+    m = LookupModel(4, 6, config_counts=(1, 1, 1))
+    m.set_range(1, [21, 19, 20, 18], [240, -7, 3, -2])
+    C = cell_centres(m.shift, m.lo, m.bins)
+    assert torch.equal(m.cells_of(reflectance_of(C, m.ref).float()), torch.arange(6 ** 4))
 
 
-def test_undefined_coordinates_are_never_valid():
-    R = torch.tensor([[0.0, 0.0, 0.3, 0.1], [0.2, 0.1, 0.0, 0.0], [0.0, 0.1, 0.0, 0.2], [0.2, 0.1, 0.3, 0.1]])
-    assert valid(R).tolist() == [False, False, True, True]
+def test_a_pixel_with_a_band_at_zero_negative_or_nan_lands_in_an_edge_cell():
+    """Whatever the reference, such a pixel has an axis far outside its range (``check_geometry``): it is clipped
+    into an edge cell, which the support never holds (no separate validity test exists or is needed)."""
+    m = LookupModel(4, 8, config_counts=(1, 1, 1))
+    bad = torch.tensor([[0.0, 0.2, 0.3, 0.1], [0.2, 0.1, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [1e-40, 0.2, 0.3, 0.1],
+                        [0.2, -0.1, 0.3, 0.1], [0.2, float("nan"), 0.3, 0.1], [0.2, 0.1, 0.3, float("inf")]])
+    good = torch.tensor([[0.2, 0.2, 0.25, 0.2]])
+    for ref in range(4):  # brightness cells of 1/2 octave from 1/16, ratio cells of 1/4 octave from -1 octave
+        m.set_range(ref, [22, 21, 21, 21], [(127 - 4) * 2, -4, -4, -4])
+        q = torch.stack([(m.cells_of(torch.cat([good, bad])) // 8 ** (3 - k)) % 8 for k in range(4)], 1)
+        edge = ((q == 0) | (q == 7)).any(1)
+        assert not edge[0] and edge[1:].all(), (ref, q)
+    with pytest.raises(ValueError, match="beyond"):
+        check_geometry([20, 24, 20, 20], [900, -20, 0, 0], 8)  # 8 cells of 2 octaves from -40 octaves
+    with pytest.raises(ValueError, match="below the normal floats"):
+        check_geometry([20, 20, 20, 20], [0, -4, 0, 0], 8)
+
+
+def test_the_graph_computes_float_bits_exactly_without_a_bit_cast():
+    """``LookupDetector.float_bits`` (a logarithm corrected against exact powers of two, as the ONNX graph runs it)
+    equals the float32 bit pattern at and next to every power of two, for subnormals, 0 and random values."""
+    from torchskin.detectors.lut.model import LookupDetector
+
+    p = torch.exp2(torch.arange(-149, 63, dtype=torch.float64)).float()
+    x = torch.cat([p, torch.nextafter(p, torch.zeros(1)), torch.nextafter(p, torch.full((1,), 1e30)),
+                   torch.rand(100000, generator=torch.Generator().manual_seed(0)) ** 4 * 8, torch.zeros(1)])
+    assert torch.equal(LookupDetector(LookupModel()).float_bits(x), bits(x))
 
 
 def ndsi_table(bins: int = 8) -> LookupModel:
     """A table baked from a known score: +4 log-odds where NDSI > 0.3, -4 elsewhere, the same in every slice."""
     m = LookupModel(4, bins, config_counts=(2, 1, 1))
-    m.lo.copy_(torch.zeros(4))  # every coordinate spans (0, 1)
-    m.inv.copy_(torch.full((4,), float(bins)))
+    m.set_range(3, [23, 22, 22, 22], [127 - 6, -bins // 2, -bins // 2, -bins // 2])  # NDSI's ratio: axis 3
 
     def predict(f: np.ndarray) -> np.ndarray:
         ndsi = f[:, 4 + 5]  # the learner's features: 4 reflectances, then the pairs (0,1) (0,2) (0,3) (1,2) (1,3) (2,3)
@@ -86,14 +119,15 @@ def ndsi_table(bins: int = 8) -> LookupModel:
 
 def test_a_baked_table_holds_its_score_at_every_cell_centre():
     m = ndsi_table()
-    C = cell_centres(m.lo, m.inv, m.bins)
-    want = to_levels(torch.where(2 * C[:, 1] - 1 > 0.3, 4.0, -4.0))
+    C = cell_centres(m.shift, m.lo, m.bins)
+    R = reflectance_of(C, m.ref)
+    ndsi = (R[:, 2] - R[:, 3]) / (R[:, 2] + R[:, 3])
+    want = to_levels(torch.where(ndsi > 0.3, 4.0, -4.0))
     want = torch.where(want >= EVEN_ODDS_LEVEL, want, torch.zeros_like(want))  # below even odds: stored as 0
     for s in range(m.levels.shape[0]):
         assert torch.equal(m.levels[s], want)
-    R = reflectance_of(C).float()
     X = slice_centres(m).float()[torch.zeros(len(R), dtype=torch.long)]
-    assert torch.equal(m.decide(R, X), 2 * C[:, 1] - 1 > 0.3)  # the rule at cell centres, decided from reflectance
+    assert torch.equal(m.decide(R.float(), X), ndsi > 0.3)  # the rule at cell centres, decided from reflectance
 
 
 def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_never_goes_below_it():
@@ -115,15 +149,17 @@ def test_the_threshold_holds_the_earthlib_budget_in_every_slice_and_calibration_
 
 def test_the_support_leaves_out_every_edge_cell():
     m = LookupModel(4, 8, config_counts=(1, 1, 1))
-    m.lo.copy_(torch.zeros(4))  # every coordinate spans (0, 1)
-    m.inv.copy_(torch.full((4,), 8.0))
-    R = torch.tensor([[0.3, 0.2, 0.5, 0.1], [1.0, 0.0, 0.5, 0.5]])  # the second: NDGRI 1, clipped into the last cell
+    m.set_range(3, [23, 22, 22, 22], [127 - 6, -4, -4, -4])
+    R = torch.tensor([[0.3, 0.25, 0.35, 0.2], [1.0, 0.0, 0.5, 0.5]])  # the second: a band at 0, in an edge cell
     where = support(m, R, 1).reshape(8, 8, 8, 8)
-    q = (torch.floor(coordinates(R) * m.inv).clamp(0, 7)).long()
+    q = [torch.div(m.cells_of(R), 8 ** (3 - k), rounding_mode="floor") % 8 for k in range(4)]
+    q = torch.stack(q, 1)
     assert bool(where[tuple(q[0])]) and not bool(where[tuple(q[1])])
     for axis in range(4):
         assert not where.select(axis, 0).any() and not where.select(axis, 7).any()
-    assert int(where.sum()) == 3 ** 4  # one cell dilated by one along every axis: a 3^4 cube
+    # the first pixel's cell dilated by one along every axis: a 3^4 cube; the second, in cell (5, 7, 0, 4), adds
+    # its cube's cells off every edge: 3 x 1 x 1 x 3
+    assert q.tolist() == [[3, 4, 3, 5], [5, 7, 0, 4]] and int(where.sum()) == 3 ** 4 + 9
 
 
 @pytest.fixture(scope="module")
@@ -173,17 +209,16 @@ def test_torch_the_graph_and_the_onboard_head_decide_alike(lut_model):
     rng = np.random.default_rng(0)
     cube = (rng.random((3, 4, 96, 128)) * 0.8).astype(np.float32)
     cfg = np.array([[10.0, 5.0, 20.0, 0.1], [50.0, 40.0, 150.0, 0.45], [80.0, 85.0, 170.0, 0.95]], dtype=np.float32)
-    centres = cell_centres(model.lo, model.inv, model.bins)
+    centres = cell_centres(model.shift, model.lo, model.bins)
     for b, s in enumerate(model.slices(torch.from_numpy(cfg)).tolist()):  # the top half: cells near the region
         near = (model.levels[s] > 0).nonzero().squeeze(1)
-        near = near[reflectance_of(centres[near]).amax(1) < 1.0]  # calibrated reflectance, within detect's range
+        near = near[reflectance_of(centres[near], model.ref).amax(1) < 1.0]  # within detect's range
         assert near.numel(), f"slice {s} of the tiny model holds no cell above even odds"
         pick = near[torch.from_numpy(rng.integers(0, near.numel(), 48 * 128))]
-        jitter = torch.from_numpy(rng.uniform(-0.5, 0.5, (48 * 128, 4))) / model.inv.double()
-        cube[b, :, :48] = reflectance_of(centres[pick] + jitter).float().numpy().T.reshape(4, 48, 128)
+        jitter = torch.from_numpy(rng.uniform(-0.5, 0.5, (48 * 128, 4))) * torch.exp2(model.shift.double())
+        cube[b, :, :48] = reflectance_of(centres[pick] + jitter, model.ref).float().numpy().T.reshape(4, 48, 128)
     cube[0, :2, 50, :20] = 0.0  # NDGRI undefined
     cube[1, 2:, 51, :20] = 0.0  # NDSI undefined
-    cube = np.maximum(cube, 0)  # (a jittered edge cell can put a normalized difference past 1)
     cube[2, :, 52, :10] = 3.0  # bright beyond the table's range
     with torch.no_grad():
         tm, ts = model.reference_detector()(torch.from_numpy(cube), torch.from_numpy(cfg))
@@ -280,41 +315,35 @@ def test_a_damaged_table_is_one_line_naming_the_file(lut_model, tiny_dataset, tm
     assert "\n" not in err and "broken.pt" in err and "damaged" in err, err
 
 
-@pytest.mark.parametrize("n,bins", [(2, 40), (3, 16), (4, 8), (5, 6), (7, 4)])
-def test_the_onboard_head_puts_every_pixel_in_the_torch_cell_for_any_band_count(n, bins):
-    """The numpy head's batched tree (``onboard.lut._tree_plans``: nodes whose children, and coordinates whose
-    numerators, lie at one stride share a call), its clipping (skipped on an axis from 0 with fewer than ``bins``
-    cells to 1) and its offset table give the cell torch gives, for band counts whose trees are not regular, on
-    pixels inside, outside and at the edge of the table; an undefined pixel's index reads the table's first entry."""
-    from torchskin.bands import TREE_COORDINATES, grid_offsets
+@pytest.mark.parametrize("n,bins,ref", [(2, 40, 0), (3, 16, 2), (4, 8, 0), (4, 8, 2), (5, 6, 3), (7, 4, 6)])
+def test_the_onboard_head_puts_every_pixel_in_the_torch_cell_for_any_band_count(n, bins, ref):
+    """The numpy head (its ratio chains on either side of the reference band, one shift and one clip over every
+    axis, its offset table) gives the cell torch gives, for any band count and reference, on pixels inside, outside
+    and at the edges of the table, with a band at 0, and when the offsets sum below 0 (subtracted in a pass)."""
+    from torchskin.bands import LUT_COORDINATES
     from torchskin.onboard.lut import LutHead
 
     rng = np.random.default_rng(n)
-    inv = (bins / rng.uniform(0.25, 0.6, n)).astype(np.float32)
-    lo = (np.floor(rng.uniform(0.05, 0.4, n) * inv) / inv).astype(np.float32)  # whole cells from 0
-    inv[-1] = (bins - 1) / 1.1
-    lo[-1] = -1 / inv[-1]  # this axis starts one cell below 0 and covers [0, 1]: no clip
-    if n == 3:
-        lo[:-1] = 0.0  # every tree axis from 0: the offsets sum below 0, subtracted in a pass
-    grid = {"coordinates": TREE_COORDINATES, "bins": bins, "n_bands": n, "lo": lo.tolist(), "inv": inv.tolist(),
-            "cfg_lo": [0.0], "cfg_inv": [1.0], "config_counts": [1]}
-    head = LutHead(grid, np.zeros(-(-bins ** n // 8), dtype=np.uint8))
-    assert head.clip_rows == n - 1  # the brightness axis is not clipped, every tree axis is
-    base = int(sum(bins ** (n - 1 - k) * o for k, o in enumerate(grid_offsets(lo, inv))))
-    assert head.offset_free == (base >= 0) and head.base == max(base, 0) and (n != 3 or not head.offset_free)
-    assert head.table(0).shape == (head.base + bins ** n,) and head.table(0)[0] == 0
-    R = (rng.random((n, 5000)) * rng.choice([0.01, 0.5, 3.0], (1, 5000))).astype(np.float32)
-    R[:, :50] = 0.0  # every node's sum 0: undefined
-    R[: n // 2, 50:100] = 0.0  # the left half dark
-    sc = head.scratch(R.shape[1])
-    with np.errstate(invalid="ignore", divide="ignore"):
+    m = LookupModel(n, bins, bands=BandSet.of(list(range(500, 500 + 50 * n, 50))), config_counts=(1, 1, 1))
+    shift = [int(v) for v in rng.integers(19, 23, n)]
+    lo = [(127 - 5) * 2 ** (23 - shift[0])] + [int(v) for v in rng.integers(-bins, 0, n - 1)]
+    # the second: the brightness from the smallest normal float, a ratio axis from far below 0: offsets below 0
+    for sh, first in ((shift, lo), ([22, 19, *shift[2:]], [2, -2 * bins, *lo[2:]])):
+        m.set_range(ref, sh, first)
+        grid = json.loads(m.grid_json())
+        assert grid["coordinates"] == LUT_COORDINATES
+        head = LutHead(grid, np.zeros(-(-bins ** n // 8), dtype=np.uint8))
+        base = sum(bins ** (n - 1 - k) * f for k, f in enumerate(first))
+        assert head.offset_free == (base >= 0) and head.base == max(base, 0)
+        assert head.table(0).shape == (head.base + bins ** n,)
+        R = (rng.random((n, 5000)) ** 2 * rng.choice([0.01, 0.5, 3.0], (1, 5000))).astype(np.float32)
+        R[:, :50] = 0.0
+        R[: n // 2, 50:100] = 0.0
+        sc = head.scratch(R.shape[1])
         head._cells(R, sc)
-    want = cells(coordinates(torch.from_numpy(R.T)), torch.from_numpy(lo), torch.from_numpy(inv), bins)
-    ok = valid(torch.from_numpy(R.T)).numpy()
-    assert np.array_equal(sc["cell"][ok] - head.base, want.numpy()[ok])
-    # an undefined pixel lands on the first cell of a tree axis: an edge cell
-    q = (sc["cell"][~ok] - head.base)[:, None] // bins ** np.arange(n - 1, -1, -1) % bins
-    assert ((q[:, :-1] == 0).any(1)).all() and (sc["cell"] >= head.base).all()
+        want = m.cells_of(torch.from_numpy(R.T)).numpy()
+        assert np.array_equal(sc["cell"] - head.base, want)
+        assert len(np.unique(want)) > 20  # pixels all over the table, not one edge cell
 
 
 def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbours():
@@ -323,8 +352,7 @@ def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbou
     from torchskin.detectors.lut.train import MARGIN_SCALES, earthlib_cells
 
     m = LookupModel(4, 8, config_counts=(1, 1, 1))
-    m.lo.copy_(torch.zeros(4))
-    m.inv.copy_(torch.full((4,), 8.0))
+    m.set_range(3, [23, 22, 22, 22], [127 - 6, -4, -4, -4])
     spectra = torch.tensor([[0.3, 0.2, 0.5, 0.1], [0.05, 0.06, 0.3, 0.2]])
     a, b, k = MARGIN_SCALES
     scales = torch.logspace(math.log10(a), math.log10(b), k)
@@ -343,7 +371,7 @@ def test_the_earthlib_margin_is_the_cells_of_the_spectra_and_their_axis_neighbou
 
 
 def test_no_earthlib_train_spectrum_is_skin_at_any_brightness(lut_model):
-    """The trained table (default margin 1) holds level 0, in every slice, wherever an earthlib train spectrum
+    """The trained table (default margin 0: the cells themselves) holds level 0, in every slice, wherever an earthlib train spectrum
     falls at any of the margin's brightness factors."""
     from torchskin.detectors.features import earthlib_reflectance
     from torchskin.detectors.lut.train import earthlib_cells
@@ -351,7 +379,7 @@ def test_no_earthlib_train_spectrum_is_skin_at_any_brightness(lut_model):
     model, ck = registry.load(lut_model / "lut.pt")
     near = earthlib_cells(model, earthlib_reflectance("train"), 0)
     assert near.any() and not model.levels[:, near].any()
-    assert ck["meta"]["options"]["earthlib_margin"] == 1 and ck["meta"]["earthlib_margin_cells"] >= 0
+    assert ck["meta"]["options"]["earthlib_margin"] == 0 and ck["meta"]["earthlib_margin_cells"] >= 0
 
 
 def test_a_lut_detector_trains_exports_and_runs_onboard_on_a_five_band_camera(tmp_path, capsys, lut_model,

@@ -74,7 +74,7 @@ def test_a_batch_and_a_streamed_frame_write_the_same_mask(tmp_path, capsys):
     cube[:, 10:30, 5:25] = skin.reshape(4).float().numpy()[:, None, None]
     np.save(tmp_path / "one.npy", cube)
     np.save(tmp_path / "batch.npy", cube[None])
-    cfg = ["--sun-zenith", "30", "--camera-zenith", "10", "--relative-azimuth", "90"]
+    cfg = ["--sun-zenith", "30", "--camera-zenith", "10", "--relative-azimuth", "90", "--diffuse-share", "0.2"]
     for name in ("one", "batch"):
         assert main(["detect", "--cube", str(tmp_path / f"{name}.npy"), *cfg, "--out", str(tmp_path / f"{name}.png"),
                      "--tile-rows", "7", "--json"]) == 0

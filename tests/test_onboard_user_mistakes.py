@@ -19,7 +19,7 @@ from torchskin.cli import main
 from torchskin.onboard import REFLECTANCE_CEILING, REFLECTANCE_MAX, OnboardDetector
 
 DET = str(Path(__file__).resolve().parents[1] / "exports" / "detector.onnx")
-CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60"]
+CFG = ["--sun-zenith", "40", "--camera-zenith", "30", "--relative-azimuth", "60", "--diffuse-share", "0.2"]  # the shipped lut takes the share
 BANDS = [544.0, 633.0, 1080.0, 1580.0]
 BAD = pytest.mark.parametrize("value", [1e30, 1e6], ids=["1e30", "1e6"])
 GLINT = pytest.mark.parametrize("value", [5.0, 49.0], ids=["glint 5", "just under the bound"])
@@ -85,7 +85,7 @@ def test_the_detector_refuses_one_absurd_value_in_memory(value, tile):
     det = OnboardDetector(DET, threads=2, tile=tile)
     for negative in ("error", "clip"):
         with pytest.raises(ValueError, match=re.escape(f"reads reflectance {value:.4g}, which no camera records")):
-            det(_cube(value)[None], [40.0, 30.0, 60.0], negative=negative)
+            det(_cube(value)[None], [40.0, 30.0, 60.0, 0.2], negative=negative)
 
 
 @BAD
@@ -107,7 +107,7 @@ def test_a_glint_still_passes_every_path(tmp_path, capsys, value):
     cube: detected on the streamed path (one tile and eight), the batch path and the detector's tiled path, its
     other pixels as without it."""
     assert REFLECTANCE_MAX < value < REFLECTANCE_CEILING
-    config = [40.0, 30.0, 60.0]
+    config = [40.0, 30.0, 60.0, 0.2]
     clean = OnboardDetector(DET)(_cube()[None], config)["mask"][0]
     for tiles in ([], ["--tile-rows", "8"]):
         cube = _save(tmp_path / "refl.npy", _cube(value))

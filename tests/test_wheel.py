@@ -91,7 +91,7 @@ def test_a_pip_user_runs_spectra_and_detect_from_an_empty_folder(fresh, tmp_path
     cube[:, 5:15, 5:15] = refl[:, None, None]
     np.save(work / "frame.npy", cube)
     r = _run(fresh, ["detect", "--cube", "frame.npy", "--sun-zenith", "40", "--camera-zenith", "30",
-                     "--relative-azimuth", "60", "--out", "mask.png", "--json"], work)
+                     "--relative-azimuth", "60", "--diffuse-share", "0.2", "--out", "mask.png", "--json"], work)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["skin_pixels"] == 100, out

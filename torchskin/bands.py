@@ -492,50 +492,26 @@ INDEX_BANDS = BandSet.of(INDEX_BANDS_NM)
 DEFAULT_BANDS: tuple[Band, ...] = INDEX_BANDS.bands
 
 
-#: the ``lut`` table's coordinates by name, kept in its checkpoints and graphs (``detectors.lut.grid``): each
-#: ``band_tree`` node's left share (left sum / (left sum + right sum)), then the band sum's share against
-#: ``BRIGHTNESS_REF_PER_BAND`` times the band count, cut into cells whose edges are whole multiples of each axis's
-#: cell width. A table built on other coordinates is refused
-TREE_COORDINATES = "tree-share+brightness-share/4"
-#: the mean reflectance at which the ``lut`` brightness coordinate is 1/2
-BRIGHTNESS_REF_PER_BAND = 0.25
+#: the ``lut`` table's coordinates by name, kept in its checkpoints and graphs (``detectors.lut.grid``): each band's
+#: float32 bit pattern read as an integer, a piecewise-linear log2 of the reflectance in units of 2^-23 octave. Axis 0
+#: is the last band's (the brightness), axis k (1 to n - 1) band k - 1's less band k's (the log ratio of neighbouring
+#: bands); each axis is cut into cells of 2^shift units. A table built on other coordinates is refused
+LUT_COORDINATES = "float-bits:ref-band+ratios-towards-ref"
 
 
-def grid_offsets(lo: Iterable[float], inv: Iterable[float]) -> list[float]:
-    """The first cell of each ``lut`` table axis in whole cell widths from 0: ``round(lo * inv)`` in double
-    precision (the table's ``lo`` is a whole number of its cells, ``1 / inv``; ``detectors.lut.grid``). One formula
-    for torch, the graph and the onboard head.
+def ratio_pairs(n: int, ref: int = -1) -> tuple[list[int], list[int]]:
+    """The ``lut`` table's axes over n bands with reference band ``ref``: each axis's band and the band it is
+    divided by (its neighbour towards ``ref``), axis 0 first (the reference itself, the brightness: its own index).
+    ``ValueError`` for fewer than 2 bands.
 
-    >>> grid_offsets([0.25, 0.0], [32.0, 8.0])
-    [8.0, 0.0]
-    """
-    return [float(round(float(a) * float(b))) for a, b in zip(lo, inv, strict=True)]
-
-
-def band_tree(n: int) -> list[tuple[tuple[int, ...], tuple[int, ...]]]:
-    """The internal nodes (left bands, right bands) of a balanced binary tree over bands 0..n-1, children before
-    parents (``n - 1`` nodes; ``ValueError`` for fewer than 2 bands): the normalized differences (left sum - right
-    sum) / (left sum + right sum) of its nodes describe a spectrum up to its scale (the ``lut`` detector's table
-    coordinates). For the four index bands they are NDGRI, NDSI and NDVN.
-
-    >>> band_tree(4)
-    [((0,), (1,)), ((2,), (3,)), ((0, 1), (2, 3))]
+    >>> ratio_pairs(4, 2)
+    ([2, 0, 1, 3], [2, 1, 2, 2])
     """
     if n < 2:
         raise ValueError(f"a lookup table needs at least 2 bands, got {n}")
-    nodes: list[tuple[tuple[int, ...], tuple[int, ...]]] = []
-
-    def split(bands: tuple[int, ...]) -> None:
-        if len(bands) < 2:
-            return
-        half = len(bands) // 2
-        left, right = bands[:half], bands[half:]
-        split(left)
-        split(right)
-        nodes.append((left, right))
-
-    split(tuple(range(n)))
-    return nodes
+    ref = ref % n
+    others = [i for i in range(n) if i != ref]
+    return [ref, *others], [ref, *[i + 1 if i < ref else i - 1 for i in others]]
 
 
 def parse_bands(text: str, within: tuple[float, float] | None = None) -> tuple[Band, ...]:

@@ -19,7 +19,7 @@ The built-in kinds, ``boxes`` (``boxes.BoxModel``), ``classifier`` (``classifier
 >>> registry.kind_for_method("quantiles").kind
 'boxes'
 >>> [o.cli_flag for o in registry.options(registry.get("boxes"))][-1], registry.onboard_kinds()
-('--no-ndvn-rule', ('boxes',))
+('--no-ndvn-rule', ('boxes', 'lut'))
 >>> class Tiny(registry.get("classifier")):
 ...     kind, methods = "tiny", ("tiny",)
 ...     options = (registry.KindOption("level", 0.5, "tiny: the level"),)

@@ -139,8 +139,8 @@ def _proxy(rows: DesignRows, bands: Sequence[Band], trees: int, budget: float, s
 
     from ..bands import BandSet
     from ..detectors.features import earthlib_reflectance
-    from ..detectors.lut.grid import axis_centres, reflectance_of, valid
-    from ..detectors.lut.model import LookupModel
+    from ..detectors.lut.grid import axis_centres, reflectance_of
+    from ..detectors.lut.model import EARTHLIB_MARGIN, LookupModel
     from ..detectors.lut.train import (
         LEARNER,
         default_bins,
@@ -171,19 +171,17 @@ def _proxy(rows: DesignRows, bands: Sequence[Band], trees: int, budget: float, s
 
         return raw, *_threshold(raw, rows, budget)
     table = LookupModel(n, bins, bands=BandSet.of(bands), config_counts=(1,) * rows.X.shape[1])  # cells only
-    lo, inv = table_range(torch.from_numpy(R[rows.y]).float(), bins)
-    table.lo.copy_(lo)
-    table.inv.copy_(inv)
-    keep = support(table, torch.from_numpy(R[rows.y]).float(), 1) & ~earthlib_cells(table, C, 1)
+    table.set_range(*table_range(torch.from_numpy(R[rows.y]).float(), bins))
+    keep = support(table, torch.from_numpy(R[rows.y]).float(), 1) & ~earthlib_cells(table, C, EARTHLIB_MARGIN)
     strides = bins ** torch.arange(n - 1, -1, -1)
 
     def score(Rf, X):
         Rt = torch.from_numpy(synthesise(Rf, W)).float()
         cell = table.cells_of(Rt)
         q = (cell[:, None] // strides) % bins  # each axis's cell
-        centre = reflectance_of(axis_centres(q, lo, inv)).numpy()
+        centre = reflectance_of(axis_centres(q, table.shift, table.lo), table.ref).numpy()
         s = booster.predict(learner_features(centre, X), raw_score=True, num_threads=1)
-        return np.where((keep[cell] & valid(Rt)).numpy(), s, -np.inf)
+        return np.where(keep[cell].numpy(), s, -np.inf)
 
     return score, *_threshold(score, rows, budget)
 

@@ -20,6 +20,7 @@ def thesis_frame(detector_path: str | os.PathLike, size: int = 160, sun_zenith_d
     largest difference between the onboard and the renderer's ELM reflectance. ``plot``: a PNG of the 1080 nm
     reflectance beside both masks."""
     from ..angles import relative_azimuth_deg
+    from ..detectors.features import DIFFUSE_SHARE, diffuse_share
     from ..onboard import OnboardDetector, elm_apply, elm_fit
     from ..render.elm import panel_regions
     from ..render.materials import compile_materials
@@ -37,8 +38,13 @@ def thesis_frame(detector_path: str | os.PathLike, size: int = 160, sun_zenith_d
     fit = elm_fit(signal, [(regions[p], refs[p]) for p in sc.panels])
     cube = elm_apply(signal, fit["gain"], fit["offset"])[None]
     rel = relative_azimuth_deg(sun_azimuth_deg, sc.cameras[0].azimuth_deg)
-    out = OnboardDetector(detector_path)(cube, [[sun_zenith_deg, sc.cameras[0].zenith_deg, rel]], negative="clip",
-                                  min_reflectance=min_reflectance)
+    det = OnboardDetector(detector_path)
+    # the frame's configuration in the detector's features: the angles, and the sky's diffuse share of the light on
+    # a horizontal surface (the scene's sky gives sky_fraction times the sun's normal irradiance there)
+    row = det.config_row(sun_zenith_deg=sun_zenith_deg, camera_zenith_deg=sc.cameras[0].zenith_deg,
+                         relative_azimuth_deg=rel, **{DIFFUSE_SHARE: float(diffuse_share(sc.suns[0].sky_fraction,
+                                                                                         sun_zenith_deg))})
+    out = det(cube, [row], negative="clip", min_reflectance=min_reflectance)
     skin, lit = res.skin[0].cpu().numpy(), res.lit[0, 0].cpu().numpy()
     sunlit = skin & lit
     learned, static = out["mask"][0], res.mask[0, 0].cpu().numpy()

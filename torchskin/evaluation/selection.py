@@ -8,8 +8,8 @@ from ..detectors import registry
 #: the model kinds whose detector graph meets the onboard budget (a 1 MP frame in a few times the time of reading
 #: it), as registered when this module loads (each kind's ``onboard_selectable``; ``registry.onboard_kinds``, which
 #: ``select_detector`` reads at each call, so that a kind registered later counts): the box models' five edge forms
-#: (~2-4 ms per 1024² frame on 2 cores); the others (each kind's ``onboard_cost`` says why) are evaluated and
-#: reported, not shipped
+#: (~2-4 ms per 1024² frame on 2 cores) and the lookup table (~1.2x the boxes); the others (each kind's
+#: ``onboard_cost`` says why) are evaluated and reported, not shipped
 ONBOARD_KINDS = registry.onboard_kinds()
 
 

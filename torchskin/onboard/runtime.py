@@ -73,6 +73,17 @@ class _Model:
         self.n_bands = len(self.bands_nm) or 4
         self._pool: ThreadPoolExecutor | None = None
 
+    def config_row(self, **values: float) -> list[float]:
+        """One frame's configuration in this model's feature order (``features``) from values by feature name;
+        ``ValueError`` naming a feature the model takes that is not given (names it does not take are ignored).
+
+        >>> # det.config_row(sun_zenith_deg=45, camera_zenith_deg=90, relative_azimuth_deg=20, diffuse_share=0.17)
+        """
+        missing = [f for f in self.features if f not in values]
+        if missing:
+            raise ValueError(f"the model takes {', '.join(missing)} as well (its features: {', '.join(self.features)})")
+        return [float(values[f]) for f in self.features]
+
     def _config(self, config: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         c = np.asarray(config)
         if c.ndim == 1:
@@ -119,7 +130,6 @@ class _TileBinding:
         self.frame, self.ws = -1, []
         self.lut = det._lut.scratch(n) if det._lut is not None else None  # the lookup-table head's buffers
         self.table: np.ndarray | None = None  # the frame's table slice (lookup-table head)
-        self.edge_free = True  # whether that slice holds no skin where an undefined pixel lands
         if self.head is not None:
             self.io, self.sums = self.head.session.io_binding(), self.head.sums.io_binding()
             self.head.bind(self.io, self.sums, self.t, self.edges, self.total, self.nir_min)
@@ -262,9 +272,9 @@ class OnboardDetector(_Model):
             if checked is not None:
                 low, high, over = np.minimum(low, checked[0]), np.maximum(high, checked[1]), over + checked[2]
             if b != tb.frame:  # a frame's edge matrices from its configuration alone (batch 1, as the whole graph)
-                if lut is not None:  # a lookup table: the frame's slice (and whether undefined pixels need a pass)
+                if lut is not None:  # a lookup table: the frame's slice
                     sl = lut.slice_of(c[b])
-                    tb.table, tb.edge_free = lut.table(sl), lut.edge_free(sl)
+                    tb.table = lut.table(sl)
                 elif head is not None:  # copied into the bound weight buffers
                     for w, v in zip(tb.ws, frame_weights(b), strict=True):  # type: ignore[misc]
                         w[...] = v
@@ -273,7 +283,7 @@ class OnboardDetector(_Model):
                 tb.frame = b
             m, sc = mask[b, lo:hi], score[b, lo:hi]
             if lut is not None:
-                lut.run(t, cast(np.ndarray, tb.table), m, sc, cast(dict, tb.lut), tb.edge_free)
+                lut.run(t, cast(np.ndarray, tb.table), m, sc, cast(dict, tb.lut))
             elif head is not None:
                 run(tb.io)
                 minimum(edges, axis=0, out=sc)  # the graph's Min

@@ -1,25 +1,29 @@
 """The ``lut`` kind's table geometry: where a pixel's spectrum and a frame's configuration fall in the table.
 
-A pixel of n bands is placed by n coordinates that describe its spectrum completely, each a share in [0, 1]:
+A float32 reflectance's bit pattern, read as an integer, is a piecewise-linear log2 of it: 2^23 units an octave,
+exact at powers of two (``bits``). A pixel of n bands is placed by n integer coordinates of those logs:
 
-- n - 1 shares, one per internal node of a balanced binary tree over the bands (``band_tree``): left sum /
-  (left sum + right sum). For the four index bands they are (1 + NDGRI) / 2, (1 + NDSI) / 2 and (1 + NDVN) / 2,
-  with NDVN = ((g + r) - (n + s)) / (g + r + n + s);
-- the brightness: the band sum s against a reference ``k = n / 4`` (a mean reflectance of 0.25), s / (s + k). It
-  resolves dark pixels finely and bright ones coarsely.
+- axis 0, the brightness: the bits of a reference band ``ref`` (chosen in training: the band the skin's log spreads
+  least over; for the four index bands, 544 nm);
+- axes 1 to n - 1: every other band's bits less those of its neighbour towards the reference, the log ratio of
+  neighbouring bands (``ratio_pairs``). For the index bands with 544 nm the reference: 633 / 544 nm (NDGRI's ratio),
+  1080 / 633 nm (near infrared against visible) and 1580 / 1080 nm (NDSI's).
 
-A share is one division of two sums, the cheapest exact coordinate: no subtraction, no root, no logarithm (not
-correctly rounded on every backend).
+Each axis is cut into ``bins`` cells of 2^shift units, from the cell ``lo`` (an integer): the cell of a
+coordinate v is floor(v / 2^shift) - lo, clipped to [0, bins - 1]. Values outside fall in the edge cells, which are
+never skin. A frame's configuration (sun zenith, camera zenith, relative azimuth, diffuse share) picks one table
+slice, by equal bins over each feature's training domain.
 
-Each axis is cut into ``bins`` equal cells of width ``1 / inv`` starting at ``lo``, a whole number of cells from 0
-(``bands.grid_offsets``): the cell of a share u is floor(u * inv) - offset, clipped to [0, bins - 1]. Values outside
-fall in the edge cells, which are never skin. A frame's configuration (sun zenith, camera zenith, relative azimuth)
-picks one table slice, by equal bins over each feature's training domain. Every step is an IEEE-exact operation in a
-fixed order (add, divide, multiply, floor), so torch, numpy and onnxruntime put a pixel in the same cell.
+Why bits: integer subtraction and a shift are exact on every backend, and the cheapest coordinates there are: no
+division, no logarithm. Onboard a pixel costs a subtraction, a shift, a clip and a gather (``onboard.lut``).
 
->>> R = torch.tensor([[0.3, 0.2, 0.5, 0.1]])
->>> coordinates(R).round(decimals=4)
-tensor([[0.6000, 0.8333, 0.4545, 0.5238]])
+A pixel with a band at 0 has no finite log ratio; its bits put it at least 2^23 units (an octave) from its
+neighbour, in practice ~100 octaves for a lit neighbour, far outside any axis (``check_geometry``): it lands in an
+edge cell. So do negative values and NaN. No pixel needs a separate test.
+
+>>> R = torch.tensor([[0.5, 0.25, 1.0, 0.5]])
+>>> coordinates(R, ref=3)  # 0.5 = 2^-1: bits 126 * 2^23; one octave between 0.5 and 0.25 is 2^23
+tensor([[1056964608,    8388608,  -16777216,    8388608]])
 """
 
 from __future__ import annotations
@@ -28,66 +32,95 @@ from collections.abc import Sequence
 
 import torch
 
-from ...bands import BRIGHTNESS_REF_PER_BAND, band_tree, grid_offsets
-from ...bands import TREE_COORDINATES as COORDINATES  # the name of the coordinates below, kept in checkpoints
+from ...bands import LUT_COORDINATES as COORDINATES  # the coordinates' name, kept in checkpoints
+from ...bands import ratio_pairs
+
+#: units of the coordinates per octave (a float32's mantissa bits)
+OCTAVE = 1 << 23
+#: the widest a ratio axis may reach from 0, in octaves (``check_geometry``): well inside the ~100 octaves between a
+#: band at 0 and a lit neighbour, so that such a pixel always lands in an edge cell
+RATIO_REACH_OCTAVES = 16
 
 
-def coordinates(R: torch.Tensor) -> torch.Tensor:
-    """The n table coordinates (..., n) of reflectance ``R`` (..., n): each tree node's left share (``band_tree``),
-    then the brightness s / (s + k) of the band sum s (``brightness_ref``). NaN where a node's sum is 0
-    (``valid``)."""
-    n = R.shape[-1]
-    sums: dict[tuple[int, ...], torch.Tensor] = {(i,): R[..., i] for i in range(n)}
-    out = []
-    for left, right in band_tree(n):
-        a = sums[left]
-        s = a + sums[right]
-        sums[left + right] = s
-        out.append(a / s)
-    total = sums[tuple(range(n))]
-    out.append(total / (total + brightness_ref(n)))
-    return torch.stack(out, -1)
+def bits(R: torch.Tensor) -> torch.Tensor:
+    """The float32 bit patterns (..., n) int64 of reflectance ``R`` (cast to float32): a piecewise-linear log2,
+    ``OCTAVE`` units an octave, 127 * ``OCTAVE`` at 1."""
+    return R.float().contiguous().view(torch.int32).long()
 
 
-def brightness_ref(n: int) -> float:
-    """The band sum k at which the brightness coordinate is 1/2: n / 4, a mean reflectance of 0.25 (exact in
-    float32)."""
-    return BRIGHTNESS_REF_PER_BAND * n
+def coordinates(R: torch.Tensor, ref: int = -1) -> torch.Tensor:
+    """The n table coordinates (..., n) int64 of reflectance ``R`` (..., n): the reference band ``ref``'s bits (the
+    brightness), then for every other band in order its bits less those of its neighbour towards ``ref`` (``ratio
+    pairs``)."""
+    b = bits(R)
+    n = b.shape[-1]
+    band, towards = ratio_pairs(n, ref)
+    return torch.cat([b[..., band[:1]], b[..., band[1:]] - b[..., towards[1:]]], -1)
 
 
-def valid(R: torch.Tensor) -> torch.Tensor:
-    """Pixels (...,) whose every tree node has a positive band sum: the others have no defined coordinates and are
-    never skin. For non-negative reflectance this is: every bottom pair of the tree sums above 0."""
-    n = R.shape[-1]
-    ok = torch.ones(R.shape[:-1], dtype=torch.bool, device=R.device)
-    for left, right in band_tree(n):
-        ok = ok & (R[..., list(left + right)].sum(-1) > 0)
-    return ok
-
-
-def offsets(lo: torch.Tensor, inv: torch.Tensor) -> torch.Tensor:
-    """Each axis's first cell in whole cells from 0 (``bands.grid_offsets``), (n,) float32."""
-    return torch.tensor(grid_offsets(lo.tolist(), inv.tolist()), dtype=torch.float32)
-
-
-def cells(U: torch.Tensor, lo: torch.Tensor, inv: torch.Tensor, bins: int, off: torch.Tensor | None = None
-          ) -> torch.Tensor:
-    """The flat cell index (...,) int64 of coordinates ``U`` (..., n) on ``bins`` cells per axis of width
-    ``1 / inv`` from ``lo`` (a whole number of cells from 0, ``off``: ``offsets``, computed when not given): per
-    axis floor(u * inv) - offset, clipped to [0, bins - 1], the first axis slowest. NaN coordinates land in cell 0
-    of their axis (``valid`` rules such pixels out)."""
-    off = (offsets(lo, inv) if off is None else off).to(U.dtype)
-    q = torch.floor(U * inv.to(U.dtype)).nan_to_num(0.0)
-    q = torch.minimum(torch.maximum(q, off), off + (bins - 1)) - off
-    idx = q[..., 0].long()
+def cells(V: torch.Tensor, shift: torch.Tensor, lo: torch.Tensor, bins: int) -> torch.Tensor:
+    """The flat cell index (...,) int64 of coordinates ``V`` (..., n) on ``bins`` cells per axis of 2^shift units
+    from the cell ``lo`` (n,): per axis floor(v / 2^shift) - lo, clipped to [0, bins - 1], axis 0 slowest."""
+    lo = lo.long().to(V.device)
+    q = torch.bitwise_right_shift(V, shift.long().to(V.device))  # an arithmetic shift: the floor
+    q = torch.minimum(torch.maximum(q, lo), lo + (bins - 1)) - lo
+    idx = q[..., 0]
     for k in range(1, q.shape[-1]):
-        idx = idx * bins + q[..., k].long()
+        idx = idx * bins + q[..., k]
     return idx
 
 
-def axis_centres(q: torch.Tensor, lo: torch.Tensor, inv: torch.Tensor) -> torch.Tensor:
+def axis_centres(q: torch.Tensor, shift: torch.Tensor, lo: torch.Tensor) -> torch.Tensor:
     """The coordinates (..., n) float64 of the centres of per-axis cells ``q`` (..., n) (integers in [0, bins))."""
-    return (offsets(lo, inv).double() + q.double() + 0.5) / inv.double()
+    return (lo.double() + q.double() + 0.5) * _pow2(shift.long())
+
+
+def cell_centres(shift: torch.Tensor, lo: torch.Tensor, bins: int) -> torch.Tensor:
+    """The coordinates (bins ** n, n) float64 of every cell's centre, in flat index order (``cells``)."""
+    n = len(lo)
+    q = torch.stack(torch.meshgrid(*[torch.arange(bins)] * n, indexing="ij"), -1).reshape(-1, n)
+    return axis_centres(q, shift, lo)
+
+
+def from_bits(b: torch.Tensor) -> torch.Tensor:
+    """The reflectance (float64) whose float32 bits are ``b`` (float64, fractional values between patterns: the
+    piecewise-linear log2 read back), for b in [0, 255 * ``OCTAVE``)."""
+    e = torch.floor(b / OCTAVE)
+    frac = b / OCTAVE - e
+    normal = _pow2((e - 127).clamp(-126, 127).long()) * (1 + frac)
+    return torch.where(e >= 1, normal, b * 2.0 ** -149)  # below the normal range: subnormal, b * 2^-149
+
+
+def _pow2(k: torch.Tensor) -> torch.Tensor:
+    """2^k (float64) of integers k in [-1022, 1023], built from its bit pattern: exact on every CPU (a vectorized
+    ``exp2`` need not be)."""
+    return ((k + 1023) << 52).view(torch.float64)
+
+
+def reflectance_of(V: torch.Tensor, ref: int = -1) -> torch.Tensor:
+    """The reflectance (..., n) float64 whose coordinates are ``V`` (..., n) (float64 coordinates, ``coordinates``
+    inverted: the reference band from its bits, each other band from its neighbour's towards the reference)."""
+    n = V.shape[-1]
+    band, towards = ratio_pairs(n, ref)
+    b: list[torch.Tensor | None] = [None] * n
+    b[band[0]] = V[..., 0]
+    order = sorted(range(1, n), key=lambda k: abs(band[k] - band[0]))  # nearest the reference first
+    for k in order:
+        b[band[k]] = b[towards[k]] + V[..., k]  # type: ignore[operator]
+    return from_bits(torch.stack(b, -1))  # type: ignore[arg-type]
+
+
+def check_geometry(shift: Sequence[int], lo: Sequence[int], bins: int) -> None:
+    """``ValueError`` unless every ratio axis (1 to n - 1) stays within ``RATIO_REACH_OCTAVES`` of 0 and the
+    brightness axis starts above the subnormal range, so that a band at 0 always lands in an edge cell."""
+    reach = RATIO_REACH_OCTAVES * OCTAVE
+    for k, (s, a) in enumerate(zip(shift, lo, strict=True)):
+        first, last = int(a) << int(s), (int(a) + bins) << int(s)
+        if k == 0 and first < OCTAVE:
+            raise ValueError(f"the brightness axis starts at {first} (below the normal floats)")
+        if k > 0 and not -reach <= first < last <= reach:
+            raise ValueError(f"ratio axis {k} spans [{first / OCTAVE:g}, {last / OCTAVE:g}] octaves, beyond "
+                             f"+-{RATIO_REACH_OCTAVES}")
 
 
 def config_bins(X: torch.Tensor, lo: torch.Tensor, inv: torch.Tensor, counts: Sequence[int]) -> torch.Tensor:
@@ -100,25 +133,5 @@ def config_bins(X: torch.Tensor, lo: torch.Tensor, inv: torch.Tensor, counts: Se
     return idx
 
 
-def cell_centres(lo: torch.Tensor, inv: torch.Tensor, bins: int) -> torch.Tensor:
-    """The coordinates (bins ** n, n) float64 of every cell's centre, in flat index order (``cells``)."""
-    n = len(lo)
-    q = torch.stack(torch.meshgrid(*[torch.arange(bins)] * n, indexing="ij"), -1).reshape(-1, n)
-    return axis_centres(q, lo, inv)
-
-
-def reflectance_of(U: torch.Tensor) -> torch.Tensor:
-    """The reflectance (..., n) whose coordinates are ``U`` (..., n) (``coordinates`` inverted: the brightness
-    splits down the tree by each node's share)."""
-    n = U.shape[-1]
-    b = U[..., -1]
-    total = brightness_ref(n) * b / (1 - b)
-    sums: dict[tuple[int, ...], torch.Tensor] = {tuple(range(n)): total}
-    for k, (left, right) in reversed(list(enumerate(band_tree(n)))):
-        s = sums[left + right]
-        sums[left] = s * U[..., k]
-        sums[right] = s * (1 - U[..., k])
-    return torch.stack([sums[(i,)] for i in range(n)], -1)
-
-
-__all__ = ["COORDINATES", "axis_centres", "brightness_ref", "cell_centres", "cells", "config_bins", "coordinates", "offsets", "reflectance_of", "valid"]
+__all__ = ["COORDINATES", "OCTAVE", "RATIO_REACH_OCTAVES", "axis_centres", "bits", "cell_centres", "cells",
+           "check_geometry", "config_bins", "coordinates", "from_bits", "ratio_pairs", "reflectance_of"]

@@ -17,7 +17,7 @@ from ...bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
 from ..features import DIFFUSE_SHARE, FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
-from .grid import COORDINATES, cells, config_bins, coordinates, offsets, valid
+from .grid import COORDINATES, OCTAVE, cells, check_geometry, config_bins, coordinates, ratio_pairs
 
 if TYPE_CHECKING:
     import onnx
@@ -29,6 +29,11 @@ if TYPE_CHECKING:
 LEVELS_PER_LOGIT = 8.0
 #: the level of log-odds 0 (even odds): no calibrated threshold lies below it
 EVEN_ODDS_LEVEL = 128
+#: the default earthlib margin (``train.earthlib_cells``; ``--earthlib-margin``): the cells the earthlib train spectra fall
+#: in, not their neighbours. On the bits grid a one-step margin cost 0.015 of sunlit skin on ``make demo``'s fresh test
+#: set (0.976 against 0.988) and 0.025 at sun >= 60 degrees; without it the three fresh sets still hold the scene
+#: budget (docs/benchmarks.md)
+EARTHLIB_MARGIN = 0
 #: configuration bins per feature over the training domain: sun zenith, camera zenith and relative azimuth 15°, 15°
 #: and 90° wide on the demo's domain, the diffuse share 0.25 wide. Measured on the demo's fresh test set (the learner
 #: itself, its configuration snapped to bin centres, Pd sunlit mean over configurations at sun >= 60°): 30° camera
@@ -87,8 +92,9 @@ class LookupModel(nn.Module):
         KindOption("trees", 300, "lut: boosting rounds of the learner the table is baked from (default 300)", int),
         KindOption("support_dilation", 1, "lut: cells by which the training skin's support is widened; cells "
                                           "outside it are never skin (default 1)", int),
-        KindOption("earthlib_margin", 1, "lut: cells within this many steps of an earthlib train spectrum (at any "
-                                         "brightness) are never skin; -1: no margin (default 1)", int),
+        KindOption("earthlib_margin", EARTHLIB_MARGIN, "lut: cells within this many steps of an earthlib train "
+                                                       "spectrum (at any brightness) are never skin; 0: the cells "
+                                                       "it falls in; -1: no margin (default 0)", int),
         KindOption("max_rows", 3_000_000, "lut: at most this many training rows (a seeded draw; default "
                                           "3000000)", int),
         KindOption("configuration", True, "lut: learn without the configuration (one table for every sun and "
@@ -98,26 +104,24 @@ class LookupModel(nn.Module):
                                           "angles only, as the other kinds", bool, "--no-diffuse-share"))
     method_help: ClassVar[str] = ("lut: gradient-boosted trees on every normalized difference, reflectance, "
                                   "brightness and the configuration, baked into a table looked up per pixel")
-    #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. Not
-    #: yet selectable for ``detector.onnx``: on a 1 MP frame (2 cores) the head takes ~1.8x the box detector and
-    #: ~5.9x the frame-read floor, where issue 40 allows 2x and 5x (docs/benchmarks.md)
+    #: onboard, the table is looked up with numpy (``onboard.lut.LutHead``); the graph runs as it is elsewhere. On a
+    #: 1 MP frame (2 cores) the head takes ~1.2x the box detector and ~4x the frame-read floor, within issue 40's 2x
+    #: and 5x (docs/benchmarks.md): ``make demo`` may ship it
     onboard_head: ClassVar[str] = "lut"
-    onboard_selectable: ClassVar[bool] = False
-    onboard_cost: ClassVar[str] = ("a table lookup per pixel, ~1.8x the box detector's time per frame and ~5.9x "
-                                   "the frame-read floor, where the onboard budget is 2x and 5x")
+    onboard_selectable: ClassVar[bool] = True
     card_score: ClassVar[str] = "the lookup table: 1 inside the calibrated region, 0 outside (a table holds decisions)"
     pipeline_runs: ClassVar[tuple[PipelineRun, ...]] = (PipelineRun("lut", ("--method", "lut")),)
     card_use: ClassVar[str] = (
         "Onboard skin detection in reflectance imagery of the model's bands (metadata `bands`) with a configuration-"
-        "dependent lookup table over the bands' normalized differences and brightness "
+        "dependent lookup table over the log ratios of neighbouring bands and a brightness "
         "(`torchskin.detectors.lut`), calibrated to the false-alarm budget.")
 
     # buffers (declared for type checkers; ``register_buffer`` creates them)
     levels: torch.Tensor
     threshold: torch.Tensor
     floor_level: torch.Tensor
+    shift: torch.Tensor
     lo: torch.Tensor
-    inv: torch.Tensor
     cfg_lo: torch.Tensor
     cfg_inv: torch.Tensor
     domain: torch.Tensor
@@ -125,8 +129,7 @@ class LookupModel(nn.Module):
     std: torch.Tensor
 
     def __init__(self, n_bands: int = 4, bins: int = 32, features: Sequence[str] = FEATURES,
-                 config_counts: Sequence[int] | None = None, domain: Any = None, lo: Any = None, inv: Any = None,
-                 bands: BandSet | None = None):
+                 config_counts: Sequence[int] | None = None, domain: Any = None, bands: BandSet | None = None):
         super().__init__()
         if bands is None and n_bands != len(INDEX_BANDS_NM):
             raise ValueError(f"a {n_bands}-band table needs its bands (the index bands are four)")
@@ -148,8 +151,12 @@ class LookupModel(nn.Module):
         width = (dom[:, 1] - dom[:, 0]).clamp_min(1e-6)
         self.register_buffer("cfg_lo", dom[:, 0].clone())
         self.register_buffer("cfg_inv", torch.tensor(self.config_counts, dtype=torch.float32) / width)
-        self.register_buffer("lo", torch.zeros(n_bands) if lo is None else torch.as_tensor(lo, dtype=torch.float32))
-        self.register_buffer("inv", torch.ones(n_bands) if inv is None else torch.as_tensor(inv, dtype=torch.float32))
+        #: each axis's cell width, 2^shift coordinate units (``grid``), and its first cell, in those widths
+        self.register_buffer("shift", torch.full((n_bands,), 20, dtype=torch.int32))
+        self.register_buffer("lo", torch.zeros(n_bands, dtype=torch.int32))
+        self.lo[0] = 127 * OCTAVE >> 20  # the brightness from reflectance 1 (until ``set_range``)
+        #: the reference band (``grid``): the brightness axis, and the band every log ratio chains towards
+        self.ref = n_bands - 1
         self.register_buffer("levels", torch.zeros(math.prod(self.config_counts), bins ** n_bands, dtype=torch.uint8))
         self.register_buffer("threshold", torch.tensor(255, dtype=torch.int32))
         #: the lowest threshold any calibration may set: even odds, and the earthlib train budget (``train``)
@@ -161,16 +168,25 @@ class LookupModel(nn.Module):
         """The table slice (N,) of configurations (N, k)."""
         return config_bins(config.float(), self.cfg_lo, self.cfg_inv, self.config_counts)
 
+    def set_range(self, ref: int, shift: Sequence[int], lo: Sequence[int]) -> None:
+        """Set the reference band, each axis's cell width (2^shift units) and first cell; ``ValueError`` for a
+        geometry in which a band at 0 would not land in an edge cell (``grid.check_geometry``)."""
+        if not 0 <= ref < self.n_bands:
+            raise ValueError(f"the reference band must lie in [0, {self.n_bands}), got {ref}")
+        check_geometry(shift, lo, self.bins)
+        self.ref = int(ref)
+        self.shift.copy_(torch.as_tensor(shift, dtype=torch.int32))
+        self.lo.copy_(torch.as_tensor(lo, dtype=torch.int32))
+
     def cells_of(self, R: torch.Tensor) -> torch.Tensor:
         """The cell (N,) of reflectance (N, n) (float32, as every backend computes it)."""
-        return cells(coordinates(R.float()), self.lo, self.inv, self.bins)
+        return cells(coordinates(R.float(), self.ref), self.shift, self.lo, self.bins)
 
     @torch.no_grad()
     def level(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
-        """The table level (N,) int32 of each pixel (0 where its coordinates are undefined)."""
+        """The table level (N,) int32 of each pixel (a pixel with a band at 0 lands in an edge cell: level 0)."""
         R, config = torch.as_tensor(R, dtype=torch.float32), torch.as_tensor(config, dtype=torch.float32)
-        lv = self.levels[self.slices(config), self.cells_of(R)].int()
-        return torch.where(valid(R), lv, torch.zeros_like(lv))
+        return self.levels[self.slices(config), self.cells_of(R)].int()
 
     @torch.no_grad()
     def decide(self, R: torch.Tensor, config: torch.Tensor) -> torch.Tensor:
@@ -189,10 +205,10 @@ class LookupModel(nn.Module):
                                     self.n_bands)
 
     def grid_json(self) -> str:
-        """The table's geometry as JSON (bins, lo, inv, config lo/inv/counts): the onboard head's parameters."""
+        """The table's geometry as JSON (bins, shift, lo, config lo/inv/counts): the onboard head's parameters."""
         f32 = lambda t: [float(v) for v in t.float().tolist()]  # noqa: E731  (float32 values, exact in JSON)
-        return json.dumps({"coordinates": COORDINATES, "bins": self.bins, "n_bands": self.n_bands, "lo": f32(self.lo),
-                           "inv": f32(self.inv),
+        return json.dumps({"coordinates": COORDINATES, "bins": self.bins, "n_bands": self.n_bands, "ref": self.ref,
+                           "shift": [int(v) for v in self.shift], "lo": [int(v) for v in self.lo],
                            "cfg_lo": f32(self.cfg_lo), "cfg_inv": f32(self.cfg_inv),
                            "config_counts": list(self.config_counts)})
 
@@ -205,7 +221,7 @@ class LookupModel(nn.Module):
         small = {k: v for k, v in self.state_dict().items() if k != "levels"}
         return {"state_dict": small, "levels_xz": _pack(self.levels.contiguous().numpy().tobytes()), "features": list(self.features),
                 "n_bands": self.n_bands, "bins": self.bins, "config_counts": list(self.config_counts),
-                "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs,
+                "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs, "ref": self.ref,
                 "coordinates": COORDINATES, "bands": self.bands.to_json(), "meta": meta}
 
     @classmethod
@@ -229,6 +245,7 @@ class LookupModel(nn.Module):
             raise ValueError(f"its table or learner is damaged ({e})") from None
         m.load_state_dict(state)
         m.config_inputs = bool(ck.get("config_inputs", True))
+        m.ref = int(ck.get("ref", m.n_bands - 1))
         return m.eval()
 
     def calibrate_to_budget(self, data: CalibrationData, scene_budget: float, pfa_budget: float,
@@ -259,38 +276,66 @@ class LookupModel(nn.Module):
 class LookupDetector(nn.Module):
     """``detector.onnx`` for a ``LookupModel``: cube (B, n, H, W) + configuration (B, k) -> mask and score
     (B, H, W), score 1 (skin) or 0. Per frame the configuration picks a table slice; per pixel the coordinates
-    pick a cell, whose bit (the calibrated table, ``LookupModel.mask_bits``) is the decision."""
+    pick a cell, whose bit (the calibrated table, ``LookupModel.mask_bits``) is the decision.
+
+    The graph has no bit cast (not before ONNX opset 26), so it computes each band's float32 bit pattern from its
+    value (``float_bits``: exponent from a logarithm, corrected against exact powers of two, and mantissa), exactly:
+    every pixel lands in the cell the torch model and the onboard head (which reads the bits) give it."""
 
     bits: torch.Tensor
     pow2: torch.Tensor
+    exp2: torch.Tensor
+    scale: torch.Tensor
     lo: torch.Tensor
-    inv: torch.Tensor
     cfg_lo: torch.Tensor
     cfg_inv: torch.Tensor
-    off: torch.Tensor
 
     def __init__(self, model: LookupModel):
         super().__init__()
         self.n, self.bins, self.counts = model.n_bands, model.bins, model.config_counts
         self.cells = model.bins ** model.n_bands
+        self.band, self.towards = ratio_pairs(model.n_bands, model.ref)
         self.register_buffer("bits", model.mask_bits())
         self.register_buffer("pow2", torch.tensor([1, 2, 4, 8, 16, 32, 64, 128], dtype=torch.int32))
-        for name in ("lo", "inv", "cfg_lo", "cfg_inv"):
+        #: 2^k for k = -127 .. 128 (2^128: inf), exact in float32
+        self.register_buffer("exp2", torch.exp2(torch.arange(-127, 129, dtype=torch.float64)).float())
+        self.register_buffer("scale", torch.exp2(-model.shift.double()).reshape(-1, 1))  # (n, 1): 2^-shift
+        self.register_buffer("lo", model.lo.double().reshape(-1, 1))
+        for name in ("cfg_lo", "cfg_inv"):
             self.register_buffer(name, getattr(model, name).clone())
-        self.register_buffer("off", offsets(model.lo, model.inv))
+
+    def float_bits(self, x: torch.Tensor) -> torch.Tensor:
+        """The float32 bit pattern (int64) of ``x`` (float32) computed with float operations, exactly for finite
+        x >= 0 below 2^64. NaN and negative values give 0 (they, like 0, land in an edge cell either way), larger
+        values 2^64's pattern (beyond every brightness axis)."""
+        x = torch.where(x > 0, x, torch.zeros_like(x)).clamp(max=2.0 ** 64)  # NaN > 0 is false
+        tiny = 2.0 ** -126
+        xn = x.clamp(min=tiny)
+        e = torch.floor(torch.log2(xn)).clamp(-126, 64)  # within one of the exponent
+        p = self.exp2[(e + 127).long()]
+        e = e - (xn < p).float() + (xn >= 2 * p).float()
+        m = xn / self.exp2[(e + 127).long()]  # [1, 2): exact, a division by a power of two
+        normal = (e.long() + 127) * OCTAVE + ((m - 1) * OCTAVE).long()
+        sub = (x * 2.0 ** 126 * OCTAVE).long()  # below 2^-126: the pattern is x / 2^-149
+        return torch.where(x >= tiny, normal, sub)
 
     def forward(self, cube: torch.Tensor, config: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mask and score (B, H, W) of a reflectance cube (B, n, H, W) under configurations (B, k)."""
         B, n, H, W = cube.shape
-        x = cube.reshape(B, n, H * W).transpose(1, 2)  # (B, HW, n)
-        cell = cells(coordinates(x), self.lo, self.inv, self.bins, self.off)  # (B, HW)
+        b = self.float_bits(cube.reshape(B, n, H * W))  # (B, n, HW)
+        V = torch.cat([b[:, self.band[:1]], b[:, self.band[1:]] - b[:, self.towards[1:]]], 1).double()  # ``grid``
+        q = torch.floor(V * self.scale)  # exact: below 2^53, times a power of two
+        q = torch.minimum(torch.maximum(q, self.lo), self.lo + (self.bins - 1)) - self.lo
+        cell = q[:, 0]
+        for k in range(1, n):
+            cell = cell * self.bins + q[:, k]
         slice_ = config_bins(config, self.cfg_lo, self.cfg_inv, self.counts)  # (B,)
-        flat = slice_[:, None] * self.cells + cell
+        flat = slice_[:, None] * self.cells + cell.long()
         byte = self.bits[torch.div(flat, 8, rounding_mode="floor")].to(torch.int32)
         bit = torch.remainder(torch.div(byte, self.pow2[torch.remainder(flat, 8)], rounding_mode="floor"), 2)
-        mask = (bit > 0) & valid(x)
+        mask = bit > 0
         score = mask.float()
         return mask.reshape(B, H, W), score.reshape(B, H, W)
 
 
-__all__ = ["CONFIG_BINS", "config_counts_of", "EVEN_ODDS_LEVEL", "LEVELS_PER_LOGIT", "LookupDetector", "LookupModel", "to_levels"]
+__all__ = ["CONFIG_BINS", "EARTHLIB_MARGIN", "config_counts_of", "EVEN_ODDS_LEVEL", "LEVELS_PER_LOGIT", "LookupDetector", "LookupModel", "to_levels"]

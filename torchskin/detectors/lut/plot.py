@@ -23,38 +23,52 @@ CONFIGS = (((20.0, 20.0, 30.0), "high sun, sun behind the camera"),
 
 def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.PathLike,
                 configs: Sequence = CONFIGS) -> None:
-    """Write ``out`` (PNG): for each configuration, the share of the table's (NDVN, brightness) cells that are
-    skin at each (NDGRI, NDSI) cell (grey: the region seen from the plane), and the dataset's sunlit skin pixels
+    """Write ``out`` (PNG): for each configuration, the share of the table's other cells (the 633 / 1080 nm ratio
+    and the brightness) that are skin at each cell of the 544 / 633 nm and 1080 / 1580 nm ratios, drawn in the
+    (NDGRI, NDSI) plane (grey: the region seen from the plane), and the dataset's sunlit skin pixels
     of that table slice (``elm_valid`` frames) coloured by θi; the thesis's static box for scale."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ...bands import grid_offsets
+    from ...bands import ratio_pairs
     from ...dataset.files import read_rows
-    from ...detect import DEFAULT_BOX
+    from ...detect import DEFAULT_BOX, ratio_indices
     from ...io import atomic_path
     from ..features import BAND_COLUMNS, FEATURES, feature_columns, stack_features
-    from .grid import coordinates
+    from .grid import OCTAVE
     rows = read_rows(data_dir, [*feature_columns(model.features), *BAND_COLUMNS, "label", "shadow", "theta_i_deg"],
                      "physical")
     R = torch.from_numpy(rows.bands(np.float32))
     X = torch.from_numpy(stack_features(rows, model.features))
     lit = torch.from_numpy(rows["label"].astype(bool) & ~rows["shadow"].astype(bool))
     slices = model.slices(X)
-    U = 2 * coordinates(R) - 1  # shares as normalized differences: NDGRI, NDSI
+    U = torch.stack(ratio_indices(R)[:2], 1)  # NDGRI, NDSI
     theta = rows["theta_i_deg"]
     b = model.bins
-    off = grid_offsets(model.lo[:2].tolist(), model.inv[:2].tolist())
-    edges = [(2 * (off[k] + torch.arange(b + 1, dtype=torch.float64)) / float(model.inv[k]) - 1).numpy()
-             for k in range(2)]
+    band, towards = ratio_pairs(model.n_bands, model.ref)
+    # the table's axes of the 544 / 633 nm and 1080 / 1580 nm ratios, each cell edge as a normalized difference
+    # (at its nominal log2 ratio: the bits' piecewise-linear log2 is within 0.09 octave of it)
+    plane, edges, flip = [], [], []
+    for pair in ((0, 1), (2, 3)):
+        k = next(k for k in range(1, model.n_bands) if {band[k], towards[k]} == set(pair))
+        sign = 1.0 if band[k] < towards[k] else -1.0  # log2 of the shorter band's over the longer's
+        d = sign * (float(model.lo[k]) + torch.arange(b + 1, dtype=torch.float64)) * 2.0 ** int(model.shift[k]) / OCTAVE
+        e = ((2 ** d - 1) / (2 ** d + 1)).numpy()
+        plane.append(k)
+        flip.append(sign < 0)
+        edges.append(e[::-1].copy() if sign < 0 else e)
     fig, axes = plt.subplots(1, len(configs), figsize=(3.6 * len(configs) + 1, 4.4), sharey=True,
                              layout="constrained")
     sc = None
     for ax, (cfg, title) in zip(np.atleast_1d(axes), configs):
         s = _slice_of(model, cfg, X, slices, FEATURES)
-        on = (model.levels[s] >= model.threshold.to(torch.uint8)).reshape(b, b, b * b).float().mean(-1)
+        grid = (model.levels[s] >= model.threshold.to(torch.uint8)).reshape((b,) * model.n_bands).float()
+        rest = [k for k in range(model.n_bands) if k not in plane]
+        on = grid.permute(*plane, *rest).reshape(b, b, -1).mean(-1)
+        for axis, f in enumerate(flip):
+            on = on.flip(axis) if f else on
         ax.pcolormesh(edges[0], edges[1], on.T.numpy(), cmap="Greys", vmin=0, vmax=0.5, shading="flat")
         m = (lit & (slices == s)).numpy()
         hit = model.decide(R[m], X[m]).numpy() if m.any() else np.zeros(0, dtype=bool)
@@ -73,8 +87,8 @@ def region_plot(model: LookupModel, data_dir: str | os.PathLike, out: str | os.P
     np.atleast_1d(axes)[0].legend(loc="lower left", fontsize=8)
     if sc is not None:
         fig.colorbar(sc, ax=axes, shrink=0.85, label="sunlit skin: local incidence θi (deg)")
-    fig.suptitle("The lookup table's region seen from the index plane (grey: share of its NDVN x brightness cells "
-                 "that are skin) and the test set's sunlit skin", fontsize=10)
+    fig.suptitle("The lookup table's region seen from the index plane (grey: share of its other two axes' cells "
+                 "that are skin: 633 / 1080 nm and brightness) and the test set's sunlit skin", fontsize=10)
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)

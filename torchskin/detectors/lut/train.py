@@ -36,8 +36,8 @@ from ..features import (
     feature_columns,
     stack_features,
 )
-from .grid import cell_centres, coordinates, reflectance_of
-from .model import EVEN_ODDS_LEVEL, LookupModel, to_levels
+from .grid import bits, cell_centres, coordinates, reflectance_of
+from .model import EARTHLIB_MARGIN, EVEN_ODDS_LEVEL, LookupModel, to_levels
 
 #: the learner's settings (LightGBM; ``trees`` rounds): one setting, not tuned per dataset. No row bagging: with it
 #: the training seed moved the results more than issue 40 allows (docs/benchmarks.md). ``max_delta_step`` and
@@ -91,21 +91,27 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
     return RC, XC, min(1.0, nonskin / m)
 
 
-def table_range(R_skin: torch.Tensor, bins: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The table's (lo, inv) per coordinate axis (float32): the training skin's coordinates between the
-    ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE`` quantiles, widened by two cells on each side, with ``lo`` moved
-    down to a whole number of cells from 0 (``bands.grid_offsets``) and never more than one cell below 0: an axis
-    that reaches 0 keeps its edge cell (never skin) below every share, so that its first share cell can hold skin
-    (the darkest skin on the brightness axis)."""
-    U = coordinates(R_skin.double())
-    U = U[torch.isfinite(U).all(1)]
+def table_range(R_skin: torch.Tensor, bins: int) -> tuple[int, list[int], list[int]]:
+    """The table's reference band and (shift, lo) per coordinate axis (``grid``). The reference (the brightness
+    axis) is the band whose log the training skin spreads least over. Each axis's cell width is the smallest power of
+    two (2^shift units) at which the skin's coordinates between the ``RANGE_QUANTILE`` and 1 - ``RANGE_QUANTILE``
+    quantiles span at most ``bins - 5`` cells; ``lo`` puts two cells below them (one, and ``bins - 3`` cells, for
+    fewer than 9 bins). The skin then lies off the edge cells (never skin) on both sides."""
+    R_skin = R_skin.float()
+    R_skin = R_skin[(R_skin > 0).all(1)]
+    pick = torch.randperm(len(R_skin), generator=torch.Generator().manual_seed(0))[:1 << 22]  # torch.quantile's limit
     q = torch.tensor([RANGE_QUANTILE, 1 - RANGE_QUANTILE], dtype=torch.float64)
-    pick = torch.randperm(len(U), generator=torch.Generator().manual_seed(0))[:1 << 22]  # torch.quantile's limit
-    lo, hi = torch.quantile(U[pick], q, dim=0)
-    step = (hi - lo).clamp_min(1e-6) / (bins - 4)
-    lo, hi = lo - 2 * step, hi + 2 * step
-    inv = (bins / (hi - lo)).float()
-    return (torch.floor(lo * inv.double()).clamp_min(-1.0) / inv.double()).float(), inv
+    lo, hi = torch.quantile(bits(R_skin[pick]).double(), q, dim=0)
+    ref = int(torch.argmin(hi - lo))
+    lo, hi = torch.quantile(coordinates(R_skin[pick], ref).double(), q, dim=0)  # exact: below 2^53
+    below = 2 if bins >= 9 else 1  # cells below the skin's range, the edge cell included
+    span = max(1, bins - 2 * below - 1)  # floor(hi / w) - floor(lo / w) <= span + 1: the last cell stays free
+    shift, first = [], []
+    for a, b in zip(lo.tolist(), hi.tolist()):
+        s = max(0, math.ceil(math.log2(max(b - a, 1.0) / span)))
+        shift.append(s)
+        first.append(math.floor(a / 2 ** s) - below)
+    return ref, shift, first
 
 
 def earthlib_cells(model: LookupModel, spectra: torch.Tensor, margin: int) -> torch.Tensor:
@@ -168,7 +174,7 @@ def bake(model: LookupModel, predict: Any, where: torch.Tensor) -> None:
     features (N, f) -> raw score (N,)) at each cell's centre under each slice's central configuration; 0 elsewhere
     and where the score is below even odds (no threshold goes there: ``LookupModel.floor_level``)."""
     idx = torch.nonzero(where).squeeze(1)
-    R = reflectance_of(cell_centres(model.lo, model.inv, model.bins)[idx]).numpy()
+    R = reflectance_of(cell_centres(model.shift, model.lo, model.bins)[idx], model.ref).numpy()
     model.levels.zero_()
     for s, cfg in enumerate(slice_centres(model).numpy()):
         X = np.broadcast_to(cfg, (len(R), len(cfg)))[:, :len(cfg) if model.config_inputs else 0]
@@ -203,7 +209,7 @@ def tune_threshold(model: LookupModel, spectra: torch.Tensor, pfa_budget: float,
 
 
 def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, features: Sequence[str] = FEATURES,
-          bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = 1,
+          bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = EARTHLIB_MARGIN,
           max_rows: int = 3_000_000,
           pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
           configuration: bool = True, bands: BandSet | None = None) -> tuple[LookupModel, dict]:
@@ -238,9 +244,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
                         **({} if configuration else {"config_counts": (1,) * X.shape[1]}))
     model.config_inputs = bool(configuration)
     k = X.shape[1] if configuration else 0  # the configuration columns the learner takes
-    lo, inv = table_range(skin_all, bins)
-    model.lo.copy_(lo)
-    model.inv.copy_(inv)
+    model.set_range(*table_range(skin_all, bins))
     C = earthlib_reflectance("train", model.bands.centers)
     RC, XC, wc = earthlib_negatives(C, model.domain, len(R), int((~label).sum()), g)
     m = len(RC)
@@ -292,7 +296,7 @@ def default_bins(n_bands: int) -> int:
 
 
 def check_options(bins: int, trees: int, support_dilation: int, max_rows: int, n_bands: int = 4,
-                  earthlib_margin: int = 1) -> None:
+                  earthlib_margin: int = EARTHLIB_MARGIN) -> None:
     """``ValueError`` naming the ``torchskin train`` flag for a table or learner setting out of range, before any
     row is read."""
     if n_bands < 2:
@@ -361,6 +365,6 @@ def bins_text(model: LookupModel) -> str:
     return f"{model.bins}^{model.n_bands} cells"
 
 
-__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "earthlib_negatives", "bake", "check_options", "learn", "learner_features", "load_rows",
+__all__ = ["EARTHLIB_DRAWS", "EARTHLIB_MARGIN", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "earthlib_negatives", "bake", "check_options", "learn", "learner_features", "load_rows",
            "slice_centres",
            "support", "table_range", "train_on_dataset", "tune_threshold"]
