@@ -4,6 +4,7 @@ only (no torch)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -21,6 +22,8 @@ from .heads import FLOOR_BAND, detector_head
 if TYPE_CHECKING:
     from concurrent.futures import ThreadPoolExecutor
 
+    import onnxruntime as ort
+
     from .lut import LutHead
 
 #: the shipped detector, packaged with torchskin (a copy of the repository's ``exports/detector.onnx``, made by
@@ -30,22 +33,39 @@ SHIPPED_DETECTOR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
                                 "detector.onnx")
 
 
+def _session(path: str) -> ort.InferenceSession:
+    """The onnxruntime session of the graph at ``path``: one intra- and inter-op thread (frames are split into tiles
+    that run on the detector's workers instead). Detectors of one unchanged file share a session (onnxruntime's
+    ``run`` is thread-safe; each worker binds its own buffers): loading a 38 MB lookup table costs ~0.06 s."""
+    import onnxruntime  # noqa: F401  (a missing package is named as such: errors.EXTRAS, not a model error)
+
+    try:
+        st = os.stat(path)
+        return _cached_session(os.path.abspath(path), st.st_mtime_ns, st.st_size)
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise ValueError(f"cannot load ONNX model {path!r}: {e}") from None
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_session(path: str, mtime_ns: int, size: int) -> ort.InferenceSession:
+    """``_session`` of one version of a file (its absolute path, modification time and size)."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.inter_op_num_threads = 1
+    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+
+
 class _Model:
     KIND = "torchskin"
     IO: tuple[set, set] = (set(), set())
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None):
-        import onnxruntime as ort
 
         self.path = str(path)
         self.threads = max(1, int(threads or min(os.cpu_count() or 1, 8)))
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = 1  # frames are split into tiles that run on ``threads`` workers instead
-        so.inter_op_num_threads = 1
-        try:
-            self.session = ort.InferenceSession(self.path, so, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types
-            raise ValueError(f"cannot load ONNX model {self.path!r}: {e}") from None
+        self.session = _session(self.path)
         names = ({i.name for i in self.session.get_inputs()}, {o.name for o in self.session.get_outputs()})
         if names != self.IO:
             want = f"inputs {sorted(self.IO[0])} and outputs {sorted(self.IO[1])}"
