@@ -289,10 +289,10 @@ def bench_dataset(compile: bool = False, width: int = 256, height: int = 256, gr
 
 
 def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
-    """The shipped detector (``torchskin/data/detector.onnx``: the five edge forms of the box model with the NDVN
-    rule, and its brightness floor, ``min_reflectance`` in its metadata) through ``torchskin.onboard`` with
-    onnxruntime's CPU provider on a 1024 x 1024 x 4 float32 frame (uniform reflectance 0.02-0.62, seed 0; the
-    share of it the boxes take is reported), a single box query (a default ``BoxModel`` from seed 0,
+    """The shipped detector (``torchskin/data/detector.onnx``: the lookup table, run by the onboard numpy head, and
+    its brightness floor, ``min_reflectance`` in its metadata) through ``torchskin.onboard`` on a 1024 x 1024 x 4
+    float32 frame (uniform reflectance 0.02-0.62, seed 0; sun 40 degrees, camera 30, azimuth 60, diffuse share
+    0.2; the share of it the detector takes is reported), a single box query (a default ``BoxModel`` from seed 0,
     exported), and the memory-bound floor: reading the same frame once (numpy sum), in the same run."""
     import tempfile
 
@@ -309,10 +309,12 @@ def bench_detector_onnx(compile: bool = False, repeat: int = 20) -> dict:
         det, bnd = OnboardDetector(), OnboardBoxes(paths["boundaries"])
         rng = np.random.default_rng(0)
         cube = (rng.random((1, 4, 1024, 1024), dtype=np.float32) * 0.6 + 0.02).astype(np.float32)
-        cfg = np.array([[40.0, 30.0, 60.0]])
+        cfg = np.array([[40.0, 30.0, 60.0]])  # the box query's angles
+        frame_cfg = [det.config_row(sun_zenith_deg=40.0, camera_zenith_deg=30.0, relative_azimuth_deg=60.0,
+                                    diffuse_share=0.2)]
         cpu = torch.device("cpu")
-        share = float(det(cube, cfg)["mask"].mean())
-        t_frame = _median_seconds(lambda: det(cube, cfg), cpu, repeat, warmup=3)
+        share = float(det(cube, frame_cfg)["mask"].mean())
+        t_frame = _median_seconds(lambda: det(cube, frame_cfg), cpu, repeat, warmup=3)
         t_query = _median_seconds(lambda: bnd(cfg), cpu, repeat * 10, warmup=10)
         t_read = _median_seconds(lambda: float(cube.sum()), cpu, repeat, warmup=3)
     return {"detector_onnx": {"ms_per_1mp_frame": 1e3 * t_frame, "us_per_boundary_query": 1e6 * t_query,
