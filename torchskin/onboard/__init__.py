@@ -1,11 +1,13 @@
 """Onboard runtime: load the exported ONNX models and run them with numpy and onnxruntime only (no torch).
 
     det = OnboardDetector("exports/detector.onnx")
-    out = det(cube, config)      # cube (B, 4, H, W) float32 reflectance, config (B, k) in the model's units
+    row = det.config_row(sun_zenith_deg=45, camera_zenith_deg=90, relative_azimuth_deg=20, diffuse_share=0.17)
+    out = det(cube, [row])       # cube (B, 4, H, W) float32 reflectance, config (B, k) in det.features
     out["mask"], out["score"], out["out_of_domain"]
 
-``score`` is the smallest margin to a box edge in index units weighted by the band-pair sum (positive inside;
-see ``torchskin.detectors.boxes.BoxDetector``).
+``score`` is 1 inside the region and 0 outside for the shipped lookup table; for a box detector, the smallest
+margin to a box edge in index units weighted by the band-pair sum (positive inside; see
+``torchskin.detectors.boxes.BoxDetector``).
 
 Inputs are validated: wrong rank, band count or dtype, NaN or negative reflectance, and values far outside
 [0, 1.2] (below ``REFLECTANCE_MIN``, above ``REFLECTANCE_MAX`` in more than ``REFLECTANCE_MAX_SHARE`` of the
