@@ -52,21 +52,32 @@ def coordinates(R: torch.Tensor, ref: int = -1) -> torch.Tensor:
     """The n table coordinates (..., n) int64 of reflectance ``R`` (..., n): the reference band ``ref``'s bits (the
     brightness), then for every other band in order its bits less those of its neighbour towards ``ref`` (``ratio
     pairs``)."""
-    b = bits(R)
-    n = b.shape[-1]
-    band, towards = ratio_pairs(n, ref)
-    return torch.cat([b[..., band[:1]], b[..., band[1:]] - b[..., towards[1:]]], -1)
+    return chain(bits(R), ref)
+
+
+def chain(b: torch.Tensor, ref: int = -1, dim: int = -1) -> torch.Tensor:
+    """``coordinates`` of bit patterns ``b`` whose bands lie along ``dim``: the reference band's, then each other
+    band's less its neighbour's towards ``ref``, along ``dim``."""
+    band, towards = ratio_pairs(b.shape[dim], ref)
+    at = (slice(None),) * (dim % b.ndim)
+    return torch.cat([b[at + (band[:1],)], b[at + (band[1:],)] - b[at + (towards[1:],)]], dim)
 
 
 def cells(V: torch.Tensor, shift: torch.Tensor, lo: torch.Tensor, bins: int) -> torch.Tensor:
     """The flat cell index (...,) int64 of coordinates ``V`` (..., n) on ``bins`` cells per axis of 2^shift units
     from the cell ``lo`` (n,): per axis floor(v / 2^shift) - lo, clipped to [0, bins - 1], axis 0 slowest."""
-    lo = lo.long().to(V.device)
     q = torch.bitwise_right_shift(V, shift.long().to(V.device))  # an arithmetic shift: the floor
+    return flat_index(q, lo.long().to(V.device), bins)
+
+
+def flat_index(q: torch.Tensor, lo: torch.Tensor, bins: int, dim: int = -1) -> torch.Tensor:
+    """The flat cell index of per-axis cells ``q`` (axes along ``dim``; any integer-valued dtype, kept): each
+    clipped to [lo, lo + bins - 1] (``lo`` broadcast against ``q``) less ``lo``, the first axis slowest."""
     q = torch.minimum(torch.maximum(q, lo), lo + (bins - 1)) - lo
-    idx = q[..., 0]
-    for k in range(1, q.shape[-1]):
-        idx = idx * bins + q[..., k]
+    at = (slice(None),) * (dim % q.ndim)
+    idx = q[at + (0,)]
+    for k in range(1, q.shape[dim]):
+        idx = idx * bins + q[at + (k,)]
     return idx
 
 
@@ -134,4 +145,4 @@ def config_bins(X: torch.Tensor, lo: torch.Tensor, inv: torch.Tensor, counts: Se
 
 
 __all__ = ["COORDINATES", "OCTAVE", "RATIO_REACH_OCTAVES", "axis_centres", "bits", "cell_centres", "cells",
-           "check_geometry", "config_bins", "coordinates", "from_bits", "ratio_pairs", "reflectance_of"]
+           "chain", "check_geometry", "config_bins", "coordinates", "flat_index", "from_bits", "reflectance_of"]

@@ -17,7 +17,7 @@ from ...bands import INDEX_BANDS, INDEX_BANDS_NM, BandSet
 from ..features import DIFFUSE_SHARE, FEATURES, config_buffers
 from ..graphs import torch_detector_graph
 from ..protocol import KindOption, PipelineRun
-from .grid import COORDINATES, OCTAVE, cells, check_geometry, config_bins, coordinates, ratio_pairs
+from .grid import COORDINATES, OCTAVE, cells, chain, check_geometry, config_bins, coordinates, flat_index
 
 if TYPE_CHECKING:
     import onnx
@@ -294,7 +294,7 @@ class LookupDetector(nn.Module):
         super().__init__()
         self.n, self.bins, self.counts = model.n_bands, model.bins, model.config_counts
         self.cells = model.bins ** model.n_bands
-        self.band, self.towards = ratio_pairs(model.n_bands, model.ref)
+        self.ref = model.ref
         self.register_buffer("bits", model.mask_bits())
         self.register_buffer("pow2", torch.tensor([1, 2, 4, 8, 16, 32, 64, 128], dtype=torch.int32))
         #: 2^k for k = -127 .. 128 (2^128: inf), exact in float32
@@ -323,12 +323,9 @@ class LookupDetector(nn.Module):
         """Mask and score (B, H, W) of a reflectance cube (B, n, H, W) under configurations (B, k)."""
         B, n, H, W = cube.shape
         b = self.float_bits(cube.reshape(B, n, H * W))  # (B, n, HW)
-        V = torch.cat([b[:, self.band[:1]], b[:, self.band[1:]] - b[:, self.towards[1:]]], 1).double()  # ``grid``
+        V = chain(b, self.ref, dim=1).double()  # the coordinates (``grid``), bands along axis 1
         q = torch.floor(V * self.scale)  # exact: below 2^53, times a power of two
-        q = torch.minimum(torch.maximum(q, self.lo), self.lo + (self.bins - 1)) - self.lo
-        cell = q[:, 0]
-        for k in range(1, n):
-            cell = cell * self.bins + q[:, k]
+        cell = flat_index(q, self.lo, self.bins, dim=1)
         slice_ = config_bins(config, self.cfg_lo, self.cfg_inv, self.counts)  # (B,)
         flat = slice_[:, None] * self.cells + cell.long()
         byte = self.bits[torch.div(flat, 8, rounding_mode="floor")].to(torch.int32)
