@@ -25,7 +25,17 @@ from torchskin.detectors.lut.grid import (
     reflectance_of,
 )
 from torchskin.detectors.lut.model import EVEN_ODDS_LEVEL, to_levels
-from torchskin.detectors.lut.train import bake, learn, learner_features, slice_centres, support, tune_threshold
+from torchskin.detectors.lut.train import (
+    EARTHLIB_SCALE,
+    ENSEMBLE,
+    bake,
+    earthlib_negatives,
+    learn,
+    learner_features,
+    slice_centres,
+    support,
+    tune_threshold,
+)
 from torchskin.detectors.protocol import CalibrationData
 
 pytest.importorskip("lightgbm")
@@ -186,13 +196,14 @@ def test_training_is_reproducible_to_the_byte(lut_model, tiny_dataset):
 
 def test_a_checkpoint_round_trips(lut_model, tmp_path):
     model, ck = registry.load(lut_model / "lut.pt")
-    assert ck["kind"] == "lut" and isinstance(model, LookupModel) and model.booster.startswith("tree")
+    assert ck["kind"] == "lut" and isinstance(model, LookupModel)
+    assert len(model.boosters) == ENSEMBLE and all(b.startswith("tree") for b in model.boosters)
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     registry.save(model, tmp_path / "a" / "lut.pt", ck["meta"])  # (torch names the archive after the file)
     again, ck2 = registry.load(tmp_path / "a" / "lut.pt")
     assert torch.equal(again.levels, model.levels) and int(again.threshold) == int(model.threshold)
-    assert again.booster == model.booster and again.grid_json() == model.grid_json()
+    assert again.boosters == model.boosters and again.grid_json() == model.grid_json()
     registry.save(again, tmp_path / "b" / "lut.pt", ck2["meta"])
     assert (tmp_path / "b" / "lut.pt").read_bytes() == (tmp_path / "a" / "lut.pt").read_bytes()
 
@@ -257,6 +268,23 @@ def test_the_learner_sees_every_normalized_difference():
     assert f.shape == (1, 4 + 6 + 1 + 3)
     np.testing.assert_allclose(f[0, 4:10], [0.5, 1.0, 1.0, 1.0, 1.0, 0.0])  # a + b = 0: 0
     assert math.isclose(f[0, 10], math.log(0.4)) and f[0, 11:].tolist() == [10.0, 20.0, 30.0]
+
+
+def test_each_earthlib_spectrum_covers_every_stratum_of_configuration_and_brightness_once():
+    C = torch.rand(7, 4, generator=torch.Generator().manual_seed(1)) * 0.5 + 0.1
+    domain = torch.tensor([[0.0, 80.0], [0.0, 60.0], [0.0, 180.0]])
+    draws = 20
+    RC, XC, w = earthlib_negatives(C, domain, rows=7 * draws, nonskin=35, g=torch.Generator().manual_seed(3))
+    assert RC.shape == (7 * draws, 4) and XC.shape == (7 * draws, 3) and w == 35 / (7 * draws)
+    scale = (RC / C.repeat(draws, 1)).view(draws, 7, 4)
+    assert torch.allclose(scale, scale[..., :1].expand_as(scale), rtol=1e-5)  # one factor on all bands of a draw
+    a, b = EARTHLIB_SCALE
+    u = torch.cat([((XC - domain[:, 0]) / (domain[:, 1] - domain[:, 0])).view(draws, 7, 3),
+                   (torch.log(scale[..., :1].double()) - math.log(a)) / math.log(b / a)], -1)
+    strata = torch.floor(u.double().clamp(1e-9, 1 - 1e-9) * draws)
+    assert torch.equal(strata.sort(0).values, torch.arange(draws, dtype=strata.dtype)[:, None, None].expand_as(strata))
+    again = earthlib_negatives(C, domain, rows=7 * draws, nonskin=35, g=torch.Generator().manual_seed(3))
+    assert torch.equal(again[0], RC) and torch.equal(again[1], XC)
 
 
 def test_learning_needs_both_classes():

@@ -161,7 +161,7 @@ class LookupModel(nn.Module):
         self.register_buffer("threshold", torch.tensor(255, dtype=torch.int32))
         #: the lowest threshold any calibration may set: even odds, and the earthlib train budget (``train``)
         self.register_buffer("floor_level", torch.tensor(EVEN_ODDS_LEVEL, dtype=torch.int32))
-        self.booster = ""  # the learner's model (LightGBM text) the table was baked from, "" when unknown
+        self.boosters: list[str] = []  # the learners (LightGBM text) whose mean score the table holds, [] when unknown
         self.config_inputs = True  # whether the learner took the configuration (``--no-configuration``: not)
 
     def slices(self, config: torch.Tensor) -> torch.Tensor:
@@ -221,7 +221,7 @@ class LookupModel(nn.Module):
         small = {k: v for k, v in self.state_dict().items() if k != "levels"}
         return {"state_dict": small, "levels_xz": _pack(self.levels.contiguous().numpy().tobytes()), "features": list(self.features),
                 "n_bands": self.n_bands, "bins": self.bins, "config_counts": list(self.config_counts),
-                "booster_xz": _pack(self.booster.encode()), "config_inputs": self.config_inputs, "ref": self.ref,
+                "booster_xz": _pack(json.dumps(self.boosters).encode()), "config_inputs": self.config_inputs, "ref": self.ref,
                 "coordinates": COORDINATES, "bands": self.bands.to_json(), "meta": meta}
 
     @classmethod
@@ -240,8 +240,9 @@ class LookupModel(nn.Module):
         state = dict(ck["state_dict"])
         try:
             state["levels"] = _unpack(ck["levels_xz"], np.uint8, m.levels.shape)
-            m.booster = lzma.decompress(ck["booster_xz"].numpy().tobytes()).decode()
-        except (lzma.LZMAError, ValueError, UnicodeDecodeError) as e:
+            text = lzma.decompress(ck["booster_xz"].numpy().tobytes()).decode()
+            m.boosters = json.loads(text) if text.startswith("[") else [text] if text else []  # one, before ensembles
+        except (lzma.LZMAError, ValueError, UnicodeDecodeError) as e:  # json's errors are ValueErrors
             raise ValueError(f"its table or learner is damaged ({e})") from None
         m.load_state_dict(state)
         m.config_inputs = bool(ck.get("config_inputs", True))
