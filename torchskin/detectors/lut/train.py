@@ -87,8 +87,9 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
                        g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, float]:
     """The learner's earthlib negatives: the spectra ``C`` (m, n) drawn ``EARTHLIB_DRAWS`` times at most (about
     ``rows`` rows in all), each under a random configuration of ``domain`` (k, 2) and a random brightness
-    (``EARTHLIB_SCALE``, log-uniform), from ``g``: a Latin hypercube of draws per spectrum. Returns reflectance, configuration and the weight of each: all
-    together they weigh at most as much as the dataset's ``nonskin`` pixels."""
+    (``EARTHLIB_SCALE``, log-uniform), from ``g``: a Latin hypercube of draws per spectrum. Returns reflectance,
+    configuration and the weight of each: all together they weigh at most as much as the dataset's ``nonskin``
+    pixels."""
     lo_c, hi_c = domain[:, 0], domain[:, 1]
     draws = min(EARTHLIB_DRAWS, max(1, round(rows / len(C))))
     m = len(C) * draws
@@ -276,7 +277,8 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
         w = np.concatenate([np.ones(len(R)), np.full(len(RC), wc)])
         return lgb.train(params, lgb.Dataset(F, y, weight=w, free_raw_data=True), num_boost_round=int(trees))
 
-    draws = [earthlib_negatives(C, model.domain, len(R), int((~label).sum()), g) for _ in range(ensemble)]
+    nonskin = int((~label).sum())
+    draws = [earthlib_negatives(C, model.domain, len(R), nonskin, g) for _ in range(ensemble)]
     # each learner runs on one thread (the same trees on any CPU); the ensemble's learners run side by side
     with ThreadPoolExecutor(max_workers=min(ensemble, os.cpu_count() or 1)) as pool:
         boosters = list(pool.map(fit, draws))
@@ -295,7 +297,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
     model.eval()
     with torch.no_grad():
         hit = model.decide(R_all, X_all)
-    rows, nonskin_rows = int(label.sum()), int((~label).sum())  # the learner's draw
+    rows, nonskin_rows = int(label.sum()), nonskin  # the learner's draw
     label, judged = label_all, judged_all
     info = {"method": "lut", "rows": rows, "nonskin_rows": nonskin_rows, "threshold": thr,
             "floor_level": int(model.floor_level),
