@@ -13,6 +13,7 @@ import torch
 from torchskin.bands import BandSet
 from torchskin.cli import main
 from torchskin.detectors import registry
+from torchskin.detectors.features import DIFFUSE_SHARE, FEATURES
 from torchskin.detectors.lut import LookupModel
 from torchskin.detectors.lut.grid import (
     OCTAVE,
@@ -28,12 +29,16 @@ from torchskin.detectors.lut.model import EVEN_ODDS_LEVEL, to_levels
 from torchskin.detectors.lut.train import (
     EARTHLIB_SCALE,
     ENSEMBLE,
+    SHADE_SHARE,
+    SKY_VIEW,
+    Skies,
     bake,
     earthlib_negatives,
     learn,
     learner_features,
     slice_centres,
     support,
+    training_skies,
     tune_threshold,
 )
 from torchskin.detectors.protocol import CalibrationData
@@ -285,6 +290,48 @@ def test_each_earthlib_spectrum_covers_every_stratum_of_configuration_and_bright
     assert torch.equal(strata.sort(0).values, torch.arange(draws, dtype=strata.dtype)[:, None, None].expand_as(strata))
     again = earthlib_negatives(C, domain, rows=7 * draws, nonskin=35, g=torch.Generator().manual_seed(3))
     assert torch.equal(again[0], RC) and torch.equal(again[1], XC)
+
+
+def test_shaded_earthlib_negatives_are_lit_by_the_sky_alone_under_the_training_suns():
+    """With the training suns, each draw takes one sun (zenith and diffuse share together, each sun as often), and
+    half of each spectrum's draws lie in shade: the spectrum times a sky view in SKY_VIEW times that sun's sky share
+    per band. The other half keep one brightness factor on all bands."""
+    C = torch.rand(7, 4, generator=torch.Generator().manual_seed(1)) * 0.5 + 0.1
+    domain = torch.tensor([[0.0, 80.0], [0.0, 60.0], [0.0, 180.0], [0.0, 1.0]])
+    sky = torch.tensor([[0.1, 0.08, 0.04, 0.02], [0.3, 0.25, 0.12, 0.07], [0.6, 0.5, 0.3, 0.2],
+                        [0.8, 0.75, 0.5, 0.4], [0.95, 0.9, 0.8, 0.7]], dtype=torch.float64)
+    skies = Skies(torch.tensor([10.0, 35.0, 55.0, 70.0, 85.0], dtype=torch.float64), sky[:, 0] + 0.001, sky)
+    draws = 20
+    RC, XC, _ = earthlib_negatives(C, domain, rows=7 * draws, nonskin=35, g=torch.Generator().manual_seed(3),
+                                   skies=skies, features=(*FEATURES, DIFFUSE_SHARE))
+    j = torch.searchsorted(skies.zenith_deg.float(), XC[:, 0].contiguous())
+    assert torch.equal(skies.zenith_deg.float()[j], XC[:, 0])  # a training sun's zenith
+    assert torch.equal(skies.diffuse_share.float()[j], XC[:, 3])  # with that sun's diffuse share
+    assert torch.equal(torch.bincount(j.view(draws, 7)[:, 0], minlength=5), torch.full((5,), draws // 5))
+    base = C.repeat(draws, 1).double()
+    shaded = RC.double() / (base * sky[j])
+    flat = RC.double() / base
+    in_shade = torch.isclose(shaded, shaded[:, :1], rtol=1e-5).all(1) & ~torch.isclose(flat, flat[:, :1], rtol=1e-5).all(1)
+    assert torch.equal(in_shade.view(draws, 7).sum(0), torch.full((7,), round(draws * SHADE_SHARE)))
+    lo, hi = SKY_VIEW
+    assert bool(((shaded[in_shade, 0] >= lo - 1e-6) & (shaded[in_shade, 0] <= hi + 1e-6)).all())
+    a, b = EARTHLIB_SCALE
+    assert torch.isclose(flat[~in_shade], flat[~in_shade, :1], rtol=1e-5).all()
+    assert bool(((flat[~in_shade, 0] >= a - 1e-6) & (flat[~in_shade, 0] <= b + 1e-6)).all())
+    # shade tilts every spectrum towards the blue, as its sun's sky does
+    assert torch.allclose(RC[in_shade, 3] / RC[in_shade, 0], (C.repeat(draws, 1)[in_shade, 3] / C.repeat(draws, 1)[
+        in_shade, 0]) * (sky[j[in_shade], 3] / sky[j[in_shade], 0]).float(), rtol=1e-5)
+
+
+def test_the_training_skies_are_the_datasets_suns_and_blue(tiny_dataset):
+    """SPECTRL2 for the dataset's suns, recomputed from their zenith and atmosphere, gives the sky share at 544 nm
+    that the renderer recorded (the diffuse share); it falls with wavelength under every sun."""
+    from torchskin.dataset.files import dataset_bands
+
+    skies = training_skies(tiny_dataset, "line", dataset_bands(tiny_dataset))
+    assert skies is not None and 2 <= len(skies.zenith_deg) <= 12 * 3 and bool((skies.zenith_deg.diff() >= 0).all())
+    assert torch.allclose(skies.sky[:, 0], skies.diffuse_share, atol=1e-6)
+    assert bool((skies.sky.diff(dim=1) < 0).all())
 
 
 def test_learning_needs_both_classes():

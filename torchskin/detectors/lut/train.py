@@ -6,7 +6,9 @@ Positives are the dataset's skin pixels, sunlit and shadowed. Negatives are its 
 ground and confusers of the training partition) and the earthlib *train* spectra under random configurations
 over the training domain, at random brightness (a Lambertian surface tilted or shaded: times 0.2 to 1.5),
 weighing all together at most as much as the dataset's non-skin pixels. Each spectrum's draws form a Latin
-hypercube over the configuration and the brightness (``latin_hypercube``): they cover each range evenly.
+hypercube over the configuration and the brightness (``latin_hypercube``): they cover each range evenly. Under a
+dataset lit by SPECTRL2, the draws take the dataset's own suns (``training_skies``), and half of them lie in shade:
+lit by the sky alone, which tilts a spectrum towards the blue (``SHADE_SHARE``).
 LightGBM runs on one thread with ``deterministic=True`` and without row bagging: the same rows and seed give the
 same trees on any x86-64 CPU. The seed enters through the earthlib negatives' configurations and brightness, and
 through the draw of rows on a dataset larger than ``max_rows``.
@@ -24,6 +26,7 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -34,6 +37,7 @@ from ..features import (
     DIFFUSE_SHARE,
     FEATURES,
     MIN_REFLECTANCE,
+    diffuse_share,
     domain_from_manifest,
     earthlib_reflectance,
     feature_columns,
@@ -52,13 +56,22 @@ LEARNER = {"objective": "binary", "learning_rate": 0.1, "num_leaves": 63, "min_d
            "num_threads": 1, "verbose": -1}
 #: learners per training, each on its own draw of the earthlib negatives; the table holds their mean score. On
 #: ``make demo``'s data one learner left five training seeds 0.0108 apart in Pd at sun >= 60 degrees (the draw moves
-#: single cells' scores, and the calibrated level with them); two brought that to 0.0057 (docs/benchmarks.md)
+#: single cells' scores, and the calibrated level with them); two brought that to 0.0057, and to 0.0114 once half
+#: the negatives lay in shade (docs/benchmarks.md)
 ENSEMBLE = 2
 #: the most draws of the earthlib train spectra (each spectrum under its own random configuration and brightness
 #: per draw); fewer for a small dataset: about as many rows as the dataset has
 EARTHLIB_DRAWS = 100
 #: brightness range of the earthlib negatives (a factor on the measured spectrum)
 EARTHLIB_SCALE = (0.2, 1.5)
+#: the share of each earthlib spectrum's draws that lie in shade, given the training suns (``training_skies``). A
+#: surface in shade reads, after the empirical line (fitted on sunlit panels), its reflectance times its sky view V
+#: times the sky's share of the panels' light in each band: the blue sky makes that share fall from 544 to 1580 nm,
+#: and a shaded bare soil can take skin's NDSI. With flat draws only, the table called 3.5 % of the earthlib test
+#: spectra skin in shade (``scripts/shade_check.py``; docs/benchmarks.md)
+SHADE_SHARE = 0.5
+#: the sky view V of a shaded earthlib draw (uniform)
+SKY_VIEW = (0.3, 1.0)
 #: brightness factors at which the earthlib train spectra are placed in the table for the margin
 #: (``earthlib_cells``): log-spaced from a deep shadow to a surface facing the sun at twice the panels' light
 MARGIN_SCALES = (0.05, 2.0, 40)
@@ -83,20 +96,78 @@ def learner_features(R: np.ndarray, X: np.ndarray) -> np.ndarray:
     return np.concatenate([R, nds, log_b[:, None], np.asarray(X, np.float64)], 1)
 
 
-def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin: int,
-                       g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, float]:
+@dataclass(frozen=True)
+class Skies:
+    """The light of a dataset's suns (``training_skies``), sorted by zenith, float64: each sun's zenith (S,) in
+    degrees, its diffuse share at 544 nm (S,) (the ``diffuse_share`` feature; NaN where the dataset has no band
+    there) and the sky's share of an open horizontal surface's light, D / (B cos(zenith) + D), in each band (S, n)."""
+
+    zenith_deg: torch.Tensor
+    diffuse_share: torch.Tensor
+    sky: torch.Tensor
+
+
+def training_skies(data_dir: Any, frames: str, bands: BandSet) -> Skies | None:
+    """The ``Skies`` of a dataset's suns (the frames ``frames`` names): each distinct sun's zenith and atmosphere
+    through the SPECTRL2 light model (``render.light.light_tables``) in ``bands``. None for a dataset under another
+    light model (the "thesis" lamp's grey sky tilts nothing)."""
+    from ...dataset.config import LIGHT_ATMOSPHERE
+    from ...dataset.files import manifest, read_rows
+    from ...render.light import light_tables
+    from ...render.scene import Atmosphere, Sun
+
+    if (manifest(data_dir) or {}).get("light_model") != "spectrl2":
+        return None
+    rows = read_rows(data_dir, ["group", "sun", "sun_zenith_deg", "sky_fraction", *LIGHT_ATMOSPHERE], frames)
+    key = rows["group"].astype(np.int64) * 65536 + rows["sun"].astype(np.int64)
+    first = np.unique(key, return_index=True)[1]
+    zen = rows["sun_zenith_deg"][first].astype(np.float64)
+    order = np.argsort(zen, kind="stable")
+    first, zen = first[order], zen[order]
+
+    def atmosphere(i: int) -> Atmosphere:
+        values: dict[str, Any] = {k: int(rows[k][i]) if k == "day_of_year" else float(rows[k][i])
+                                  for k in LIGHT_ATMOSPHERE}
+        return Atmosphere(**values)
+
+    suns = [Sun(zenith_deg=float(rows["sun_zenith_deg"][i]), atmosphere=atmosphere(i)) for i in first]
+    lt = light_tables("spectrl2", suns, bands.bands)
+    share = diffuse_share(rows["sky_fraction"][first], rows["sun_zenith_deg"][first]).astype(np.float64)
+    return Skies(torch.from_numpy(zen), torch.from_numpy(share),
+                 lt.diffuse_horizontal / (lt.direct_horizontal + lt.diffuse_horizontal))
+
+
+def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin: int, g: torch.Generator,
+                       skies: Skies | None = None, features: Sequence[str] = FEATURES
+                       ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """The learner's earthlib negatives: the spectra ``C`` (m, n) drawn ``EARTHLIB_DRAWS`` times at most (about
-    ``rows`` rows in all), each under a random configuration of ``domain`` (k, 2) and a random brightness
-    (``EARTHLIB_SCALE``, log-uniform), from ``g``: a Latin hypercube of draws per spectrum. Returns reflectance,
-    configuration and the weight of each: all together they weigh at most as much as the dataset's ``nonskin``
-    pixels."""
+    ``rows`` rows in all), each under a random configuration of ``domain`` (k, 2; the columns ``features``) and a
+    random brightness (``EARTHLIB_SCALE``, log-uniform), from ``g``: a Latin hypercube of draws per spectrum.
+
+    With ``skies``, each draw takes one of those suns (its zenith and diffuse share, stratified by zenith), and a
+    ``SHADE_SHARE`` of each spectrum's draws lie in shade: the spectrum times a sky view (``SKY_VIEW``) times the
+    sun's sky share in each band, in place of the brightness. Returns reflectance, configuration and the weight of
+    each: all together they weigh at most as much as the dataset's ``nonskin`` pixels."""
     lo_c, hi_c = domain[:, 0], domain[:, 1]
+    k = len(lo_c)
     draws = min(EARTHLIB_DRAWS, max(1, round(rows / len(C))))
     m = len(C) * draws
-    u = latin_hypercube(len(C), draws, len(lo_c) + 1, g).to(C.dtype)  # (draws, m / draws, k + 1)
-    XC = lo_c + (hi_c - lo_c) * u[..., :-1].reshape(m, -1)
+    u = latin_hypercube(len(C), draws, k + 1 + (skies is not None), g).to(C.dtype)  # (draws, m / draws, dims)
+    XC = lo_c + (hi_c - lo_c) * u[..., :k].reshape(m, -1)
     a, b = EARTHLIB_SCALE
-    RC = C.repeat(draws, 1) * (a * (b / a) ** u[..., -1:].reshape(m, 1))
+    RC = C.repeat(draws, 1) * (a * (b / a) ** u[..., k:k + 1].reshape(m, 1))
+    if skies is not None:
+        zen = list(features).index("sun_zenith_deg") if "sun_zenith_deg" in features else 0
+        S = len(skies.zenith_deg)
+        j = (u[..., zen].reshape(m) * S).long().clamp_max(S - 1)  # the zenith's stratum picks the sun
+        if "sun_zenith_deg" in features:
+            XC[:, zen] = skies.zenith_deg[j].to(C.dtype)
+        if DIFFUSE_SHARE in features:
+            XC[:, list(features).index(DIFFUSE_SHARE)] = skies.diffuse_share[j].to(C.dtype)
+        t = u[..., -1].reshape(m, 1)
+        lo, hi = SKY_VIEW
+        view = lo + (hi - lo) * (t / SHADE_SHARE).clamp(0, 1)
+        RC = torch.where(t < SHADE_SHARE, C.repeat(draws, 1) * view * skies.sky[j].to(C.dtype), RC)
     return RC, XC, min(1.0, nonskin / m)
 
 
@@ -230,14 +301,17 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
           bins: int = 32, trees: int = 300, support_dilation: int = 1, earthlib_margin: int = EARTHLIB_MARGIN,
           max_rows: int = 3_000_000, ensemble: int = ENSEMBLE,
           pfa_budget: float = 1e-3, scene_budget: float | None = 1e-4, physical: Any = None,
-          configuration: bool = True, bands: BandSet | None = None) -> tuple[LookupModel, dict]:
+          configuration: bool = True, bands: BandSet | None = None, skies: Skies | None = None
+          ) -> tuple[LookupModel, dict]:
     """Learn a ``LookupModel`` from pixels: configuration ``X`` (N, k), ELM reflectance ``R`` (N, n) in the
     bands ``bands`` (default the four index bands), skin ``label`` (N,). Pixels not above the brightness floor and non-finite ones are left out; at most ``max_rows``
     remain (a draw from ``seed``). ``physical`` (N,) bool marks the rows of frames whose ELM reflectance is
     physical (``elm_valid``; default: all): the scene budget is held on their non-skin rows, those the evaluation
     judges, while every row teaches the learner. ``configuration=False`` learns without the configuration: one
     table slice for every sun and camera. ``ensemble`` learners, each on its own draw of the earthlib negatives, are
-    baked as their mean score. Returns the model (eval mode) and a training summary."""
+    baked as their mean score. ``skies`` (``training_skies``) lights the earthlib negatives with the dataset's suns,
+    half of them in shade; without it they are lit alike in every band. Returns the model (eval mode) and a
+    training summary."""
     check_options(bins, trees, support_dilation, max_rows, torch.as_tensor(R).shape[-1], earthlib_margin)
     if ensemble < 1:
         raise ValueError(f"ensemble must be at least 1 learner, got {ensemble}")
@@ -278,7 +352,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
         return lgb.train(params, lgb.Dataset(F, y, weight=w, free_raw_data=True), num_boost_round=int(trees))
 
     nonskin = int((~label).sum())
-    draws = [earthlib_negatives(C, model.domain, len(R), nonskin, g) for _ in range(ensemble)]
+    draws = [earthlib_negatives(C, model.domain, len(R), nonskin, g, skies, model.features) for _ in range(ensemble)]
     # each learner runs on one thread (the same trees on any CPU); the ensemble's learners run side by side
     with ThreadPoolExecutor(max_workers=min(ensemble, os.cpu_count() or 1)) as pool:
         boosters = list(pool.map(fit, draws))
@@ -307,7 +381,7 @@ def learn(X: Any, R: Any, label: Any, seed: int = 0, domain: Any = None, feature
             "earthlib_margin_cells": int((near & where).sum()),
             "options": {"bins": bins, "trees": trees, "support_dilation": support_dilation,
                         "earthlib_margin": earthlib_margin, "max_rows": max_rows, "ensemble": ensemble,
-                        "seed": seed, "configuration": bool(configuration),
+                        "seed": seed, "configuration": bool(configuration), "shade": skies is not None,
                         "diffuse_share": DIFFUSE_SHARE in model.features, "learner": params}}
     return model, info
 
@@ -383,7 +457,8 @@ def train_on_dataset(req: Any) -> tuple[LookupModel, dict, str]:
                         trees=o["trees"], support_dilation=o["support_dilation"],
                         earthlib_margin=o["earthlib_margin"], max_rows=o["max_rows"],
                         pfa_budget=req.pfa_budget, scene_budget=req.scene_budget if req.use_scene else None,
-                        physical=physical, configuration=o["configuration"])
+                        physical=physical, configuration=o["configuration"],
+                        skies=training_skies(req.data, req.frames, bands))
     info["frames"] = req.frames
     info["light_classes"] = ["sunlit", "shadow"]
     note = ("; the dataset records no diffuse share (it has no band at 544 nm): the table takes the sun and camera "
@@ -400,6 +475,7 @@ def bins_text(model: LookupModel) -> str:
     return f"{model.bins}^{model.n_bands} cells"
 
 
-__all__ = ["ENSEMBLE", "EARTHLIB_DRAWS", "EARTHLIB_MARGIN", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS", "earthlib_cells", "earthlib_negatives", "latin_hypercube", "bake", "check_options", "learn", "learner_features", "load_rows",
-           "slice_centres",
-           "support", "table_range", "train_on_dataset", "tune_threshold"]
+__all__ = ["ENSEMBLE", "EARTHLIB_DRAWS", "EARTHLIB_MARGIN", "EARTHLIB_SCALE", "LEARNER", "MARGIN_SCALES", "MAX_CELLS",
+           "SHADE_SHARE", "SKY_VIEW", "Skies", "bake", "check_options", "earthlib_cells", "earthlib_negatives",
+           "latin_hypercube", "learn", "learner_features", "load_rows", "slice_centres", "support", "table_range",
+           "train_on_dataset", "training_skies", "tune_threshold"]
