@@ -29,9 +29,9 @@ BOX_EXPORTS = {"--model": "boundaries", "--baseline": "baseline_box"}
 #: skin) may differ from a reference run by this much: the bar the learners are held to over training seeds,
 #: and what a machine with other float rounding amounts to (measured five-seed spread of held-out sunlit Pd on
 #: the demo data: boxes 0.0011, classifier 0.0077; the lookup table's five-seed spread on the fresh test set is
-#: 0.0059 sunlit and 0.0114 at sun >= 60°: docs/benchmarks.md; its training, seed 0 here, is byte-identical on any
-#: x86-64 CPU). Datasets are bit-identical on one CPU capability; the box and classifier models are not across
-#: machines.
+#: 0.0059 sunlit and 0.0114 at sun >= 60°: docs/benchmarks.md; its training, seed 0 here, gave the same bytes
+#: under AVX2 and AVX-512). Datasets are bit-identical on one CPU capability; the box and classifier models are
+#: not across machines.
 PD_TOLERANCE = 0.01
 #: false-alarm rates must stay within half a budget of the reference (measured five-seed spread of the
 #: classifier: earthlib test 2.9e-4 of 1e-3, scene non-skin 3e-5 of 1e-4; boxes: 0 and 0), and the shipped

@@ -5,19 +5,25 @@
 
 A surface in the open reads, after the empirical line (fitted on sunlit panels), about its own reflectance times a
 geometric factor: every band alike. A surface in shade is lit by the sky alone. It reads its reflectance times its
-sky view V times the sky's share of the panels' light, D / (B cos(sun zenith) + D), band by band. The clear sky is
-blue, so that share falls from the green band to 1580 nm: shade tilts a spectrum. It can give a bare soil skin's
-high NDSI.
+sky view V times the sky's share of the panels' light, band by band. The clear sky is blue, so that share falls
+from the green band to 1580 nm: shade tilts a spectrum. It can give a bare soil skin's high NDSI.
 
 Each earthlib spectrum of a partition is drawn ``--draws`` times under the suns of ``--data`` (their zenith and
 atmosphere: the SPECTRL2 light of that dataset in its bands, ``detectors.lut.train.training_skies``), a random camera
-zenith (0-90°) and relative azimuth (0-180°), and a random factor (open sun) or sky view (shade) V in [0.3, 1]. Each
-model judges the drawn pixels with its own configuration inputs (the diffuse share is the sun's, at 544 nm); the
-pixels at or below the brightness floor are not judged. Prints a Markdown table: per model and partition, the share
-of draws called skin in the open sun and in shade, and the earthlib classes of the shaded false alarms.
+zenith (0-90°) and relative azimuth (0-180°), and a random V in [0.3, 1] (the open sun's geometric factor, or the
+shaded surface's sky view). Three lights:
 
-The light is simplified: no light from the ground, an isotropic sky, a horizontal panel. Default models:
-exports/detector.onnx and the thesis's static box."""
+- open sun: the spectrum times V;
+- shade as the ``lut`` kind trains on it: times V and the whole diffuse light's share, D / (B cos(zenith) + D)
+  (``Skies.sky``: the circumsolar part of D included);
+- cast shadow: times V and the isotropic sky's share alone (``Skies.shadow``), as the renderer shades a shadow
+  (the circumsolar light is blocked with the sun): darker and bluer.
+
+No light from the ground enters either shade, which makes both bluer than a shadow on open ground. Each model
+judges the drawn pixels in its own bands, with its own configuration inputs (the diffuse share is the sun's, at
+544 nm); pixels at or below the brightness floor are not judged. Prints a Markdown table: per model and partition,
+the share of draws called skin under each light, and the earthlib classes of the cast-shadow false alarms. Default
+models: exports/detector.onnx and the thesis's static box."""
 
 from __future__ import annotations
 
@@ -29,13 +35,20 @@ from pathlib import Path
 import torch
 
 from torchskin.confusers import band_reflectance, library
-from torchskin.dataset.files import dataset_bands, manifest
+from torchskin.dataset.files import dataset_bands, manifest, require_bands
 from torchskin.detectors.features import DIFFUSE_SHARE, MIN_REFLECTANCE
 from torchskin.detectors.lut.train import SKY_VIEW, training_skies
 from torchskin.evaluation import load_candidate
 
-#: the range of the open-sun factor and of the shaded surface's sky view (as the lut's training draws them)
+#: the open sun's geometric factor and the shaded surface's sky view, uniform (the lut's shaded draws' range)
 VIEW = SKY_VIEW
+#: configuration inputs this check can give a model
+CONFIG = ("sun_zenith_deg", "camera_zenith_deg", "relative_azimuth_deg", DIFFUSE_SHARE, "range_m")
+
+
+def fail(text: str) -> int:
+    print(f"shade_check: error: {text}", file=sys.stderr)
+    return 2
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -45,61 +58,63 @@ def run(argv: list[str] | None = None) -> int:
     ap.add_argument("--draws", type=int, default=20, help="draws per earthlib spectrum")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
-    data = Path(a.data)
-    if manifest(data) is None:
-        print(f"shade_check: error: --data {a.data!r} is not a torchskin dataset", file=sys.stderr)
-        return 2
-    if manifest(data).get("light_model") != "spectrl2":
-        print(f"shade_check: error: --data {a.data!r} is not lit by SPECTRL2 (its sky has no colour)", file=sys.stderr)
-        return 2
     if a.draws < 1:
-        print(f"shade_check: error: --draws must be at least 1, got {a.draws}", file=sys.stderr)
-        return 2
-    models = a.model or ["exports/detector.onnx", "static"]
+        return fail(f"--draws must be at least 1, got {a.draws}")
+    data = Path(a.data)
     try:
-        cands = [load_candidate(p) for p in models]
+        m = manifest(data)
+        if m is None:
+            return fail(f"--data {a.data!r} is not a torchskin dataset")
+        if m.get("light_model") != "spectrl2":
+            return fail(f"--data {a.data!r} is not lit by SPECTRL2 (its sky has no colour)")
+        cands = [load_candidate(p) for p in (a.model or ["exports/detector.onnx", "static"])]
+        have = list(dataset_bands(data).centers)
+        for c in cands:  # each model's bands, before any row is read
+            require_bands(data, c.bands, "the static thesis box" if c.kind == "static" else f"--model {c.name}")
+            unknown = [f for f in c.features if f not in CONFIG]
+            if unknown:
+                return fail(f"--model {c.name} takes {', '.join(unknown)}, which this check does not draw")
+        skies = training_skies(data, "line", dataset_bands(data))
     except ValueError as e:
-        print(f"shade_check: error: {e}", file=sys.stderr)
-        return 2
-    bands = dataset_bands(data)
-    skies = training_skies(data, "line", bands)
-    assert skies is not None  # a SPECTRL2 dataset
-    zen, share, sky = skies.zenith_deg, skies.diffuse_share, skies.sky
+        return fail(str(e))
+    if skies is None or len(skies.zenith_deg) == 0:
+        return fail(f"--data {a.data!r} has no frame with a sunlit empirical line (no sun to light the draws)")
+    zen, share = skies.zenith_deg, skies.diffuse_share
     takes_share = [c.name for c in cands if DIFFUSE_SHARE in c.features]
     if takes_share and not bool(share.isfinite().all()):
-        print(f"shade_check: error: {', '.join(takes_share)} {'takes' if len(takes_share) == 1 else 'take'} the diffuse share, which --data {a.data!r} does not "
-              "record (no band at 544 nm)", file=sys.stderr)
-        return 2
+        return fail(f"{', '.join(takes_share)} {'takes' if len(takes_share) == 1 else 'take'} the diffuse share, "
+                    f"which --data {a.data!r} does not record (no band at 544 nm)")
     g = torch.Generator().manual_seed(a.seed)
-    print(f"{len(zen)} suns of {data}; sky share of the light, mean per band "
-          + ", ".join(f"{c:g} nm {v:.3f}" for c, v in zip(bands.centers, sky.mean(0).tolist())), flush=True)
-    lines = ["| model | partition | called skin in the open sun | in shade | classes of the shaded false alarms |",
-             "|---|---|---|---|---|"]
+    print(f"{len(zen)} suns of {data}; the panels' light from the sky, mean per band (whole diffuse / isotropic "
+          "sky): " + ", ".join(f"{c:g} nm {v:.3f} / {w:.3f}"
+                               for c, v, w in zip(have, skies.sky.mean(0).tolist(), skies.shadow.mean(0).tolist())),
+          flush=True)
+    lines = ["| model | partition | called skin in the open sun | in shade, as the lut trains | in a cast shadow | "
+             "classes of the cast-shadow false alarms |", "|---|---|---|---|---|---|"]
     for part in ("train", "test"):
-        names, C = band_reflectance(list(bands.centers), part)
+        names, C = band_reflectance(have, part)
         classes = dict(zip(*library(part)[:2]))
-        C = C.double()
-        m, k = len(C), a.draws
-        j = torch.randint(len(zen), (k, m), generator=g).reshape(-1)
-        cam = torch.rand(k * m, generator=g, dtype=torch.float64) * 90.0
-        rel = torch.rand(k * m, generator=g, dtype=torch.float64) * 180.0
+        n, k = len(C), a.draws
+        j = torch.randint(len(zen), (k * n,), generator=g)
+        values = {"sun_zenith_deg": zen[j], "camera_zenith_deg": torch.rand(k * n, generator=g, dtype=torch.float64) * 90,
+                  "relative_azimuth_deg": torch.rand(k * n, generator=g, dtype=torch.float64) * 180,
+                  DIFFUSE_SHARE: share[j], "range_m": torch.full((k * n,), 50.0, dtype=torch.float64)}
         lo, hi = VIEW
-        v = lo + (hi - lo) * torch.rand(k * m, 1, generator=g, dtype=torch.float64)
-        R = C.repeat(k, 1)
-        lit = {"sun": (R * v).float(), "shade": (R * v * sky[j]).float()}
-        values = {"sun_zenith_deg": zen[j], "camera_zenith_deg": cam, "relative_azimuth_deg": rel,
-                  DIFFUSE_SHARE: share[j], "range_m": torch.full_like(cam, 50.0)}
+        R = C.double().repeat(k, 1) * (lo + (hi - lo) * torch.rand(k * n, 1, generator=g, dtype=torch.float64))
+        lights = {"sun": R, "trained": R * skies.sky[j], "shadow": R * skies.shadow[j]}
         for c in cands:
-            X = torch.stack([values[f] for f in c.features], 1).float() if c.features else torch.zeros(k * m, 0)
+            cols = [min(range(len(have)), key=lambda i: abs(have[i] - b)) for b in c.bands]
+            X = torch.stack([values[f] for f in c.features], 1).float() if c.features else torch.zeros(k * n, 0)
             called = {}
-            for light, Rl in lit.items():
-                judged = Rl.mean(1) > MIN_REFLECTANCE
-                called[light] = c.decide(Rl, X).bool() & judged
-            top = Counter(classes[names[i % m]] for i in torch.nonzero(called["shade"]).squeeze(1).tolist())
-            n_shade = int(called["shade"].sum())
-            words = ", ".join(f"{cls} {n / max(n_shade, 1):.0%}" for cls, n in top.most_common(3)) or "none"
-            lines.append(f"| {c.name} | {part} ({m} spectra x {k}) | {float(called['sun'].float().mean()):.2e} | "
-                         f"{float(called['shade'].float().mean()):.2e} | {words} |")
+            for light, Rl in lights.items():
+                Rc = Rl[:, cols].float()
+                called[light] = c.decide(Rc, X).bool() & (Rc.mean(1) > MIN_REFLECTANCE)
+            hits = torch.nonzero(called["shadow"]).squeeze(1).tolist()
+            top = Counter(classes[names[i % n]] for i in hits)
+            words = ", ".join(f"{cls} {v / len(hits):.0%}" for cls, v in top.most_common(3)) or "none"
+            share_of = {light: float(v.float().mean()) for light, v in called.items()}
+            lines.append(f"| {c.name} | {part} ({n} spectra x {k}) | {share_of['sun']:.2e} | {share_of['trained']:.2e} "
+                         f"| {share_of['shadow']:.2e} | {words} |")
     print("\n".join(lines))
     return 0
 

@@ -300,7 +300,7 @@ def test_shaded_earthlib_negatives_are_lit_by_the_sky_alone_under_the_training_s
     domain = torch.tensor([[0.0, 80.0], [0.0, 60.0], [0.0, 180.0], [0.0, 1.0]])
     sky = torch.tensor([[0.1, 0.08, 0.04, 0.02], [0.3, 0.25, 0.12, 0.07], [0.6, 0.5, 0.3, 0.2],
                         [0.8, 0.75, 0.5, 0.4], [0.95, 0.9, 0.8, 0.7]], dtype=torch.float64)
-    skies = Skies(torch.tensor([10.0, 35.0, 55.0, 70.0, 85.0], dtype=torch.float64), sky[:, 0] + 0.001, sky)
+    skies = Skies(torch.tensor([10.0, 35.0, 55.0, 70.0, 85.0], dtype=torch.float64), sky[:, 0] + 0.001, sky, sky * 0.7)
     draws = 20
     RC, XC, _ = earthlib_negatives(C, domain, rows=7 * draws, nonskin=35, g=torch.Generator().manual_seed(3),
                                    skies=skies, features=(*FEATURES, DIFFUSE_SHARE))
@@ -323,15 +323,37 @@ def test_shaded_earthlib_negatives_are_lit_by_the_sky_alone_under_the_training_s
         in_shade, 0]) * (sky[j[in_shade], 3] / sky[j[in_shade], 0]).float(), rtol=1e-5)
 
 
+def test_without_a_sun_zenith_column_the_training_sun_is_drawn_on_its_own():
+    """A table without the sun zenith still takes each draw's sun (and its diffuse share) from the training suns,
+    each as often, on a stratum of its own rather than the first column's; sky shares of other bands are refused."""
+    C = torch.rand(7, 4, generator=torch.Generator().manual_seed(1)) * 0.5 + 0.1
+    domain = torch.tensor([[0.0, 90.0], [0.0, 180.0], [0.0, 1.0]])
+    sky = torch.linspace(0.9, 0.1, 20, dtype=torch.float64).view(5, 4)
+    skies = Skies(torch.arange(5.0, dtype=torch.float64), torch.arange(5.0, dtype=torch.float64) / 10, sky, sky / 2)
+    feats = ("camera_zenith_deg", "relative_azimuth_deg", DIFFUSE_SHARE)
+    _, XC, _ = earthlib_negatives(C, domain, rows=7 * 20, nonskin=35, g=torch.Generator().manual_seed(3),
+                                  skies=skies, features=feats)
+    sun = torch.round(XC[:, 2] * 10).long()
+    assert torch.equal(torch.bincount(sun.view(20, 7)[:, 0], minlength=5), torch.full((5,), 4))
+    assert bool((sun != torch.floor(XC[:, 0] / 90.0 * 5).long()).any())  # not the camera zenith's stratum
+    with pytest.raises(ValueError, match="sky shares hold 3 bands"):
+        earthlib_negatives(C, domain, rows=140, nonskin=35, g=torch.Generator().manual_seed(3),
+                           skies=Skies(skies.zenith_deg, skies.diffuse_share, sky[:, :3], sky[:, :3]), features=feats)
+
+
 def test_the_training_skies_are_the_datasets_suns_and_blue(tiny_dataset):
     """SPECTRL2 for the dataset's suns, recomputed from their zenith and atmosphere, gives the sky share at 544 nm
-    that the renderer recorded (the diffuse share); it falls with wavelength under every sun."""
+    that the renderer recorded (the diffuse share); it falls with wavelength under every sun. The isotropic sky's
+    share (what a cast shadow receives) is smaller and bluer."""
     from torchskin.dataset.files import dataset_bands
 
     skies = training_skies(tiny_dataset, "line", dataset_bands(tiny_dataset))
     assert skies is not None and 2 <= len(skies.zenith_deg) <= 12 * 3 and bool((skies.zenith_deg.diff() >= 0).all())
     assert torch.allclose(skies.sky[:, 0], skies.diffuse_share, atol=1e-6)
     assert bool((skies.sky.diff(dim=1) < 0).all())
+    # a cast shadow hides the sky around the sun too: it gets less of the panels' light, and bluer
+    assert bool(((skies.shadow > 0) & (skies.shadow < skies.sky)).all())
+    assert bool(((skies.shadow[:, -1] / skies.shadow[:, 0]) < (skies.sky[:, -1] / skies.sky[:, 0])).all())
 
 
 def test_learning_needs_both_classes():

@@ -67,8 +67,10 @@ EARTHLIB_SCALE = (0.2, 1.5)
 #: the share of each earthlib spectrum's draws that lie in shade, given the training suns (``training_skies``). A
 #: surface in shade reads, after the empirical line (fitted on sunlit panels), its reflectance times its sky view V
 #: times the sky's share of the panels' light in each band: the blue sky makes that share fall from 544 to 1580 nm,
-#: and a shaded bare soil can take skin's NDSI. With flat draws only, the table called 3.5 % of the earthlib test
-#: spectra skin in shade (``scripts/shade_check.py``; docs/benchmarks.md)
+#: and a shaded bare soil can take skin's NDSI. The draws take the whole diffuse light (``Skies.sky``) and no light
+#: from the ground; a cast shadow, which also hides the sky around the sun, is darker and bluer (``Skies.shadow``).
+#: Measured with ``scripts/shade_check.py`` (docs/benchmarks.md): the earthlib test spectra the table calls skin in
+#: this shade 3.6e-2 with flat draws only, 2.3e-3 with these; in a cast shadow 4.4e-3 and 3.2e-3
 SHADE_SHARE = 0.5
 #: the sky view V of a shaded earthlib draw (uniform)
 SKY_VIEW = (0.3, 1.0)
@@ -100,11 +102,15 @@ def learner_features(R: np.ndarray, X: np.ndarray) -> np.ndarray:
 class Skies:
     """The light of a dataset's suns (``training_skies``), sorted by zenith, float64: each sun's zenith (S,) in
     degrees, its diffuse share at 544 nm (S,) (the ``diffuse_share`` feature; NaN where the dataset has no band
-    there) and the sky's share of an open horizontal surface's light, D / (B cos(zenith) + D), in each band (S, n)."""
+    there), the sky's share of an open horizontal surface's light, D / (B cos(zenith) + D), in each band (S, n), the
+    circumsolar part of D included (``sky``; what the earthlib negatives in shade take), and the share of the
+    isotropic sky alone (``shadow``, (S, n)): what a cast shadow receives from the sky per unit of sky view, as the
+    renderer shades it (``render.light``)."""
 
     zenith_deg: torch.Tensor
     diffuse_share: torch.Tensor
     sky: torch.Tensor
+    shadow: torch.Tensor
 
 
 def training_skies(data_dir: Any, frames: str, bands: BandSet) -> Skies | None:
@@ -133,8 +139,8 @@ def training_skies(data_dir: Any, frames: str, bands: BandSet) -> Skies | None:
     suns = [Sun(zenith_deg=float(rows["sun_zenith_deg"][i]), atmosphere=atmosphere(i)) for i in first]
     lt = light_tables("spectrl2", suns, bands.bands)
     share = diffuse_share(rows["sky_fraction"][first], rows["sun_zenith_deg"][first]).astype(np.float64)
-    return Skies(torch.from_numpy(zen), torch.from_numpy(share),
-                 lt.diffuse_horizontal / (lt.direct_horizontal + lt.diffuse_horizontal))
+    glob = lt.direct_horizontal + lt.diffuse_horizontal
+    return Skies(torch.from_numpy(zen), torch.from_numpy(share), lt.diffuse_horizontal / glob, lt.sky / glob)
 
 
 def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin: int, g: torch.Generator,
@@ -152,15 +158,20 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
     k = len(lo_c)
     draws = min(EARTHLIB_DRAWS, max(1, round(rows / len(C))))
     m = len(C) * draws
-    u = latin_hypercube(len(C), draws, k + 1 + (skies is not None), g).to(C.dtype)  # (draws, m / draws, dims)
+    has_zenith = "sun_zenith_deg" in features
+    dims = k + 1 + (0 if skies is None else 1 if has_zenith else 2)  # without a zenith column the sun has its own
+    u = latin_hypercube(len(C), draws, dims, g).to(C.dtype)  # (draws, m / draws, dims)
     XC = lo_c + (hi_c - lo_c) * u[..., :k].reshape(m, -1)
     a, b = EARTHLIB_SCALE
     RC = C.repeat(draws, 1) * (a * (b / a) ** u[..., k:k + 1].reshape(m, 1))
     if skies is not None:
-        zen = list(features).index("sun_zenith_deg") if "sun_zenith_deg" in features else 0
+        if skies.sky.shape[1] != C.shape[1]:
+            raise ValueError(f"the training suns' sky shares hold {skies.sky.shape[1]} bands, the spectra "
+                             f"{C.shape[1]}")
+        zen = list(features).index("sun_zenith_deg") if has_zenith else k + 1
         S = len(skies.zenith_deg)
         j = (u[..., zen].reshape(m) * S).long().clamp_max(S - 1)  # the zenith's stratum picks the sun
-        if "sun_zenith_deg" in features:
+        if has_zenith:
             XC[:, zen] = skies.zenith_deg[j].to(C.dtype)
         if DIFFUSE_SHARE in features:
             XC[:, list(features).index(DIFFUSE_SHARE)] = skies.diffuse_share[j].to(C.dtype)
