@@ -163,7 +163,8 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
     u = latin_hypercube(len(C), draws, dims, g).to(C.dtype)  # (draws, m / draws, dims)
     XC = lo_c + (hi_c - lo_c) * u[..., :k].reshape(m, -1)
     a, b = EARTHLIB_SCALE
-    RC = C.repeat(draws, 1) * (a * (b / a) ** u[..., k:k + 1].reshape(m, 1))
+    base = C.repeat(draws, 1)  # each draw's spectrum
+    RC = base * (a * (b / a) ** u[..., k:k + 1].reshape(m, 1))
     if skies is not None:
         if skies.sky.shape[1] != C.shape[1]:
             raise ValueError(f"the training suns' sky shares hold {skies.sky.shape[1]} bands, the spectra "
@@ -178,7 +179,7 @@ def earthlib_negatives(C: torch.Tensor, domain: torch.Tensor, rows: int, nonskin
         t = u[..., -1].reshape(m, 1)
         lo, hi = SKY_VIEW
         view = lo + (hi - lo) * (t / SHADE_SHARE).clamp(0, 1)
-        RC = torch.where(t < SHADE_SHARE, C.repeat(draws, 1) * view * skies.sky[j].to(C.dtype), RC)
+        RC = torch.where(t < SHADE_SHARE, base * view * skies.sky[j].to(C.dtype), RC)
     return RC, XC, min(1.0, nonskin / m)
 
 
