@@ -68,11 +68,13 @@ lint: setup
 	$(VENV)/bin/ruff check torchskin tests scripts examples
 	$(VENV)/bin/mypy
 
-# the suite, then the reproducibility tests again with torch's AVX2 kernels (ATEN_CPU_CAPABILITY=avx2: on a CPU
+# the suite in two pytest-xdist workers of one torch thread each (TEST_WORKERS; whole files per worker: a module's
+# fixtures are built once), then the reproducibility tests again with torch's AVX2 kernels (ATEN_CPU_CAPABILITY=avx2: on a CPU
 # with AVX-512 the first run used those; each run ends with a line naming the capability it used; on a CPU whose
 # best is AVX2 the first run used those, and the second is skipped: it would run the same kernels)
+TEST_WORKERS ?= 2
 test: lint
-	@$(PY) -m pytest -q; rc=$$?; \
+	@$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing" >&2; exit 1; fi; \
 	if [ $$rc -ne 0 ]; then exit $$rc; fi
 	@if [ "$$($(PY) -c 'import torch; print(torch.backends.cpu.get_cpu_capability())')" = AVX2 ]; then \

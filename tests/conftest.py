@@ -1,5 +1,11 @@
+import os
+
 import pytest
 import torch
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # `pytest -n 2`: one intra-op thread per worker (and per CLI it runs)
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 
 def available_devices():
@@ -40,7 +46,11 @@ def pytest_report_header(config):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    terminalreporter.write_line(capability_line())  # also under -q, which leaves the header out
+    line = capability_line()  # also under -q, which leaves the header out
+    workers = getattr(config.option, "numprocesses", None)
+    if workers:  # the tests ran in the workers, one thread each (above)
+        line = line.rsplit(", ", 1)[0] + f", {workers} pytest-xdist workers of 1 intra-op thread"
+    terminalreporter.write_line(line)
 
 
 @pytest.fixture(scope="module")
