@@ -115,3 +115,16 @@ def rows_with_pixels(cfg, master_seed, df):
         px = dist.argmin(1)
         assert (dist[np.arange(len(px)), px] <= 1e-4).all()  # the same float32 angles: the same pixel
         yield k, s, rows, px
+
+
+#: the test files that take longest (``pytest --durations``), scheduled first under ``pytest -n`` (``make test``): the
+#: workers take whole files in collection order, and a long file taken last leaves the other worker idle
+LONG_FILES = ("test_reproducibility.py", "test_readme.py", "test_docs.py", "test_export_shipped.py",
+              "test_boundaries_onnx.py", "test_dataset_generate.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    if not getattr(config.option, "numprocesses", None):
+        return
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
