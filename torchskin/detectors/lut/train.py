@@ -57,7 +57,7 @@ LEARNER = {"objective": "binary", "learning_rate": 0.1, "num_leaves": 63, "min_d
 #: learners per training, each on its own draw of the earthlib negatives; the table holds their mean score. On
 #: ``make demo``'s data one learner left five training seeds 0.0108 apart in Pd at sun >= 60 degrees (the draw moves
 #: single cells' scores, and the calibrated level with them); two brought that to 0.0057, but 0.0114 once half the
-#: negatives lay in shade; hence four (docs/benchmarks.md has the five seeds). Two learners fit at a time on two cores
+#: negatives lay in shade; four, 0.0082 (docs/benchmarks.md). Two learners fit at a time on two cores
 ENSEMBLE = 4
 #: the most draws of the earthlib train spectra (each spectrum under its own random configuration and brightness
 #: per draw); fewer for a small dataset: about as many rows as the dataset has
