@@ -124,7 +124,7 @@ LONG_FILES = ("test_reproducibility.py", "test_readme.py", "test_docs.py", "test
 
 
 def pytest_collection_modifyitems(session, config, items):
-    if not getattr(config.option, "numprocesses", None):
+    if not os.environ.get("PYTEST_XDIST_WORKER"):  # the workers collect; the controller schedules their order
         return
     rank = {name: i for i, name in enumerate(LONG_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
